@@ -1,0 +1,41 @@
+# Two commands set up and run everything on a fresh Debian 12 machine:
+#   make demo   - system packages, .venv, the project, then the demo on the built-in patient
+#   make test   - the same set-up, then the test suite
+# Each step is skipped when its result is already there, so a second run starts at once.
+
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+# Debian packages: libsystemd-dev and pkg-config build systemd-python; dicom3tools gives
+# dciodvfy, which checks exported dose reports; systemd gives systemd-analyze for unit checks.
+APT_PACKAGES := libsystemd-dev pkg-config dicom3tools systemd python3-venv
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+
+.PHONY: demo test setup system-packages bench clean
+
+demo: setup
+	$(BIN)/fluorosim demo
+
+test: setup
+	$(BIN)/python -m pytest
+
+setup: system-packages $(VENV)/.installed
+
+system-packages:
+	@missing=$$(for p in $(APT_PACKAGES); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null | grep -q '^install ok installed' || echo $$p; done); \
+	if [ -n "$$missing" ]; then \
+		echo "Installing system packages:" $$missing; \
+		$(SUDO) apt-get update -q && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q $$missing; \
+	fi
+
+$(VENV)/.installed: pyproject.toml
+	[ -x $(BIN)/python ] || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e '.[test]'
+	touch $@
+
+bench: setup
+	$(BIN)/fluorosim bench all
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache

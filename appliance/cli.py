@@ -1,0 +1,59 @@
+"""The `fluorosim` command.
+
+Each area of the appliance adds its subcommands through a `register(commands, benches)`
+function in its `commands.py`; this module only builds the parser, runs the chosen
+command and turns a person's mistake into one line on stderr and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from . import __version__
+from .config.yamlfile import ProfileProblems
+from .errors import FluorosimError
+
+#: Modules whose `register(commands, benches)` adds subcommands, in the order `--help` lists them.
+COMMAND_MODULES = (
+    "appliance.config.commands",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="fluorosim",
+        description="Fluoroscopy training appliance: a tracked box phantom, a virtual 4D patient, "
+                    "real-time X-ray rendering, a clinical console and a dose ledger.",
+        epilog="Run 'fluorosim COMMAND --help' for the options of one command.",
+    )
+    parser.add_argument("--version", action="version", version=f"fluorosim {__version__}")
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    bench = commands.add_parser("bench", help="measure speed and accuracy figures",
+                                description="Benchmarks on this machine; each prints medians and writes nothing outside --out.")
+    benches = bench.add_subparsers(dest="bench", metavar="BENCHMARK", required=True)
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(commands, benches)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.run(args) or 0)
+    except ProfileProblems as e:
+        for problem in e.problems:
+            print(problem, file=sys.stderr)
+        return 2
+    except FluorosimError as e:
+        print(f"fluorosim: {e}", file=sys.stderr)
+        return e.exit_code
+    except KeyboardInterrupt:
+        print("fluorosim: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,65 @@
+"""The appliance itself: which profiles are active, which devices to open, where data goes.
+
+Paths are relative to the directory of the file that names them.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from .base import Section
+
+
+class Camera(Section):
+    source: str = Field(description="'synthetic' (built-in renderer of the box), a V4L2 device path "
+                                    "(/dev/fluorosim/camera, /dev/v4l/by-id/...), or a video file or image folder.")
+    webcam: str = Field(description="Webcam intrinsics profile (configs/webcams/*.yaml).")
+    width: int = Field(1280, gt=0, le=8192, description="Requested capture width (pixels).")
+    height: int = Field(720, gt=0, le=8192, description="Requested capture height (pixels).")
+    fps: float = Field(30.0, gt=0, le=240, description="Requested frame rate (1/s).")
+    fourcc: Literal["MJPG", "YUYV"] = Field("MJPG", description="Pixel format asked of the V4L2 device.")
+    trajectory: str | None = Field(None, description="Synthetic camera only: scripted intensifier path (JSONL), relative to this file.")
+
+
+class Keypad(Section):
+    source: str = Field(description="'none', 'scripted', an evdev device (path, udev symlink, or 'name:TEXT'), "
+                                    "or 'hid:VVVV:PPPP' (USB vendor:product, hex) for hidapi keypads.")
+    script: str | None = Field(None, description="Scripted source only: JSONL timeline of key and pedal events, relative to this file.")
+    grab: bool = Field(True, description="Take the evdev device exclusively so key presses do not reach a console.")
+
+
+class Pedal(Section):
+    source: str = Field("none", description="'none', 'scripted' (events come from the keypad script), or a serial port "
+                                            "(/dev/fluorosim/pedal, /dev/serial/by-id/...).")
+    baud: int = Field(9600, gt=0, description="Serial speed (bit/s).")
+    press_line: str = Field("DOWN", min_length=1, description="Line the pedal sends when pressed.")
+    release_line: str = Field("UP", min_length=1, description="Line the pedal sends when released.")
+    heartbeat_line: str = Field("HB", min_length=1, description="Line the pedal sends periodically while connected.")
+    silence_timeout_s: float = Field(0.5, gt=0, le=10, description="With no line for this long the pedal counts as released (s).")
+
+
+class Display(Section):
+    target: str = Field(description="A framebuffer device (/dev/fb0), or 'file' for a raw file of explicit geometry.")
+    path: str | None = Field(None, description="File target only: the file, relative to data_dir unless absolute.")
+    width: int = Field(1280, gt=0, le=8192, description="File target only: width (pixels).")
+    height: int = Field(1024, gt=0, le=8192, description="File target only: height (pixels).")
+    bpp: Literal[16, 24, 32] = Field(32, description="File target only: bits per pixel.")
+
+
+class Devices(Section):
+    camera: Camera
+    keypad: Keypad
+    pedal: Pedal = Field(default_factory=Pedal)
+    display: Display
+
+
+class ApplianceProfile(Section):
+    fluoroscope: str = Field(description="Active fluoroscope profile (configs/fluoroscopes/*.yaml).")
+    case: str = Field(description="Active case (configs/cases/*.yaml).")
+    phantom: str = Field(description="Box phantom profile (configs/phantoms/*.yaml).")
+    keymap: str = Field(description="Keypad map (configs/keymaps/*.yaml).")
+    operator: str = Field("trainee", min_length=1, description="Default operator name recorded with each session.")
+    devices: Devices
+    data_dir: str = Field(description="Ledger, logs, saved images and caches live here; relative to this file unless absolute.")

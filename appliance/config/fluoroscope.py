@@ -1,0 +1,150 @@
+"""The profile of one fluoroscope: detector, geometry, intrinsics, zoom, tube, dose, display.
+
+A service technician edits this file (`fluorosim profile edit`); `fluorosim calibrate xray`
+rewrites the intrinsics, distortion and `T_xray_from_webcam` in place.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from ..geometry import camera_matrix
+from .base import IDENTITY, RigidTransform, Section, matrix
+
+
+class Detector(Section):
+    kind: Literal["image_intensifier", "flat_panel"] = Field(
+        description="An image intensifier has a circular field of view and vignetting; a flat panel is rectangular.")
+    columns: int = Field(gt=0, le=8192, description="Image width (pixels).")
+    rows: int = Field(gt=0, le=8192, description="Image height (pixels).")
+    pixel_pitch_mm: float = Field(gt=0, le=5, description="Pixel size at the detector (input phosphor) plane at the widest field of view (mm).")
+
+
+class Geometry(Section):
+    source_to_image_mm: float = Field(gt=100, le=3000, description="Focal spot to detector plane distance, SID (mm).")
+    source_to_isocentre_mm: float = Field(gt=50, le=3000, description="Focal spot to the C-arm's isocentre (mm).")
+
+
+class Distortion(Section):
+    """OpenCV's radial-tangential model, the one `cv2.calibrateCamera` estimates."""
+
+    k1: float = Field(0.0, description="Radial coefficient (dimensionless).")
+    k2: float = Field(0.0, description="Radial coefficient (dimensionless).")
+    p1: float = Field(0.0, description="Tangential coefficient (dimensionless).")
+    p2: float = Field(0.0, description="Tangential coefficient (dimensionless).")
+    k3: float = Field(0.0, description="Radial coefficient (dimensionless).")
+
+    def coefficients(self) -> np.ndarray:
+        return np.array([self.k1, self.k2, self.p1, self.p2, self.k3])
+
+
+class Intrinsics(Section):
+    status: Literal["nominal", "calibrated"] = Field(
+        description="'nominal' until `fluorosim calibrate xray` has measured this machine.")
+    fx: float = Field(gt=0, description="Focal length along columns: SID / pixel pitch (pixels).")
+    fy: float = Field(gt=0, description="Focal length along rows (pixels).")
+    cx: float = Field(description="Principal point column (pixels).")
+    cy: float = Field(description="Principal point row (pixels).")
+    distortion: Distortion = Field(default_factory=Distortion, description="Intensifier pincushion distortion.")
+    calibrated_on: str | None = Field(None, description="Date of the calibration that produced these numbers (ISO 8601).")
+    rms_px: float | None = Field(None, ge=0, description="Reprojection RMS of that calibration (pixels).")
+
+    def K(self) -> np.ndarray:
+        return camera_matrix(self.fx, self.fy, self.cx, self.cy)
+
+
+class ZoomLevel(Section):
+    fov_mm: float = Field(gt=0, le=600, description="Field-of-view diameter at the detector plane (mm).")
+    air_kerma_rate_mgy_per_min: dict[str, float] = Field(
+        description="Reference air-kerma rate for each mode named in tube.modes (mGy/min).")
+
+    @model_validator(mode="after")
+    def _positive_rates(self):
+        for mode, rate in self.air_kerma_rate_mgy_per_min.items():
+            if not rate > 0:
+                raise ValueError(f"air_kerma_rate_mgy_per_min.{mode} must be greater than 0")
+        return self
+
+
+class Collimator(Section):
+    min_opening_mm: float = Field(gt=0, description="Smallest blade opening, at the detector plane (mm).")
+    step_mm: float = Field(gt=0, description="How far one open/close key press moves each blade pair, at the detector plane (mm).")
+
+
+class Mode(Section):
+    name: str = Field(min_length=1, description="Shown on screen and used as a key in the dose table, e.g. 'continuous', 'pulsed-15'.")
+    pulse_rate_per_s: float | None = Field(None, gt=0, le=60, description="Pulses per second; omit for continuous fluoroscopy (1/s).")
+
+
+class Tube(Section):
+    kvp: float = Field(ge=40, le=150, description="Tube peak voltage (kV).")
+    ma: float = Field(gt=0, le=100, description="Tube current during fluoroscopy (mA).")
+    filtration_mm_al: float = Field(ge=0, le=20, description="Total filtration in aluminium equivalent (mm Al).")
+    focal_spot_mm: float = Field(gt=0, le=3, description="Nominal focal spot size (mm).")
+    pulse_width_ms: float = Field(gt=0, le=100, description="Exposure per pulse in pulsed modes (ms).")
+    modes: list[Mode] = Field(min_length=1, description="Fluoroscopy modes offered by the console, first is the default.")
+
+    @model_validator(mode="after")
+    def _unique_modes(self):
+        names = [m.name for m in self.modes]
+        if len(set(names)) != len(names):
+            raise ValueError(f"modes: names must be unique, got {names}")
+        return self
+
+
+class Dose(Section):
+    reference_point_from_isocentre_mm: float = Field(
+        150.0, ge=0, description="Patient entrance reference point, toward the source from the isocentre (mm; IEC 60601-2-43 uses 150).")
+    alarm_period_s: float = Field(300.0, gt=0, description="Cumulative fluoroscopy time between audible alarms (s; 21 CFR 1020.32 requires 300).")
+
+
+class Display(Section):
+    window: float = Field(gt=0, description="Display window width on the log-attenuation image (dimensionless, line-integral units).")
+    level: float = Field(description="Display window centre on the log-attenuation image (dimensionless).")
+    invert: bool = Field(False, description="Start with bone dark instead of bright.")
+    noise: bool = Field(True, description="Add quantum noise set by mA and pulse width.")
+
+
+class Webcam(Section):
+    T_xray_from_webcam: RigidTransform = Field(IDENTITY, description="Pose of the webcam in the X-ray frame (4x4, mm), from `fluorosim calibrate xray`.")
+    status: Literal["nominal", "calibrated"] = Field("nominal", description="'nominal' until measured.")
+
+
+class FluoroscopeProfile(Section):
+    name: str = Field(min_length=1, description="Shown on screen and recorded with each session.")
+    manufacturer: str = Field("", description="Recorded in DICOM exports.")
+    model: str = Field("", description="Recorded in DICOM exports.")
+    detector: Detector
+    geometry: Geometry
+    intrinsics: Intrinsics
+    zoom_levels: list[ZoomLevel] = Field(min_length=4, max_length=4, description="Four fields of view, widest first.")
+    collimator: Collimator
+    tube: Tube
+    dose: Dose = Field(default_factory=Dose)
+    display: Display
+    webcam: Webcam = Field(default_factory=Webcam)
+
+    def problems(self):
+        """Checks across fields, as (location, message) pairs so errors point at the right line."""
+        if self.geometry.source_to_isocentre_mm >= self.geometry.source_to_image_mm:
+            yield ("geometry", "source_to_isocentre_mm"), "must be less than source_to_image_mm"
+        fovs = [z.fov_mm for z in self.zoom_levels]
+        for i in range(1, len(fovs)):
+            if not fovs[i] < fovs[i - 1]:
+                yield ("zoom_levels", i, "fov_mm"), f"must be less than zoom_levels[{i - 1}].fov_mm ({fovs[i - 1]} mm): zoom levels go from widest to narrowest"
+        widest = max(self.detector.columns, self.detector.rows) * self.detector.pixel_pitch_mm
+        if fovs[0] > widest * 1.0001:
+            yield ("zoom_levels", 0, "fov_mm"), f"{fovs[0]} mm exceeds the detector ({widest:.1f} mm = pixels x pixel_pitch_mm)"
+        modes = {m.name for m in self.tube.modes}
+        for i, z in enumerate(self.zoom_levels):
+            if set(z.air_kerma_rate_mgy_per_min) != modes:
+                yield (("zoom_levels", i, "air_kerma_rate_mgy_per_min"),
+                       f"must give a rate for each of tube.modes {sorted(modes)}, got {sorted(z.air_kerma_rate_mgy_per_min)}")
+        if self.collimator.min_opening_mm >= fovs[0]:
+            yield ("collimator", "min_opening_mm"), "must be smaller than the widest field of view"
+
+    def T_xray_from_webcam(self) -> np.ndarray:
+        return matrix(self.webcam.T_xray_from_webcam)
