@@ -21,6 +21,22 @@ COMMAND_MODULES = (
 )
 
 
+_GROUPS: dict[tuple[int, str], argparse._SubParsersAction] = {}
+
+
+def command_group(commands, name: str, help: str) -> argparse._SubParsersAction:
+    """The subcommands of group `name` (e.g. `calibrate`), created on first use.
+
+    Several areas add commands to one group (`calibrate webcam` from tracking, `calibrate
+    xray` from X-ray calibration), so the group is made once and shared.
+    """
+    key = (id(commands), name)
+    if key not in _GROUPS:
+        parser = commands.add_parser(name, help=help, description=help)
+        _GROUPS[key] = parser.add_subparsers(dest=f"{name}_command", metavar="WHAT", required=True)
+    return _GROUPS[key]
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="fluorosim",
