@@ -17,6 +17,7 @@ from typing import Any, TypeVar
 from pydantic import BaseModel, ValidationError
 
 from .appliance import ApplianceProfile
+from .calibration_phantom import CalibrationPhantomProfile
 from .case import CaseProfile
 from .fluoroscope import FluoroscopeProfile
 from .keymap import KeymapProfile
@@ -34,11 +35,13 @@ KINDS: dict[str, type[BaseModel]] = {
     "phantom": PhantomProfile,
     "keymap": KeymapProfile,
     "webcam": WebcamProfile,
+    "calibration-phantom": CalibrationPhantomProfile,
 }
 
 #: Folder under configs/ -> kind of the profiles in it.
 KIND_OF_FOLDER = {"fluoroscopes": "fluoroscope", "cases": "case", "phantoms": "phantom",
-                  "keymaps": "keymap", "webcams": "webcam"}
+                  "keymaps": "keymap", "webcams": "webcam",
+                  "calibration-phantoms": "calibration-phantom"}
 
 #: A top-level key that only one kind has, to recognise a profile outside configs/.
 _KIND_BY_KEY = {"devices": "appliance", "detector": "fluoroscope", "markers": "phantom",
