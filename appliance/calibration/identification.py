@@ -1,0 +1,304 @@
+"""Pair each detected shadow with its ball of the phantom model (the seed paper's steps 3a-3c).
+
+1. Split the blobs into large and small by k-means on their diameters (k = 2).
+2. Find the lines of large balls with RANSAC, in pixel positions undistorted with the
+   fluoroscope's current (nominal) intrinsics so the intensifier's pincushion does not
+   bend them.
+3. Every way of laying two model lines of large balls onto two found lines (which line,
+   which direction, which ball at each end) gives a homography of the reference plate;
+   the one that predicts the most balls of that plate, each on a blob of the right size,
+   wins, and it must win clearly: a tie means the layout cannot be told apart and the
+   image is refused rather than guessed.
+4. The plate's matches give the phantom's pose (PnP with the nominal intrinsics); the pose
+   predicts the balls of the other plate, which are matched to the nearest blobs; pose and
+   matches are refined twice.
+
+Every match is gated: a prediction takes a blob only within a fraction of the projected
+ball spacing, and each blob serves one ball at most. The final fit re-checks every
+residual (`fit.py`), so a wrong pairing cannot pass silently.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..config.calibration_phantom import CalibrationPhantomProfile
+from ..errors import FluorosimError
+from .blobs import Blobs
+
+
+class IdentificationFailed(FluorosimError):
+    """The phantom could not be recognised in one image; the message says why."""
+
+
+@dataclass(frozen=True)
+class Identification:
+    """Which ball each accepted blob shows."""
+
+    sphere_index: np.ndarray  # (m,) index into phantom.spheres
+    uv: np.ndarray            # (m, 2) blob centres (pixels)
+    blob_index: np.ndarray    # (m,) index into the detected blobs
+    T_xray_from_phantom: np.ndarray  # pose from the nominal intrinsics, the fit's start
+    unmatched_blobs: int
+
+
+def split_by_size(diameters: np.ndarray) -> tuple[np.ndarray, float]:
+    """k-means with k = 2 on log diameter, solved exactly in 1-D: (large mask, ratio of class means)."""
+    d = np.log(np.asarray(diameters, dtype=np.float64))
+    if len(d) < 2:
+        return np.zeros(len(d), bool), 1.0
+    order = np.argsort(d)
+    s = d[order]
+    best, split = np.inf, 1
+    for i in range(1, len(s)):
+        cost = s[:i].var() * i + s[i:].var() * (len(s) - i)
+        if cost < best:
+            best, split = cost, i
+    threshold = 0.5 * (s[split - 1] + s[split])
+    large = d > threshold
+    return large, float(np.exp(s[split:].mean() - s[:split].mean()))
+
+
+def _line_through(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Total-least-squares line: (point on it, unit direction)."""
+    c = points.mean(axis=0)
+    _, _, vt = np.linalg.svd(points - c)
+    return c, vt[0]
+
+
+def find_lines(points: np.ndarray, tolerance_px: float, iterations: int, min_points: int = 3,
+               max_lines: int = 6, rng: np.random.Generator | None = None) -> list[np.ndarray]:
+    """Greedy RANSAC: index arrays of collinear points, longest line first."""
+    rng = rng or np.random.default_rng(0)
+    remaining = np.arange(len(points))
+    lines: list[np.ndarray] = []
+    while len(remaining) >= min_points and len(lines) < max_lines:
+        pts = points[remaining]
+        pairs = list(itertools.combinations(range(len(pts)), 2))
+        if len(pairs) > iterations:
+            pairs = [tuple(rng.choice(len(pts), 2, replace=False)) for _ in range(iterations)]
+        best, best_key = None, (0, 0.0)
+        for i, j in pairs:
+            d = pts[j] - pts[i]
+            n = np.linalg.norm(d)
+            if n == 0:
+                continue
+            normal = np.array([-d[1], d[0]]) / n
+            dist = np.abs((pts - pts[i]) @ normal)
+            inl = dist < tolerance_px
+            key = (int(inl.sum()), -float(dist[inl].sum()))
+            if key > best_key:
+                best, best_key = inl, key
+        if best is None or best_key[0] < min_points:
+            break
+        # Refit on the inliers and take the final inlier set from the refined line.
+        c, direction = _line_through(pts[best])
+        normal = np.array([-direction[1], direction[0]])
+        inl = np.abs((pts - c) @ normal) < tolerance_px
+        if inl.sum() < min_points:
+            inl = best
+        members = remaining[inl]
+        along = (points[members] - c) @ direction
+        lines.append(members[np.argsort(along)])
+        remaining = remaining[~inl]
+    return lines
+
+
+def _match(predicted: np.ndarray, observed: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray]:
+    """Mutual nearest neighbours within `gate`: (predicted index, observed index) arrays."""
+    if len(predicted) == 0 or len(observed) == 0:
+        return np.zeros(0, int), np.zeros(0, int)
+    d = np.linalg.norm(predicted[:, None, :] - observed[None, :, :], axis=2)
+    nearest_obs = d.argmin(axis=1)
+    nearest_pred = d.argmin(axis=0)
+    p = np.arange(len(predicted))
+    ok = (nearest_pred[nearest_obs] == p) & (d[p, nearest_obs] < gate)
+    return p[ok], nearest_obs[ok]
+
+
+def _spacing(points: np.ndarray) -> float:
+    """Median nearest-neighbour distance of projected balls (pixels)."""
+    d = np.linalg.norm(points[:, None] - points[None], axis=2)
+    np.fill_diagonal(d, np.inf)
+    return float(np.median(d.min(axis=1)))
+
+
+def _project(T: np.ndarray, points: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    rvec, _ = cv2.Rodrigues(T[:3, :3])
+    uv, _ = cv2.projectPoints(points.reshape(-1, 1, 3), rvec, T[:3, 3], K, dist)
+    return uv.reshape(-1, 2)
+
+
+def _pose(object_points: np.ndarray, image_points: np.ndarray, K: np.ndarray, dist: np.ndarray,
+          guess: np.ndarray | None = None) -> np.ndarray | None:
+    obj = object_points.reshape(-1, 1, 3).astype(np.float64)
+    img = image_points.reshape(-1, 1, 2).astype(np.float64)
+    if guess is None:
+        flag = cv2.SOLVEPNP_IPPE if np.ptp(object_points[:, 2]) == 0 else cv2.SOLVEPNP_SQPNP
+        ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=flag)
+    else:
+        rvec0, _ = cv2.Rodrigues(guess[:3, :3])
+        ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, rvec0.copy(), guess[:3, 3].reshape(3, 1).copy(),
+                                      useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok:
+        return None
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(rvec)[0]
+    T[:3, 3] = tvec.reshape(3)
+    return T
+
+
+def identify(blobs: Blobs, phantom: CalibrationPhantomProfile, K0: np.ndarray, dist0: np.ndarray,
+             source: str = "image") -> Identification:
+    """Pair blobs with balls, or raise IdentificationFailed with a one-line reason naming `source`."""
+    det = phantom.detection
+    if len(blobs) < 8:
+        raise IdentificationFailed(f"{source}: only {len(blobs)} ball shadows found (the phantom has "
+                                   f"{len(phantom.spheres)}); check that the phantom is in the field and the exposure")
+    large_model = phantom.large_mask()
+    blob_large, ratio = split_by_size(blobs.diameter_px)
+    model_ratio = phantom.diameters()[large_model].mean() / phantom.diameters()[~large_model].mean()
+    if not 0.7 * model_ratio < ratio < 1.4 * model_ratio:
+        raise IdentificationFailed(f"{source}: the shadows do not split into large and small balls "
+                                   f"(size ratio {ratio:.2f}, the phantom's is {model_ratio:.2f})")
+    undist = cv2.undistortPoints(blobs.uv.reshape(-1, 1, 2), K0, dist0, None, None, K0).reshape(-1, 2)
+
+    large_idx = np.nonzero(blob_large)[0]
+    lines = find_lines(undist[large_idx], det.line_tolerance_px, det.ransac_iterations)
+    lines = [large_idx[l] for l in lines]
+    centres = phantom.centres()
+    labels = np.array([s.line for s in phantom.spheres])
+    plane_z = centres[large_model][0, 2]
+    in_plane = np.nonzero(np.isclose(centres[:, 2], plane_z))[0]
+    model_lines = {}
+    for label in dict.fromkeys(labels[large_model]):
+        members = np.nonzero(labels == label)[0]
+        direction = centres[members[-1], :2] - centres[members[0], :2]
+        model_lines[label] = members[np.argsort(centres[members, :2] @ direction)]
+    if len(lines) < 2:
+        raise IdentificationFailed(f"{source}: found {len(lines)} line(s) of large balls, need at least 2 of the "
+                                   f"{len(model_lines)}; check that the whole phantom is in the field")
+
+    # Step 3: homography hypotheses from two found lines and two model lines.
+    size_ok_for = {i: (blob_large == large_model[i]) for i in in_plane}
+    scored: dict[tuple, int] = {}
+    best: tuple[int, tuple, np.ndarray] | None = None
+    candidates = lines[:4]
+    for (li, lj) in itertools.permutations(range(len(candidates)), 2):
+        img_i, img_j = candidates[li], candidates[lj]
+        for (ma, mb) in itertools.permutations(model_lines, 2):
+            mod_a, mod_b = model_lines[ma], model_lines[mb]
+            if len(img_i) > len(mod_a) or len(img_j) > len(mod_b):
+                continue
+            for flip_a, flip_b in itertools.product((False, True), repeat=2):
+                ends_i = (img_i[0], img_i[-1]) if not flip_a else (img_i[-1], img_i[0])
+                ends_j = (img_j[0], img_j[-1]) if not flip_b else (img_j[-1], img_j[0])
+                for sa in _end_choices(len(img_i), len(mod_a)):
+                    for sb in _end_choices(len(img_j), len(mod_b)):
+                        src = np.array([centres[mod_a[sa[0]], :2], centres[mod_a[sa[1]], :2],
+                                        centres[mod_b[sb[0]], :2], centres[mod_b[sb[1]], :2]], np.float32)
+                        dst = undist[[ends_i[0], ends_i[1], ends_j[0], ends_j[1]]].astype(np.float32)
+                        result = _score_homography(src, dst, centres, in_plane, undist, size_ok_for, det.match_gate_fraction)
+                        if result is None:
+                            continue
+                        score, assignment, H = result
+                        key = tuple(sorted(assignment.items()))
+                        scored[key] = max(scored.get(key, 0), score)
+                        if best is None or score > best[0]:
+                            best = (score, key, H)
+    if best is None or best[0] < 6:
+        raise IdentificationFailed(f"{source}: the large-ball lines do not match the phantom's layout "
+                                   f"({'no' if best is None else best[0]} balls of the reference plate explained)")
+    # A plate seen from below is a mirrored homography that can explain nearly as many balls of
+    # the plate as the truth; only the other plate tells them apart. So the best few distinct
+    # pairings each go through the 3-D step, and the winner must explain clearly more balls.
+    distinct: list[tuple[int, tuple]] = []
+    for key, score in sorted(scored.items(), key=lambda kv: -kv[1]):
+        if score < best[0] - 4 or len(distinct) >= 6:
+            break
+        if not any(_same_within(key, k) for _, k in distinct):
+            distinct.append((score, key))
+    outcomes = []
+    for _, key in distinct:
+        try:
+            outcomes.append(_complete(dict(key), blobs, phantom, blob_large, K0, dist0, source))
+        except IdentificationFailed as e:
+            last_error = e
+    if not outcomes:
+        raise last_error
+    outcomes.sort(key=lambda o: -len(o.sphere_index))
+    if len(outcomes) > 1 and len(outcomes[1].sphere_index) >= len(outcomes[0].sphere_index) - 2:
+        raise IdentificationFailed(f"{source}: the phantom's orientation is ambiguous ({len(outcomes[0].sphere_index)} vs "
+                                   f"{len(outcomes[1].sphere_index)} balls explained by two different pairings); "
+                                   "check that the whole phantom is in the field")
+    return outcomes[0]
+
+
+def _complete(assignment: dict[int, int], blobs: Blobs, phantom: CalibrationPhantomProfile, blob_large: np.ndarray,
+              K0: np.ndarray, dist0: np.ndarray, source: str) -> Identification:
+    """Step 4: pose from the reference plate with the nominal intrinsics, then every ball."""
+    det = phantom.detection
+    centres = phantom.centres()
+    large_model = phantom.large_mask()
+    sph = np.array(list(assignment.keys()))
+    blb = np.array([assignment[s] for s in sph])
+    T = _pose(centres[sph], blobs.uv[blb], K0, dist0)
+    if T is None or T[2, 3] <= 0:
+        raise IdentificationFailed(f"{source}: no phantom pose fits the reference plate's balls")
+    for _ in range(3):
+        predicted = _project(T, centres, K0, dist0)
+        gate = det.match_gate_fraction * _spacing(predicted)
+        p, o = _match(predicted, blobs.uv, gate)
+        ok = blob_large[o] == large_model[p]
+        p, o = p[ok], o[ok]
+        if len(p) < 6:
+            raise IdentificationFailed(f"{source}: only {len(p)} balls match the predicted layout")
+        T_new = _pose(centres[p], blobs.uv[o], K0, dist0, guess=T)
+        if T_new is None:
+            break
+        T = T_new
+    order = np.argsort(p)
+    return Identification(sphere_index=p[order], uv=blobs.uv[o[order]], blob_index=o[order],
+                          T_xray_from_phantom=T, unmatched_blobs=int(len(blobs) - len(p)))
+
+
+def _end_choices(n_found: int, n_model: int):
+    """(model index of the first found ball, of the last) for n_found balls seen of a line of n_model."""
+    for first in range(0, n_model - n_found + 1):
+        for last in range(first + n_found - 1, n_model):
+            yield first, last
+
+
+def _same_within(a: tuple, b: tuple) -> bool:
+    """Two assignments that agree on most balls are one pairing, seen through slightly different homographies."""
+    da, db = dict(a), dict(b)
+    agree = sum(1 for k in set(da) & set(db) if da[k] == db[k])
+    return agree >= 0.5 * min(len(da), len(db))
+
+
+def _score_homography(src, dst, centres, in_plane, undist, size_ok_for, gate_fraction):
+    H = cv2.getPerspectiveTransform(src, dst)
+    if H is None or not np.all(np.isfinite(H)):
+        return None
+    assignment: dict[int, int] = {}
+    for _ in range(2):
+        pts = np.concatenate([centres[in_plane, :2], np.ones((len(in_plane), 1))], axis=1) @ H.T
+        if np.any(pts[:, 2] <= 0):
+            return None
+        predicted = pts[:, :2] / pts[:, 2:3]
+        gate = gate_fraction * _spacing(predicted)
+        p, o = _match(predicted, undist, gate)
+        good = np.array([size_ok_for[in_plane[pi]][oi] for pi, oi in zip(p, o)], bool)
+        p, o = p[good], o[good]
+        assignment = {int(in_plane[pi]): int(oi) for pi, oi in zip(p, o)}
+        if len(p) < 4:
+            return None
+        H2, _ = cv2.findHomography(centres[in_plane[p], :2], undist[o], 0)
+        if H2 is None:
+            break
+        H = H2
+    return len(assignment), assignment, H
