@@ -48,6 +48,37 @@ def figures(result, machine: scenario.Machine, fov_centre, fov_radius_px: float)
     return out
 
 
+def damaged_identification(phantom, fluoroscope, machine, image, T, rng, trials: int) -> dict[str, int]:
+    """Hide 2 detected blobs and add 3 spurious ones, `trials` times: how often identification
+    is right, refuses, or pairs a blob with the wrong ball (which must never happen)."""
+    import cv2
+
+    from .blobs import Blobs, detect_blobs
+    from .field_of_view import find_field_of_view
+    from .identification import IdentificationFailed, identify
+
+    fov = find_field_of_view(image)
+    blobs = detect_blobs(image, fov, phantom.detection)
+    truth, _ = cv2.projectPoints(scenario.apply(T, phantom.centres()), np.zeros(3), np.zeros(3), machine.K, machine.dist)
+    truth = truth.reshape(-1, 2)
+    K0, d0 = fluoroscope.intrinsics.K(), fluoroscope.intrinsics.distortion.coefficients()
+    tally = {"right": 0, "refused": 0, "wrong": 0}
+    for _ in range(trials):
+        keep = np.ones(len(blobs), bool)
+        keep[rng.choice(len(blobs), 2, replace=False)] = False
+        angle, radius = rng.uniform(0, 2 * np.pi, 3), fov.radius_px * np.sqrt(rng.uniform(0, 0.8, 3))
+        spurious = Blobs(np.stack([fov.centre_u + radius * np.cos(angle), fov.centre_v + radius * np.sin(angle)], axis=1),
+                         rng.choice(blobs.diameter_px, 3), np.ones(3))
+        try:
+            found = identify(Blobs.concat(blobs.subset(keep), spurious), phantom, K0, d0)
+        except IdentificationFailed:
+            tally["refused"] += 1
+            continue
+        err = np.linalg.norm(found.uv - truth[found.sphere_index], axis=1)
+        tally["right" if err.max() < 1.0 else "wrong"] += 1
+    return tally
+
+
 def _shadowgraph_images(phantom, fluoroscope, machine, poses, rng):
     d = fluoroscope.detector
     exposure = shadowgraph.Exposure(rows=d.rows, cols=d.columns, fov_centre_px=((d.columns - 1) / 2, (d.rows - 1) / 2),
@@ -84,6 +115,7 @@ def run_benchmark(args) -> int:
                 continue
         all_figures: list[dict[str, float]] = []
         timings: dict[str, list[float]] = {"make image": []}
+        robustness = {"right": 0, "refused": 0, "wrong": 0}
         for run in range(args.runs):
             rng = np.random.default_rng(args.seed + 1000 * run)
             poses = scenario.phantom_poses(args.images, rng)
@@ -91,6 +123,9 @@ def run_benchmark(args) -> int:
             images, fov_centre, fov_radius = make(phantom, fluoroscope, machine, poses, rng)
             timings["make image"].append((time.perf_counter() - t0) / len(images))
             readings = [scenario.marker_reading(machine, T, phantom, rng) for T in poses]
+            for k in range(min(2, len(images))):
+                for key, n in damaged_identification(phantom, fluoroscope, machine, images[k], poses[k], rng, 10).items():
+                    robustness[key] += n
             result = calibrate([(f"{source}-{run}-{i}", im) for i, im in enumerate(images)], phantom, fluoroscope, readings)
             for stage, values in result.timings_s.items():
                 timings.setdefault(stage, []).extend(values)
@@ -116,6 +151,11 @@ def run_benchmark(args) -> int:
             if worst > limit:
                 status = 1
             print(f"  {name:40s} median {med:8.4f} {unit:3s} worst {worst:8.4f}  target <= {limit} {unit}  {verdict}")
+        print(f"[{source}] 2 of 36 blobs hidden + 3 spurious added, {sum(robustness.values())} trials: "
+              f"{robustness['right']} identified right, {robustness['refused']} refused, {robustness['wrong']} wrong"
+              + ("" if robustness["wrong"] == 0 else "  MISSED"))
+        if robustness["wrong"]:
+            status = 1
         print(f"[{source}] stage timings (median per image; fit per calibration):")
         for stage, values in timings.items():
             print(f"  {stage:20s} {1000 * float(np.median(values)):9.1f} ms  (n={len(values)})")

@@ -11,7 +11,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..config.calibration_phantom import CalibrationPhantomProfile
+from ..config.fluoroscope import FluoroscopeProfile
 from ..patient.volume import Volume
+from .shadowgraph import burn_in_text
 
 AIR_HU = -1000
 SUBSAMPLES = 4
@@ -64,3 +66,36 @@ def _coverage(centres: np.ndarray, a: float, b: float, voxel_mm: float) -> np.nd
     """Fraction of each voxel (1-D, centred at `centres`) inside [a, b]."""
     lo, hi = centres - voxel_mm / 2, centres + voxel_mm / 2
     return np.clip((np.minimum(hi, b) - np.maximum(lo, a)) / voxel_mm, 0.0, 1.0)
+
+
+def machine_profile(fluoroscope: FluoroscopeProfile, K: np.ndarray, dist: np.ndarray) -> FluoroscopeProfile:
+    """`fluoroscope` with its intrinsics replaced by the given camera matrix and distortion."""
+    d = dict(zip(("k1", "k2", "p1", "p2", "k3"), (float(x) for x in dist)))
+    intr = fluoroscope.intrinsics.model_copy(update=dict(
+        fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]),
+        distortion=fluoroscope.intrinsics.distortion.model_copy(update=d)))
+    return fluoroscope.model_copy(update=dict(intrinsics=intr))
+
+
+def render_phantom_images(phantom: CalibrationPhantomProfile, fluoroscope: FluoroscopeProfile, machine,
+                          poses: list[np.ndarray], rng: np.random.Generator, voxel_mm: float = 0.5,
+                          device: str = "auto"):
+    """X-ray images of the phantom at `poses` (T_xray_from_phantom) made by the project's DRR
+    renderer with the true machine's K and distortion: what the monitor shows (inverted, so
+    air is bright as on a clinical frame grab), with noise, focal-spot blur, vignetting, the
+    intensifier circle and burned-in text. Returns (images, circle centre (u, v), radius px)."""
+    from ..config.case import Materials
+    from ..xray.renderer import Renderer, View
+
+    true_profile = machine_profile(fluoroscope, machine.K, machine.dist)
+    renderer = Renderer(true_profile, Materials(), device=device)
+    prepared = renderer.prepare(phantom_volume(phantom, voxel_mm))
+    images = []
+    for T in poses:
+        seed = int(rng.integers(2 ** 31))
+        image = renderer.render(prepared, T, View(zoom=1, invert=True, noise=True, quantity="display", seed=seed))
+        burn_in_text(image)
+        images.append(image)
+    det = fluoroscope.detector
+    radius = fluoroscope.zoom_levels[0].fov_mm / det.pixel_pitch_mm / 2.0
+    return images, ((det.columns - 1) / 2.0, (det.rows - 1) / 2.0), radius
