@@ -29,6 +29,7 @@ import numpy as np
 from ..config.calibration_phantom import CalibrationPhantomProfile
 from ..errors import FluorosimError
 from .blobs import Blobs
+from .field_of_view import FieldOfView
 
 
 class IdentificationFailed(FluorosimError):
@@ -153,8 +154,12 @@ def _pose(object_points: np.ndarray, image_points: np.ndarray, K: np.ndarray, di
 
 
 def identify(blobs: Blobs, phantom: CalibrationPhantomProfile, K0: np.ndarray, dist0: np.ndarray,
-             source: str = "image") -> Identification:
-    """Pair blobs with balls, or raise IdentificationFailed with a one-line reason naming `source`."""
+             source: str = "image", fov: FieldOfView | None = None) -> Identification:
+    """Pair blobs with balls, or raise IdentificationFailed with a one-line reason naming `source`.
+
+    With `fov`, a candidate pairing is also charged for every ball its pose puts well inside
+    the field where no blob was found: a wrong pairing predicts balls where there are none.
+    """
     det = phantom.detection
     if len(blobs) < 8:
         raise IdentificationFailed(f"{source}: only {len(blobs)} ball shadows found (the phantom has "
@@ -207,7 +212,8 @@ def identify(blobs: Blobs, phantom: CalibrationPhantomProfile, K0: np.ndarray, d
                             continue
                         score, assignment, H = result
                         key = tuple(sorted(assignment.items()))
-                        scored[key] = max(scored.get(key, 0), score)
+                        if score > scored.get(key, (0, None))[0]:
+                            scored[key] = (score, H)
                         if best is None or score > best[0]:
                             best = (score, key, H)
     if best is None or best[0] < 6:
@@ -217,53 +223,175 @@ def identify(blobs: Blobs, phantom: CalibrationPhantomProfile, K0: np.ndarray, d
     # the plate as the truth; only the other plate tells them apart. So the best few distinct
     # pairings each go through the 3-D step, and the winner must explain clearly more balls.
     distinct: list[tuple[int, tuple]] = []
-    for key, score in sorted(scored.items(), key=lambda kv: -kv[1]):
+    for key, (score, H) in sorted(scored.items(), key=lambda kv: -kv[1][0]):
         if score < best[0] - 4 or len(distinct) >= 6:
             break
-        if not any(_same_within(key, k) for _, k in distinct):
-            distinct.append((score, key))
+        if not any(_same_within(key, k) for _, k, _ in distinct):
+            distinct.append((score, key, H))
     outcomes = []
-    for _, key in distinct:
+    for _, key, H in distinct:
         try:
-            outcomes.append(_complete(dict(key), blobs, phantom, blob_large, K0, dist0, source))
+            outcomes.extend(_complete(dict(key), H, blobs, undist, phantom, blob_large, K0, dist0, source))
         except IdentificationFailed as e:
             last_error = e
     if not outcomes:
         raise last_error
-    outcomes.sort(key=lambda o: -len(o.sphere_index))
-    if len(outcomes) > 1 and len(outcomes[1].sphere_index) >= len(outcomes[0].sphere_index) - 2:
-        raise IdentificationFailed(f"{source}: the phantom's orientation is ambiguous ({len(outcomes[0].sphere_index)} vs "
-                                   f"{len(outcomes[1].sphere_index)} balls explained by two different pairings); "
+    scores = [_support(o, phantom, K0, dist0, fov) for o in outcomes]
+    order = np.argsort([-s for s, _ in scores], kind="stable")
+    # Different starts that end in the same pairing are one answer, not a rival.
+    kept, seen = [], []
+    for i in order:
+        mapping = tuple(zip(outcomes[i].sphere_index.tolist(), outcomes[i].blob_index.tolist()))
+        if not any(_same_within(mapping, m) for m in seen):
+            seen.append(mapping)
+            kept.append(i)
+    outcomes = [outcomes[i] for i in kept]
+    scores = [scores[i] for i in kept]
+    if len(outcomes) > 1 and scores[1][0] >= scores[0][0] - 2:
+        raise IdentificationFailed(f"{source}: the phantom's orientation is ambiguous (two different pairings explain "
+                                   f"{len(outcomes[0].sphere_index)} and {len(outcomes[1].sphere_index)} balls); "
                                    "check that the whole phantom is in the field")
+    found, expected = len(outcomes[0].sphere_index), scores[0][1]
+    if expected and found < 0.75 * expected:
+        raise IdentificationFailed(f"{source}: only {found} of the {expected} balls the best pose puts in the field "
+                                   "were found; check the exposure and that nothing covers the phantom")
+    _check_camera_explains(outcomes[0], phantom, K0, dist0, source)
     return outcomes[0]
 
 
-def _complete(assignment: dict[int, int], blobs: Blobs, phantom: CalibrationPhantomProfile, blob_large: np.ndarray,
-              K0: np.ndarray, dist0: np.ndarray, source: str) -> Identification:
-    """Step 4: pose from the reference plate with the nominal intrinsics, then every ball."""
+def _check_camera_explains(found: Identification, phantom: CalibrationPhantomProfile, K0, dist0, source: str) -> None:
+    """Refuse a pairing no pinhole camera can produce.
+
+    The pairing's balls are fitted alone with free focal lengths and k1 (the principal point
+    and the rest held): a right pairing leaves residuals at the noise of the blob centres,
+    whereas a wrong one, a mirror image for instance, leaves pixels, whatever the camera.
+    The median is used so one stray pair, which the joint fit removes later, does not
+    condemn the image.
+    """
+    from .fit import View, fit_views
+
+    view = View(source, phantom.centres()[found.sphere_index], found.uv, found.sphere_index, found.T_xray_from_phantom)
+    fixed = frozenset({"cx", "cy", "k2", "p1", "p2", "k3"})
+    fit = fit_views([view], K0, dist0, final_gate_px=np.inf, min_spheres=0, fixed=fixed)
+    if not fit.views:
+        raise IdentificationFailed(f"{source}: the identified balls cannot be fitted by any camera")
+    residuals = np.hypot(*fit.views[0].residuals_px.T)
+    limit = phantom.detection.max_identification_median_px
+    if np.median(residuals) > limit:
+        raise IdentificationFailed(f"{source}: no camera explains the pairing of balls (median residual "
+                                   f"{np.median(residuals):.1f} px, limit {limit} px); is the image mirrored, "
+                                   "or a different phantom?")
+
+
+def _support(found: Identification, phantom: CalibrationPhantomProfile, K0, dist0, fov: FieldOfView | None) -> tuple[int, int]:
+    """(balls found minus balls predicted clearly inside the field but not found, balls predicted there)."""
+    if fov is None:
+        return len(found.sphere_index), 0
+    predicted = _project(found.T_xray_from_phantom, phantom.centres(), K0, dist0)
+    radius_px = K0[0, 0] * phantom.diameters() / 2 / found.T_xray_from_phantom[2, 3]
+    clearly_inside = fov.distance_inside(predicted) > 2 * radius_px + phantom.detection.fov_margin_px + 5
+    missing = int(np.sum(clearly_inside & ~np.isin(np.arange(len(predicted)), found.sphere_index)))
+    return len(found.sphere_index) - missing, int(clearly_inside.sum())
+
+
+def _complete(assignment: dict[int, int], H: np.ndarray, blobs: Blobs, undist: np.ndarray,
+              phantom: CalibrationPhantomProfile, blob_large: np.ndarray, K0: np.ndarray, dist0: np.ndarray,
+              source: str) -> list[Identification]:
+    """Step 4 for one pairing of the reference plate: find the other plate, then fit a pose.
+
+    Seen through a narrow beam, a plate alone fixes its tilt poorly, so the other plate is
+    not predicted from the plate's pose. Instead: a ball at depth offset dz from the
+    reference plane appears where the plate's homography puts its (x, y), scaled about the
+    principal point by the depth ratio, plus one shift common to the whole plate (the
+    parallax of the tilt). That shift is found by voting over ball-blob pairs; the best few
+    shifts each give a full 3-D pose (non-planar PnP with the nominal intrinsics), refined by
+    re-matching every ball twice. The caller ranks what comes back.
+    """
     det = phantom.detection
     centres = phantom.centres()
     large_model = phantom.large_mask()
     sph = np.array(list(assignment.keys()))
     blb = np.array([assignment[s] for s in sph])
-    T = _pose(centres[sph], blobs.uv[blb], K0, dist0)
-    if T is None or T[2, 3] <= 0:
+    starts = _plate_poses(centres[sph], blobs.uv[blb], K0, dist0)
+    if not starts:
         raise IdentificationFailed(f"{source}: no phantom pose fits the reference plate's balls")
-    for _ in range(3):
-        predicted = _project(T, centres, K0, dist0)
-        gate = det.match_gate_fraction * _spacing(predicted)
-        p, o = _match(predicted, blobs.uv, gate)
-        ok = blob_large[o] == large_model[p]
-        p, o = p[ok], o[ok]
-        if len(p) < 6:
-            raise IdentificationFailed(f"{source}: only {len(p)} balls match the predicted layout")
-        T_new = _pose(centres[p], blobs.uv[o], K0, dist0, guess=T)
-        if T_new is None:
-            break
-        T = T_new
-    order = np.argsort(p)
-    return Identification(sphere_index=p[order], uv=blobs.uv[o[order]], blob_index=o[order],
-                          T_xray_from_phantom=T, unmatched_blobs=int(len(blobs) - len(p)))
+    T0 = starts[0]
+    plane_z = centres[sph[0], 2]
+    other = np.nonzero(~np.isclose(centres[:, 2], plane_z))[0]
+    c = K0[:2, 2]
+    shifts = [np.zeros(2)]
+    if len(other):
+        on_plane = centres[other].copy()
+        on_plane[:, 2] = plane_z
+        z_plane = (on_plane @ T0[:3, :3].T + T0[:3, 3])[:, 2]
+        z_ball = (centres[other] @ T0[:3, :3].T + T0[:3, 3])[:, 2]
+        xy1 = np.concatenate([on_plane[:, :2], np.ones((len(other), 1))], axis=1) @ H.T
+        base = c + (z_plane / z_ball)[:, None] * (xy1[:, :2] / xy1[:, 2:3] - c)
+        free = np.setdiff1d(np.arange(len(blobs)), blb)
+        gate = det.match_gate_fraction * _spacing(base) if len(other) > 1 else 10.0
+        votes: list[tuple[int, np.ndarray]] = []
+        for i, ball in enumerate(other):
+            for j in free:
+                if blob_large[j] != large_model[ball]:
+                    continue
+                shift = undist[j] - base[i]
+                p, o = _match(base + shift, undist[free], gate)
+                ok = blob_large[free[o]] == large_model[other[p]]
+                votes.append((int(ok.sum()), shift))
+        votes.sort(key=lambda v: -v[0])
+        if votes:
+            shifts = []
+            for count, shift in votes:
+                if count < votes[0][0] - 3 or len(shifts) >= 4:
+                    break
+                if all(np.linalg.norm(shift - s) > gate for s in shifts):
+                    shifts.append(shift)
+    results = []
+    for shift in shifts:
+        p_all, o_all = list(sph), list(blb)
+        if len(other):
+            p, o = _match(base + shift, undist[free], gate)
+            ok = blob_large[free[o]] == large_model[other[p]]
+            p_all += list(other[p[ok]])
+            o_all += list(free[o[ok]])
+        p_all, o_all = np.array(p_all), np.array(o_all)
+        T = _pose(centres[p_all], blobs.uv[o_all], K0, dist0, guess=T0)
+        if T is None or T[2, 3] <= 0:
+            continue
+        p, o = p_all, o_all
+        for _ in range(2):
+            predicted = _project(T, centres, K0, dist0)
+            p, o = _match(predicted, blobs.uv, det.match_gate_fraction * _spacing(predicted))
+            ok = blob_large[o] == large_model[p]
+            p, o = p[ok], o[ok]
+            if len(p) < 6:
+                break
+            T_new = _pose(centres[p], blobs.uv[o], K0, dist0, guess=T)
+            if T_new is None:
+                break
+            T = T_new
+        if len(p) >= 6:
+            order = np.argsort(p)
+            results.append(Identification(sphere_index=p[order], uv=blobs.uv[o[order]], blob_index=o[order],
+                                          T_xray_from_phantom=T, unmatched_blobs=int(len(blobs) - len(p))))
+    if not results:
+        raise IdentificationFailed(f"{source}: too few balls match the layout predicted from the reference plate")
+    return results
+
+
+def _plate_poses(object_points: np.ndarray, image_points: np.ndarray, K: np.ndarray, dist: np.ndarray) -> list[np.ndarray]:
+    """Both IPPE poses of a planar set of balls that put it in front of the source."""
+    n, rvecs, tvecs, _ = cv2.solvePnPGeneric(object_points.reshape(-1, 1, 3).astype(np.float64),
+                                             image_points.reshape(-1, 1, 2).astype(np.float64), K, dist,
+                                             flags=cv2.SOLVEPNP_IPPE)
+    poses = []
+    for r, t in zip(rvecs[:n], tvecs[:n]):
+        T = np.eye(4)
+        T[:3, :3] = cv2.Rodrigues(r)[0]
+        T[:3, 3] = np.asarray(t).reshape(3)
+        if T[2, 3] > 0:
+            poses.append(T)
+    return poses
 
 
 def _end_choices(n_found: int, n_model: int):

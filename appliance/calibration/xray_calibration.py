@@ -98,7 +98,7 @@ def calibrate(images: list[tuple[str, np.ndarray]], phantom: CalibrationPhantomP
             blobs = detect_blobs(image, fov, phantom.detection)
             outcome.blobs = len(blobs)
             t2 = time.perf_counter()
-            found = identify(blobs, phantom, K0, dist0, name)
+            found = identify(blobs, phantom, K0, dist0, name, fov)
             t3 = time.perf_counter()
             timings["field of view"].append(t1 - t0)
             timings["blobs"].append(t2 - t1)

@@ -60,6 +60,8 @@ class Detection(Section):
     ransac_iterations: int = Field(400, ge=10, le=100000, description="RANSAC: random pairs tried per line.")
     match_gate_fraction: float = Field(
         0.3, gt=0, lt=0.5, description="A predicted sphere matches the nearest blob only within this fraction of the projected grid spacing.")
+    max_identification_median_px: float = Field(
+        1.0, gt=0, description="A pairing is refused when, fitted alone with free focal lengths and k1, its median residual exceeds this (pixels).")
     final_gate_px: float = Field(2.0, gt=0, description="After the fit, a detection farther than this from its sphere's reprojection is an outlier (pixels).")
 
 
