@@ -295,3 +295,11 @@ def test_cli_counts_marker_poses_against_images(tmp_path, capsys):
     code = main(["calibrate", "xray", "a.png", "b.png", "--fluoroscope", str(FLUOROSCOPE), "--marker-pose", "m.yaml"])
     assert code == 2
     assert "1 --marker-pose file(s) for 2 image(s)" in capsys.readouterr().err
+
+
+def test_a_square_exposure_is_not_taken_for_the_intensifier_circle():
+    from appliance.errors import FluorosimError
+    image = np.zeros((512, 512), np.float32)
+    image[60:450, 80:430] = 1.0
+    with pytest.raises(FluorosimError, match="not a circle"):
+        find_field_of_view(image, "grab.png")

@@ -81,5 +81,10 @@ def find_field_of_view(image: np.ndarray, source: str = "image") -> FieldOfView:
         if keep.sum() < 20:
             break
         cu, cv, r = _fit_circle(points[keep])
+    on_circle = np.abs(np.hypot(points[:, 0] - cu, points[:, 1] - cv) - r) < 2.0
+    if on_circle.mean() < 0.5:
+        raise FluorosimError(f"{source}: the exposed area is not a circle (only {100 * on_circle.mean():.0f} % of its edge "
+                             "lies on one); an intensifier frame grab shows the field as a bright disc on black, so "
+                             "export it with air bright, or calibrate a flat panel with its profile's detector.kind")
     # Contour pixels lie half a pixel inside the true edge on average.
     return FieldOfView(cu, cv, r + 0.5)
