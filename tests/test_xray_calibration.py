@@ -303,3 +303,15 @@ def test_a_square_exposure_is_not_taken_for_the_intensifier_circle():
     image[60:450, 80:430] = 1.0
     with pytest.raises(FluorosimError, match="not a circle"):
         find_field_of_view(image, "grab.png")
+
+
+def test_a_marker_pose_from_another_image_fails_the_bar(phantom, result, session):
+    from appliance.calibration.xray_calibration import CalibrationResult, acceptance_failures
+    _, _, readings = session
+    swapped = [readings[1], readings[0], *readings[2:]]
+    estimates = [webcam_in_xray(v.T_xray_from_phantom, phantom.T_phantom_from_marker(), T)
+                 for v, T in zip(result.fit.views, swapped)]
+    failures = acceptance_failures(CalibrationResult(result.images, result.fit, average_rigid(estimates)), phantom)
+    assert any(f.startswith("img0: its T_xray_from_webcam lies") for f in failures)
+    assert any(f.startswith("img1: its T_xray_from_webcam lies") for f in failures)
+    assert acceptance_failures(result, phantom) == []

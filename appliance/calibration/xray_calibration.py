@@ -126,7 +126,7 @@ def calibrate(images: list[tuple[str, np.ndarray]], phantom: CalibrationPhantomP
         estimates = [webcam_in_xray(v.T_xray_from_phantom, phantom.T_phantom_from_marker(), pose_of[v.name]) for v in fit.views]
         webcam = average_rigid(estimates)
     result = CalibrationResult(outcomes, fit if fit.views else None, webcam, timings_s=dict(timings))
-    result.failures = _acceptance_failures(result, phantom)
+    result.failures = acceptance_failures(result, phantom)
     return result
 
 
@@ -153,7 +153,7 @@ def _fit_with_tangential_choice(views: list[View], K0: np.ndarray, dist0: np.nda
     return free if p_value < phantom.fit.tangential_significance else plain
 
 
-def _acceptance_failures(result: CalibrationResult, phantom: CalibrationPhantomProfile) -> list[str]:
+def acceptance_failures(result: CalibrationResult, phantom: CalibrationPhantomProfile) -> list[str]:
     bar = phantom.acceptance
     fit = result.fit
     if fit is None:
@@ -165,6 +165,12 @@ def _acceptance_failures(result: CalibrationResult, phantom: CalibrationPhantomP
         failures.append(f"reprojection RMS {fit.rms_px:.3f} px exceeds {bar.max_rms_px} px")
     if fit.worst_px > bar.max_residual_px:
         failures.append(f"worst residual {fit.worst_px:.3f} px exceeds {bar.max_residual_px} px")
+    if result.webcam is not None:
+        for view, mm, deg in zip(fit.views, result.webcam.translation_spread_mm, result.webcam.rotation_spread_deg):
+            if mm > bar.max_webcam_spread_mm or deg > bar.max_webcam_spread_deg:
+                failures.append(f"{view.name}: its T_xray_from_webcam lies {mm:.1f} mm / {deg:.2f} deg from the average "
+                                f"(bar {bar.max_webcam_spread_mm} mm / {bar.max_webcam_spread_deg} deg); "
+                                "check that its --marker-pose file belongs to this image")
     for name, f in (("fx", fit.K[0, 0]), ("fy", fit.K[1, 1])):
         pct = 100.0 * fit.sigma.get(name, float("inf")) / f
         if not pct <= bar.max_focal_uncertainty_percent:
