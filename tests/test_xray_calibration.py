@@ -273,7 +273,10 @@ def test_cli_writes_the_calibrated_profile_atomically_and_keeps_the_old(tmp_path
     assert abs(new.intrinsics.fx / machine.K[0, 0] - 1) < 0.005
     mm, deg = scenario.transform_error(new.T_xray_from_webcam(), machine.T_xray_from_webcam)
     assert mm < 1.0 and deg < 0.5
-    assert "# A generic mobile C-arm" in profile.read_text()  # the technician's comments survive
+    text = profile.read_text()
+    assert "# A generic mobile C-arm" in text  # the technician's comments survive
+    untouched = original[original.index("zoom_levels:"):original.index("webcam:")]
+    assert untouched in text  # and everything the calibration does not own, byte for byte
 
 
 def test_cli_refuses_to_write_when_the_bar_is_not_met(tmp_path, session, capsys):

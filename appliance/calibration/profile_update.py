@@ -51,7 +51,11 @@ def updated_profile_text(path: str | Path, fit: Fit, T_xray_from_webcam: np.ndar
         rows = CommentedSeq([_flow([round(float(x), 6) for x in row]) for row in T_xray_from_webcam])
         tree["webcam"]["T_xray_from_webcam"] = rows
     out = io.StringIO()
-    round_trip_yaml().dump(tree, out)
+    yaml = round_trip_yaml()
+    # The shipped profiles indent lists under their key; keep that, and never fold long lines.
+    yaml.indent(mapping=2, sequence=4, offset=2)
+    yaml.width = 4096
+    yaml.dump(tree, out)
     text = out.getvalue()
     reparsed = round_trip_yaml().load(text)
     _, problems = validate_located(Located(located.path, located.display, _plain(reparsed), reparsed), FluoroscopeProfile)
