@@ -140,12 +140,18 @@ def detect_blobs(image: np.ndarray, fov: FieldOfView, detection: Detection) -> B
         radius = diameter / 2
         if fov.distance_inside([(ui, vi)])[0] < 1.5 * radius + detection.fov_margin_px:
             continue
-        uu, vv = _refine_centre(a, float(ui), float(vi), radius)
-        kept_uv.append((uu, vv))
+        kept_uv.append((float(ui), float(vi)))
         kept_d.append(diameter)
         kept_s.append(float(si))
-    return Blobs(np.array(kept_uv, dtype=np.float64).reshape(-1, 2), np.array(kept_d, dtype=np.float64),
-                 np.array(kept_s, dtype=np.float64))
+    uv, d = np.array(kept_uv, dtype=np.float64).reshape(-1, 2), np.array(kept_d, dtype=np.float64)
+    # Two shadows close enough to share a centroid window or background ring (a steep tilt
+    # lays one plate's ball beside the other's) would pull each other's centres: drop both.
+    gap = np.linalg.norm(uv[:, None] - uv[None], axis=2)
+    np.fill_diagonal(gap, np.inf)
+    crowded = (gap < 1.15 * d[:, None] + 0.5 * d[None, :]).any(axis=1)
+    keep = ~crowded
+    refined = np.array([_refine_centre(a, u, v, r) for (u, v), r in zip(uv[keep], d[keep] / 2)]).reshape(-1, 2)
+    return Blobs(refined, d[keep], np.array(kept_s, dtype=np.float64)[keep])
 
 
 def _round_enough(response: np.ndarray, u: int, v: int, max_axis_ratio: float) -> bool:

@@ -135,16 +135,13 @@ def _project(T: np.ndarray, points: np.ndarray, K: np.ndarray, dist: np.ndarray)
 
 
 def _pose(object_points: np.ndarray, image_points: np.ndarray, K: np.ndarray, dist: np.ndarray,
-          guess: np.ndarray | None = None) -> np.ndarray | None:
+          guess: np.ndarray) -> np.ndarray | None:
+    """Pose refined from `guess` by iterative PnP, or None."""
     obj = object_points.reshape(-1, 1, 3).astype(np.float64)
     img = image_points.reshape(-1, 1, 2).astype(np.float64)
-    if guess is None:
-        flag = cv2.SOLVEPNP_IPPE if np.ptp(object_points[:, 2]) == 0 else cv2.SOLVEPNP_SQPNP
-        ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=flag)
-    else:
-        rvec0, _ = cv2.Rodrigues(guess[:3, :3])
-        ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, rvec0.copy(), guess[:3, 3].reshape(3, 1).copy(),
-                                      useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
+    rvec0, _ = cv2.Rodrigues(guess[:3, :3])
+    ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, rvec0.copy(), guess[:3, 3].reshape(3, 1).copy(),
+                                  useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
     if not ok:
         return None
     T = np.eye(4)
@@ -245,18 +242,44 @@ def identify(blobs: Blobs, phantom: CalibrationPhantomProfile, K0: np.ndarray, d
         if not any(_same_within(mapping, m) for m in seen):
             seen.append(mapping)
             kept.append(i)
-    outcomes = [outcomes[i] for i in kept]
-    scores = [scores[i] for i in kept]
-    if len(outcomes) > 1 and scores[1][0] >= scores[0][0] - 2:
+    # Only pairings some camera can produce compete; of those the best must lead clearly.
+    viable: list[tuple[Identification, tuple[int, int]]] = []
+    refusal = None
+    for i in kept:
+        if viable and scores[i][0] < viable[0][1][0] - 2:
+            break
+        try:
+            _check_camera_explains(outcomes[i], phantom, K0, dist0, source)
+        except IdentificationFailed as e:
+            refusal = refusal or e
+            continue
+        viable.append((outcomes[i], scores[i]))
+    if not viable:
+        raise refusal
+    if len(viable) > 1:
         raise IdentificationFailed(f"{source}: the phantom's orientation is ambiguous (two different pairings explain "
-                                   f"{len(outcomes[0].sphere_index)} and {len(outcomes[1].sphere_index)} balls); "
+                                   f"{len(viable[0][0].sphere_index)} and {len(viable[1][0].sphere_index)} balls); "
                                    "check that the whole phantom is in the field")
-    found, expected = len(outcomes[0].sphere_index), scores[0][1]
+    found, (_, expected) = len(viable[0][0].sphere_index), viable[0][1]
     if expected and found < 0.75 * expected:
         raise IdentificationFailed(f"{source}: only {found} of the {expected} balls the best pose puts in the field "
                                    "were found; check the exposure and that nothing covers the phantom")
-    _check_camera_explains(outcomes[0], phantom, K0, dist0, source)
-    return outcomes[0]
+    return _without_overlaps(viable[0][0], phantom, K0, dist0)
+
+
+def _without_overlaps(found: Identification, phantom: CalibrationPhantomProfile, K0, dist0) -> Identification:
+    """Drop balls whose shadow touches another ball's: one blob then holds two balls and its
+    centre belongs to neither. Detection cannot see it (it finds one blob); the pose can."""
+    T = found.T_xray_from_phantom
+    predicted = _project(T, phantom.centres(), K0, dist0)
+    depth = phantom.centres() @ T[2, :3] + T[2, 3]
+    d = K0[0, 0] * phantom.diameters() / depth
+    gap = np.linalg.norm(predicted[:, None] - predicted[None], axis=2)
+    np.fill_diagonal(gap, np.inf)
+    crowded = (gap < 1.15 * d[:, None] + 0.5 * d[None, :]).any(axis=1)
+    keep = ~crowded[found.sphere_index]
+    return Identification(found.sphere_index[keep], found.uv[keep], found.blob_index[keep], T,
+                          found.unmatched_blobs + int((~keep).sum()))
 
 
 def _check_camera_explains(found: Identification, phantom: CalibrationPhantomProfile, K0, dist0, source: str) -> None:
