@@ -19,6 +19,7 @@ from ..config.calibration_phantom import CalibrationPhantomProfile
 from ..config.commands import default_config_dir
 from ..config.fluoroscope import FluoroscopeProfile
 from ..config.loading import load_profile
+from ..geometry import apply
 from . import scenario, shadowgraph
 from .xray_calibration import calibrate
 
@@ -59,7 +60,7 @@ def damaged_identification(phantom, fluoroscope, machine, image, T, rng, trials:
 
     fov = find_field_of_view(image)
     blobs = detect_blobs(image, fov, phantom.detection)
-    truth, _ = cv2.projectPoints(scenario.apply(T, phantom.centres()), np.zeros(3), np.zeros(3), machine.K, machine.dist)
+    truth, _ = cv2.projectPoints(apply(T, phantom.centres()), np.zeros(3), np.zeros(3), machine.K, machine.dist)
     truth = truth.reshape(-1, 2)
     K0, d0 = fluoroscope.intrinsics.K(), fluoroscope.intrinsics.distortion.coefficients()
     tally = {"right": 0, "refused": 0, "wrong": 0}

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..config.calibration_phantom import CalibrationPhantomProfile
 from ..config.fluoroscope import FluoroscopeProfile
-from ..geometry import apply, invert, make_transform, rotation_about, rotation_angle_deg
+from ..geometry import invert, make_transform, rotation_about, rotation_angle_deg
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,7 @@ from ..errors import FluorosimError
 from .blobs import detect_blobs
 from .field_of_view import FieldOfView, find_field_of_view, whole_image
 from .fit import INTRINSIC_NAMES, Fit, View, fit_views
-from .identification import IdentificationFailed, identify
+from .identification import identify
 from .webcam_transform import AveragedTransform, average_rigid, webcam_in_xray
 
 
