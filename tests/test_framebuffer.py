@@ -253,3 +253,58 @@ def test_real_framebuffer_node_when_present():
         assert display.stride >= display.width * display.bpp // 8
     finally:
         display.close()
+
+
+# ---------------------------------------------------------------- fluorosim screenshot
+
+def write_appliance_profile(folder, bpp=32, width=64, height=48):
+    (folder / "appliance.yaml").write_text(f"""\
+fluoroscope: fluoroscopes/generic-ii-carm.yaml
+case: cases/child-torso-vcug.yaml
+phantom: phantoms/box-v1.yaml
+keymap: keymaps/usb-numeric-keypad.yaml
+devices:
+  camera:
+    source: synthetic
+    webcam: webcams/generic-720p.yaml
+  keypad:
+    source: none
+  display:
+    target: file
+    path: screen/screen.raw
+    width: {width}
+    height: {height}
+    bpp: {bpp}
+data_dir: var
+""")
+    return folder / "appliance.yaml"
+
+
+@pytest.mark.parametrize("bpp", [24, 32])
+def test_screenshot_writes_what_the_screen_file_shows(tmp_path, bpp, capsys):
+    import cv2
+
+    from appliance.cli import main
+    config = write_appliance_profile(tmp_path, bpp=bpp)
+    (tmp_path / "var" / "screen").mkdir(parents=True)
+    frame = random_frame(48, 64)
+    with FileDisplay(str(tmp_path / "var" / "screen" / "screen.raw"), 64, 48, bpp) as display:
+        display.show(frame)
+        out = tmp_path / "shot.png"
+        assert main(["screenshot", str(out), "--config", str(config)]) == 0
+    png = cv2.cvtColor(cv2.imread(str(out), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    np.testing.assert_array_equal(png, frame)
+    assert "64x48" in capsys.readouterr().out
+
+
+def test_screenshot_problems_are_one_line(tmp_path, capsys):
+    from appliance.cli import main
+    config = write_appliance_profile(tmp_path)
+    assert main(["screenshot", str(tmp_path / "shot.png"), "--config", str(config)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "screen.raw: no screen file" in err and "devices.display" in err
+    assert not (tmp_path / "shot.png").exists()
+    assert main(["screenshot", str(tmp_path / "shot.jpg"), "--config", str(config)]) == 2
+    assert "as PNG" in capsys.readouterr().err
+    assert main(["screenshot", str(tmp_path / "shot.png"), "--config", str(tmp_path / "none.yaml")]) == 2
+    assert "none.yaml: no such appliance profile" in capsys.readouterr().err
