@@ -178,6 +178,12 @@ class PixelFormat:
         h = packed.shape[0]
         bpp_bytes = self.bytes_per_pixel
         w = packed.shape[1] // bpp_bytes
+        order = self._byte_order()
+        if order is not None:   # whole-byte channels: a channel shuffle, no bit arithmetic
+            pixels = np.ascontiguousarray(packed).reshape(h, w, bpp_bytes)
+            if bpp_bytes == 4:
+                return cv2.cvtColor(pixels, cv2.COLOR_BGRA2RGB if order == "BGR" else cv2.COLOR_RGBA2RGB)
+            return cv2.cvtColor(pixels, cv2.COLOR_BGR2RGB) if order == "BGR" else pixels.copy()
         raw = np.zeros((h, w, 4), dtype=np.uint8)
         raw[:, :, :bpp_bytes] = packed.reshape(h, w, bpp_bytes)
         value = raw.view("<u4").reshape(h, w).astype(np.uint32)
