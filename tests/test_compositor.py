@@ -219,3 +219,13 @@ def test_bad_sizes_are_refused():
     comp = Compositor(640, 480)
     with pytest.raises(ValueError, match="rows, cols"):
         comp.compose(np.zeros((4, 4, 3), np.float32), plain_overlay())
+
+
+def test_display_benchmark_runs_and_writes_its_screens(tmp_path, capsys):
+    from appliance.cli import main
+    assert main(["bench", "display", "--frames", "2", "--image-size", "64", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "compose 1920x1080:" in out and "compose 1280x1024:" in out
+    assert all(f"{bpp} bpp 1920x1080: show with one copy" in out for bpp in (16, 24, 32))
+    import cv2
+    assert cv2.imread(str(tmp_path / "compose-1280x1024.png")).shape == (1024, 1280, 3)
