@@ -229,3 +229,34 @@ def test_display_benchmark_runs_and_writes_its_screens(tmp_path, capsys):
     assert all(f"{bpp} bpp 1920x1080: show with one copy" in out for bpp in (16, 24, 32))
     import cv2
     assert cv2.imread(str(tmp_path / "compose-1280x1024.png")).shape == (1024, 1280, 3)
+
+
+def test_a_wide_detector_keeps_its_aspect_ratio():
+    comp = Compositor(1280, 1024, circular_fov=False)
+    frame = comp.compose(np.ones((32, 64), np.float32), plain_overlay(), now=0.0)
+    # 64 columns fill the 1024-pixel square's width; 32 rows fill half its height, centred.
+    cx, cy = 640, 512
+    assert (frame[cy + 200, cx] == 255).all() and (frame[cy - 200, cx] == 255).all()
+    assert (frame[cy + 300, cx] == 0).all() and (frame[cy - 300, cx] == 0).all()
+    assert (frame[cy, 128 + 2] == 255).all() and (frame[cy, 1280 - 128 - 3] == 255).all()
+    # Collimation keeps one scale for both blade pairs: 1024 pixels span the 300 mm wide field, so
+    # 150 mm is 512 pixels across and 100 mm is 341 pixels down (edges at +-256 and +-171 from the centre).
+    coll = comp.compose(np.ones((32, 64), np.float32), plain_overlay(fov_mm=300.0, collimation_mm=(150.0, 100.0)), now=0.0)
+    dim = round(255 * COLLIMATED_BRIGHTNESS)
+    assert coll[cy, cx + 240, 0] == 255 and abs(int(coll[cy, cx + 270, 0]) - dim) <= 1
+    assert coll[cy + 160, cx, 0] == 255 and abs(int(coll[cy + 185, cx, 0]) - dim) <= 1
+
+
+def test_corner_text_keeps_its_dark_outline_over_a_bright_image():
+    comp = Compositor(1280, 1024)
+    overlay = plain_overlay(case="Child torso VCUG, a long case title that runs into the image")
+    frame = comp.compose(np.ones((64, 64), np.float32), overlay, now=0.0)
+    line = comp.text_layout(overlay, now=0.0)[0]
+    x0, y0, x1, y1 = line.box
+    # Where the title crosses the white field of view, its outline is drawn black over the image.
+    cx, cy, r = 640, 512, 512
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    over_image = np.hypot(xx + 0.5 - cx, yy + 0.5 - cy) < r - 2
+    assert over_image.sum() > 100
+    region = frame[y0:y1, x0:x1]
+    assert (region[over_image] < 60).all(axis=-1).sum() > 50

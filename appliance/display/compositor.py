@@ -1,6 +1,7 @@
 """What the monitor of the fluoroscope shows: the X-ray image in its field of view, and the overlays.
 
-The square image from the renderer is fitted to the screen height and centred (letterboxed);
+The image from the renderer is fitted to the screen height and centred (letterboxed; a
+non-square detector keeps its aspect ratio);
 an image intensifier's field of view is the circle inscribed in that square. Text sits in
 the corners outside the circle, as on a clinical monitor: case, operator and fluoroscope top
 left; mode, zoom, field of view and collimation top right; fluoroscopy time, reference air
@@ -157,6 +158,7 @@ class Compositor:
         self._dim_lut = (np.arange(256) * COLLIMATED_BRIGHTNESS).astype(np.uint8)
         self._static_key: tuple | None = None
         self._static_layer = np.zeros((height, width, 3), np.uint8)
+        self._static_mask = np.zeros((height, width), np.uint8)
         self._static_boxes: list[tuple[int, int, int, int]] = []
         self._starting = self._starting_square()
 
@@ -182,20 +184,20 @@ class Compositor:
             laid.append(_Text(text, (x, y), scale, color, font, thickness, sup))
         return laid
 
-    def _draw(self, frame: np.ndarray, t: _Text) -> None:
+    def _draw(self, frame: np.ndarray, t: _Text, outline_color=BLACK) -> None:
         # A dark outline keeps text legible where it crosses the image.
-        cv2.putText(frame, t.text, t.org, t.font, t.scale, BLACK, t.thickness + 2 * max(1, t.thickness // 2 + 1), cv2.LINE_AA)
+        cv2.putText(frame, t.text, t.org, t.font, t.scale, outline_color, t.thickness + 2 * max(1, t.thickness // 2 + 1), cv2.LINE_AA)
         cv2.putText(frame, t.text, t.org, t.font, t.scale, t.color, t.thickness, cv2.LINE_AA)
-        self._draw_sup(frame, t, outline=True)
+        self._draw_sup(frame, t, outline_color)
 
-    def _draw_sup(self, frame: np.ndarray, t: _Text, outline: bool) -> None:
+    def _draw_sup(self, frame: np.ndarray, t: _Text, outline_color=None) -> None:
         if not t.sup:
             return
         (w, h), _ = cv2.getTextSize(t.text, t.font, t.scale, t.thickness)
         org = (t.org[0] + w, t.org[1] - round(h * 0.4))
         scale = t.scale * SUP_SCALE
-        if outline:
-            cv2.putText(frame, t.sup, org, t.font, scale, BLACK, t.thickness + 2 * max(1, t.thickness // 2 + 1), cv2.LINE_AA)
+        if outline_color is not None:
+            cv2.putText(frame, t.sup, org, t.font, scale, outline_color, t.thickness + 2 * max(1, t.thickness // 2 + 1), cv2.LINE_AA)
         cv2.putText(frame, t.sup, org, t.font, scale, t.color, t.thickness, cv2.LINE_AA)
 
     def _static_texts(self, overlay: Overlay) -> list[_Text]:
@@ -208,9 +210,11 @@ class Compositor:
         if key == self._static_key:
             return
         self._static_layer[...] = 0
+        self._static_mask[...] = 0
         self._static_boxes = []
         for t in self._static_texts(overlay):
             self._draw(self._static_layer, t)
+            self._draw(self._static_mask, _Text(t.text, t.org, t.scale, 255, t.font, t.thickness, t.sup), outline_color=255)
             x0, y0, x1, y1 = t.box
             self._static_boxes.append((max(x0, 0), max(y0, 0), min(x1, self.width), min(y1, self.height)))
         self._static_key = key
@@ -265,28 +269,43 @@ class Compositor:
         img8 = cv2.convertScaleAbs(img, alpha=255.0)           # rounds and saturates at 255
         if overlay.invert:
             cv2.bitwise_not(img8, dst=img8)
-        square = cv2.resize(img8, (self.side, self.side), interpolation=cv2.INTER_AREA
-                            if img8.shape[0] > self.side else cv2.INTER_LINEAR)
-        self._collimate(square, overlay)
+        rows, cols = img8.shape
+        # The longer side fills the square; a non-square detector keeps its aspect ratio.
+        w, h = self._fitted(rows, cols)
+        interpolation = cv2.INTER_AREA if max(rows, cols) > self.side else cv2.INTER_LINEAR
+        if (w, h) == (self.side, self.side):
+            square = cv2.resize(img8, (w, h), interpolation=interpolation)
+        else:
+            square = np.zeros((self.side, self.side), np.uint8)
+            x, y = (self.side - w) // 2, (self.side - h) // 2
+            square[y:y + h, x:x + w] = cv2.resize(img8, (w, h), interpolation=interpolation)
+        self._collimate(square, overlay, w)
         cv2.bitwise_and(square, self._mask, dst=square)
         return square
 
-    def blade_edges(self, overlay: Overlay) -> tuple[int, int, int, int] | None:
+    def _fitted(self, rows: int, cols: int) -> tuple[int, int]:
+        """Displayed (width, height) in screen pixels of a rows x cols image."""
+        longest = max(rows, cols)
+        return max(1, round(self.side * cols / longest)), max(1, round(self.side * rows / longest))
+
+    def blade_edges(self, overlay: Overlay, image_width_px: int | None = None) -> tuple[int, int, int, int] | None:
         """Opening of the collimator in image-square pixels: (left, top, right, bottom), exclusive ends.
 
-        The image spans `fov_mm` across its width, so an opening of o mm covers o / fov_mm
-        of it, centred on the central ray.
+        The image spans `fov_mm` across its displayed width (`image_width_px`, default the
+        whole square), so an opening of o mm covers o / fov_mm of that width, centred on the
+        central ray; both blade pairs use the same pixels per mm.
         """
         if overlay.collimation_mm is None or overlay.fov_mm <= 0:
             return None
+        px_per_mm = (image_width_px or self.side) / overlay.fov_mm
         h_mm, v_mm = overlay.collimation_mm
-        half_w = self.side / 2.0 * min(max(h_mm, 0.0) / overlay.fov_mm, 1.0)
-        half_h = self.side / 2.0 * min(max(v_mm, 0.0) / overlay.fov_mm, 1.0)
+        half_w = min(max(h_mm, 0.0) * px_per_mm, self.side) / 2.0
+        half_h = min(max(v_mm, 0.0) * px_per_mm, self.side) / 2.0
         c = self.side / 2.0
         return (round(c - half_w), round(c - half_h), round(c + half_w), round(c + half_h))
 
-    def _collimate(self, square: np.ndarray, overlay: Overlay) -> None:
-        edges = self.blade_edges(overlay)
+    def _collimate(self, square: np.ndarray, overlay: Overlay, image_width_px: int) -> None:
+        edges = self.blade_edges(overlay, image_width_px)
         if edges is None:
             return
         left, top, right, bottom = edges
@@ -355,9 +374,7 @@ class Compositor:
             cv2.circle(frame, (cx, cy), round(self.radius) - self.thickness * 2, WHITE, self.thickness * 3, cv2.LINE_AA)
         self._refresh_static(overlay)
         for x0, y0, x1, y1 in self._static_boxes:
-            region = frame[y0:y1, x0:x1]
-            layer = self._static_layer[y0:y1, x0:x1]
-            np.maximum(region, layer, out=region)
+            cv2.copyTo(self._static_layer[y0:y1, x0:x1], self._static_mask[y0:y1, x0:x1], frame[y0:y1, x0:x1])
         for t in self._dynamic_texts(overlay, now):
             if t.text in ("LIVE", "HOLD"):
                 x0, y0, x1, y1 = t.box
