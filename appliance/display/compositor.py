@@ -1,8 +1,8 @@
 """What the monitor of the fluoroscope shows: the X-ray image in its field of view, and the overlays.
 
 The image from the renderer is fitted to the screen height and centred (letterboxed; a
-non-square detector keeps its aspect ratio);
-an image intensifier's field of view is the circle inscribed in that square. Text sits in
+non-square detector keeps its aspect ratio); an image intensifier's field of view is the
+circle inscribed in that square. Text sits in
 the corners outside the circle, as on a clinical monitor: case, operator and fluoroscope top
 left; mode, zoom, field of view and collimation top right; fluoroscopy time, reference air
 kerma and dose-area product bottom left; the LIVE / HOLD marker bottom right. Warnings are
