@@ -461,11 +461,19 @@ class FileDisplay(Display):
             raise DisplayError(f"{path}: cannot open the screen file ({e.strerror})") from None
         try:
             actual = os.fstat(fd).st_size
-            if actual != size:
-                if read_only:
-                    raise DisplayError(f"{path}: holds {actual} bytes but {width}x{height} at {bpp} bpp with stride "
-                                       f"{self.stride} needs {size}; give the geometry the appliance writes with")
-                os.ftruncate(fd, size)
+            if actual != size and read_only:
+                raise DisplayError(f"{path}: holds {actual} bytes but {width}x{height} at {bpp} bpp with stride "
+                                   f"{self.stride} needs {size}; give the geometry the appliance writes with")
+            if not read_only:
+                # Reserve the blocks now: a write through the mapping into a sparse file on a full
+                # disk would kill the process with SIGBUS instead of raising an error.
+                try:
+                    if actual != size:
+                        os.ftruncate(fd, size)
+                    os.posix_fallocate(fd, 0, size)
+                except OSError as e:
+                    raise DisplayError(f"{path}: cannot reserve {size} bytes for the screen file ({e.strerror}); "
+                                       f"free disk space") from None
             self._mm = mmap.mmap(fd, size, mmap.MAP_SHARED,
                                  mmap.PROT_READ if read_only else mmap.PROT_READ | mmap.PROT_WRITE)
         finally:

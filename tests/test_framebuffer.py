@@ -6,6 +6,7 @@ import ctypes
 import os
 import shutil
 import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -308,3 +309,33 @@ def test_screenshot_problems_are_one_line(tmp_path, capsys):
     assert "as PNG" in capsys.readouterr().err
     assert main(["screenshot", str(tmp_path / "shot.png"), "--config", str(tmp_path / "none.yaml")]) == 2
     assert "none.yaml: no such appliance profile" in capsys.readouterr().err
+
+
+FULL_DISK_SCRIPT = r"""
+import sys
+sys.path.insert(0, sys.argv[2])
+from drivers.framebuffer import DisplayError, FileDisplay
+try:
+    FileDisplay(sys.argv[1] + "/screen.raw", 640, 480, 32)   # 1.2 MB on a 256 KiB file system
+except DisplayError as e:
+    print("DisplayError:", e)
+"""
+
+
+def test_a_full_disk_is_an_error_not_a_crash(tmp_path):
+    # A real full file system: a 256 KiB tmpfs in a private mount namespace.
+    unshare = shutil.which("unshare")
+    if unshare is None:
+        pytest.skip("no unshare (util-linux) to make a small private file system")
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    script = tmp_path / "full.py"
+    script.write_text(FULL_DISK_SCRIPT)
+    repo = str(Path(__file__).resolve().parents[1])
+    import sys
+    cmd = f"mount -t tmpfs -o size=256k tmpfs {mnt} && exec {sys.executable} {script} {mnt} {repo}"
+    result = subprocess.run([unshare, "-rm", "sh", "-c", cmd], capture_output=True, text=True, timeout=60)
+    if result.returncode != 0 and "mount" in result.stderr:
+        pytest.skip(f"cannot mount a private tmpfs here: {result.stderr.strip()}")
+    assert result.returncode == 0, result.stderr
+    assert "screen.raw: cannot reserve 1228800 bytes" in result.stdout and "free disk space" in result.stdout
