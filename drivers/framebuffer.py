@@ -370,6 +370,9 @@ class FramebufferDisplay(Display):
             self.pages = self._enable_double_buffer(var, fix)
         self._page_rows = [p * self.height for p in range(self.pages)]
         self._shown = 0 if self.pages == 1 else (1 if var.yoffset == self.height else 0)
+        # Without panning, frames go to the rows the driver shows now (0 unless left panned).
+        fits = (var.yoffset + self.height) * self.stride <= fix.smem_len
+        self._visible_row = var.yoffset if fits else 0
         try:
             self._mm = mmap.mmap(device.fileno(), fix.smem_len, mmap.MAP_SHARED,
                                  mmap.PROT_READ if read_only else mmap.PROT_READ | mmap.PROT_WRITE)
@@ -403,7 +406,7 @@ class FramebufferDisplay(Display):
             raise DisplayError(f"{self.name}: opened read-only")
         if self.pages == 1:
             self.pixel_format.pack(rgb, self._back)
-            self._page(self._memory, 0)[...] = self._back
+            self._page(self._memory, self._visible_row)[...] = self._back
             return
         hidden = 1 - self._shown
         self.pixel_format.pack(rgb, self._page(self._memory, self._page_rows[hidden]))
@@ -415,6 +418,7 @@ class FramebufferDisplay(Display):
             # Panning refused after all: copy the frame to the visible page and stop double-buffering.
             self._page(self._memory, self._page_rows[self._shown])[...] = self._page(self._memory, self._page_rows[hidden])
             self.pages = 1
+            self._visible_row = self._page_rows[self._shown]
             self._back = np.zeros((self.height, self.width * self.pixel_format.bytes_per_pixel), np.uint8)
             if e.errno not in (errno.EINVAL, errno.ENOTTY):
                 raise DisplayError(f"{self.name}: FBIOPAN_DISPLAY failed ({e.strerror})") from None

@@ -235,6 +235,36 @@ def test_without_panning_one_copy_per_frame_and_no_pan(tmp_path):
     display.close()
 
 
+def test_a_driver_that_stops_panning_keeps_getting_frames_on_the_visible_page(tmp_path):
+    fmt = FORMATS["XRGB8888"]
+    node = FakeFramebuffer(str(tmp_path / "fb"), 8, 4, fmt, pages=2, ypanstep=1)
+    display = FramebufferDisplay(node)
+    a, b, c = random_frame(4, 8), random_frame(4, 8), random_frame(4, 8)
+    display.show(a)
+    assert node.var_info().yoffset == 4
+    node._fix.ypanstep = 0            # the driver now refuses to move the visible page
+    display.show(b)
+    assert not display.double_buffered and node.var_info().yoffset == 4
+    np.testing.assert_array_equal(display.read_back(), b)
+    display.show(c)
+    np.testing.assert_array_equal(display.read_back(), c)
+    display.close()
+
+
+def test_single_buffering_draws_where_the_driver_was_left_panned(tmp_path):
+    fmt = FORMATS["RGB565"]
+    node = FakeFramebuffer(str(tmp_path / "fb"), 8, 4, fmt, pages=2, ypanstep=1)
+    node._var.yoffset = 4             # a previous run left the second page on screen
+    node._fix.ypanstep = 0
+    display = FramebufferDisplay(node)
+    assert not display.double_buffered
+    frame = np.full((4, 8, 3), 255, np.uint8)
+    display.show(frame)
+    data = (tmp_path / "fb").read_bytes()
+    assert data[:8 * 2 * 4] == bytes(8 * 2 * 4) and data[8 * 2 * 4:] == b"\xff" * (8 * 2 * 4)
+    display.close()
+
+
 def test_unsupported_modes_are_refused_with_the_device_named(tmp_path):
     node = FakeFramebuffer(str(tmp_path / "fb"), 8, 4, PixelFormat(8, (0, 8), (0, 8), (0, 8)))
     with pytest.raises(DisplayError, match=r"fb: unsupported pixel format: 8 bits per pixel.*fbset -depth 32"):
