@@ -19,6 +19,7 @@ from .errors import FluorosimError
 COMMAND_MODULES = (
     "appliance.config.commands",
     "appliance.display.commands",
+    "appliance.xray.commands",
 )
 
 

@@ -21,6 +21,7 @@ class Detector(Section):
     columns: int = Field(gt=0, le=8192, description="Image width (pixels).")
     rows: int = Field(gt=0, le=8192, description="Image height (pixels).")
     pixel_pitch_mm: float = Field(gt=0, le=5, description="Pixel size at the detector (input phosphor) plane at the widest field of view (mm).")
+    vignetting: float = Field(0.0, ge=0, lt=1, description="Image intensifier brightness lost at the edge of the circular field relative to its centre (fraction, falls off as radius squared); 0 for flat panels.")
 
 
 class Geometry(Section):
