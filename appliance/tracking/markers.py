@@ -181,6 +181,10 @@ def distort(normalized: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarr
     return np.stack([K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]], axis=1)
 
 
+#: IPPE's best solution reprojecting worse than this (RMS, pixels) is checked with another solver.
+IPPE_SUSPECT_PX = 1.0
+
+
 @dataclass
 class MarkerPose:
     """One marker's pose from its four corners alone."""
@@ -205,18 +209,43 @@ def _transform(rvec, tvec) -> np.ndarray:
     return make_transform(cv2.Rodrigues(np.asarray(rvec, dtype=np.float64))[0], np.asarray(tvec).reshape(3))
 
 
-def marker_pose(marker_id: int, corners_px: np.ndarray, size_mm: float, K: np.ndarray, dist: np.ndarray) -> MarkerPose | None:
-    """Pose of one square marker from its corners (IPPE for squares), or None if it cannot be solved."""
+def marker_pose(marker_id: int, corners_px: np.ndarray, size_mm: float, K: np.ndarray, dist: np.ndarray,
+                polish: bool = True) -> MarkerPose | None:
+    """Pose of one square marker from its corners, or None if it cannot be solved.
+
+    Candidates come from IPPE for squares (its two solutions: the plane and its mirror about the
+    line of sight); when IPPE's best reprojects badly (it breaks down for a square seen almost
+    exactly head-on with its sides along the image axes) SQPnP adds one. IPPE's closed form is
+    not the least-squares pose (0.5 % off in depth even on exact corners), so each candidate is
+    polished by Levenberg-Marquardt (unless `polish` is False: a caller that refines a joint pose
+    only needs candidates). A print is seen from its front only, so a candidate with
+    the normal turned away from the camera is impossible and dropped.
+    """
+    obj, img = marker_corners(size_mm), corners_px.reshape(4, 1, 2).astype(np.float64)
+    seeds = []
     try:
-        n, rvecs, tvecs, errs = cv2.solvePnPGeneric(marker_corners(size_mm), corners_px.reshape(4, 1, 2), K, dist,
-                                                    flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        seeds += list(zip(rvecs, tvecs))
+        if n == 0 or not np.any(np.asarray(errs) <= IPPE_SUSPECT_PX):      # (NaN counts as bad)
+            ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_SQPNP)
+            if ok:
+                seeds.append((rvec, tvec))
     except cv2.error:
         return None
-    if n == 0:
+    found = []
+    for rvec, tvec in seeds:
+        if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+            continue
+        if polish:
+            rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvec.copy(), tvec.copy())
+        T = _transform(rvec, tvec)
+        if not np.all(np.isfinite(T)) or T[2, 3] <= 0 or ray_to_normal_deg(T) >= 90.0:
+            continue
+        proj, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
+        err = float(np.sqrt(np.mean(np.sum((proj.reshape(4, 2) - img.reshape(4, 2)) ** 2, axis=1))))
+        found.append((err, T))
+    if not found:
         return None
-    errs = np.asarray(errs).reshape(-1)
-    order = np.argsort(errs)
-    Ts = [_transform(rvecs[i], tvecs[i]) for i in order]
-    if Ts[0][2, 3] <= 0:
-        return None
-    return MarkerPose(marker_id, Ts[0], Ts[1] if len(Ts) > 1 else None, float(errs[order[0]]), ray_to_normal_deg(Ts[0]))
+    found.sort(key=lambda f: f[0])
+    (err, T), alt = found[0], (found[1][1] if len(found) > 1 else None)
+    return MarkerPose(marker_id, T, alt, err, ray_to_normal_deg(T))

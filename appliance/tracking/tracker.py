@@ -78,7 +78,9 @@ class Tracker:
     def pose_from_corners(self, detected: dict[int, np.ndarray], t: float) -> Pose:
         """The unsmoothed pose from detected corners {marker id: (4, 2) pixels}."""
         seen = sorted(detected)
-        singles = [p for i in seen if (p := marker_pose(i, detected[i], self.size_mm, self.K, self.dist)) is not None]
+        polish = self.method == "marker"        # the joint refinement polishes its own start
+        singles = [p for i in seen
+                   if (p := marker_pose(i, detected[i], self.size_mm, self.K, self.dist, polish)) is not None]
         if not singles:
             return Pose(False, None, seen, "", t)
         clear = [p for p in singles if p.angle_deg <= GRAZING_DEG]
