@@ -3,9 +3,6 @@
 from __future__ import annotations
 
 import json
-import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import cv2
@@ -156,15 +153,12 @@ def test_track_command_json(profiles, tmp_path, capsys):
     assert lines[2] == {"image": str(blank), "ok": False, "T_webcam_from_phantom": None, "markers": []}
 
 
-def test_track_command_bad_inputs_exit_2_with_one_line(tmp_path):
+def test_track_command_bad_inputs_exit_2_with_one_line(tmp_path, capsys):
     junk = tmp_path / "junk.png"
     junk.write_bytes(b"this is not a png")
-    cmd = [sys.executable, "-m", "appliance", "track", "--phantom", str(PHANTOM), "--webcam", str(WEBCAM), "--json"]
-    r = subprocess.run(cmd + [str(junk)], capture_output=True, text=True, cwd=ROOT, timeout=60)
-    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "junk.png" in r.stderr
-    assert "Traceback" not in r.stderr
-    r = subprocess.run(cmd + [str(tmp_path / "absent.png")], capture_output=True, text=True, cwd=ROOT, timeout=60)
-    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "absent.png" in r.stderr
-    cmd[5] = str(tmp_path / "no-webcam.yaml")
-    r = subprocess.run(cmd + [str(junk)], capture_output=True, text=True, cwd=ROOT, timeout=60)
-    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "no-webcam.yaml" in r.stderr
+    args = ["track", "--phantom", str(PHANTOM), "--webcam", str(WEBCAM), "--json"]
+    for bad, name in ((args + [str(junk)], "junk.png"), (args + [str(tmp_path / "absent.png")], "absent.png"),
+                      (args[:4] + [str(tmp_path / "no-webcam.yaml"), "--json", str(junk)], "no-webcam.yaml")):
+        assert main(bad) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and name in err, err

@@ -12,7 +12,7 @@ from appliance.config import PhantomProfile, load_appliance, load_profile
 from appliance.errors import FluorosimError
 from appliance.geometry import make_transform, rotation_about, rotation_angle_deg
 from appliance.tracking.smoothing import PoseFilter, SmoothingSettings
-from appliance.tracking.sources import open_camera
+from appliance.tracking.sources import open_camera, tracker_for
 from appliance.tracking.tracker import Tracker
 from appliance.tracking.trajectory import R_HOME, Trajectory, load_trajectory, pose_from_angles
 from appliance.tracking.markers import ray_to_normal_deg
@@ -158,3 +158,14 @@ def test_open_camera_from_the_appliance_profile(tmp_path):
             update={"camera": config.appliance.devices.camera.model_copy(update={"source": source})})})
         cam = open_camera(dataclasses.replace(config, appliance=changed))
         assert isinstance(cam, kind)
+
+
+def test_tracker_for_takes_the_profile_tracking_section(tmp_path):
+    config = load_appliance(ROOT / "configs" / "appliance.yaml")
+    tr = tracker_for(config)
+    assert tr.method == "joint" and tr.filter is not None
+    assert tr.filter.s.min_cutoff_hz == config.appliance.tracking.min_cutoff_hz
+    changed = config.appliance.model_copy(update={"tracking": config.appliance.tracking.model_copy(
+        update={"method": "marker", "smoothing": False})})
+    tr = tracker_for(dataclasses.replace(config, appliance=changed))
+    assert tr.method == "marker" and tr.filter is None

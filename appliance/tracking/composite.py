@@ -25,12 +25,17 @@ from scipy.sparse import coo_matrix
 from scipy.spatial.transform import Rotation
 
 from ..geometry import invert, make_transform
-from .markers import marker_corners, marker_pose
-from .tracker import GRAZING_DEG
+from .markers import distort, marker_corners, marker_pose
 
 #: Each hop adds error, so a path's length counts hops as well as their angles: one hop
 #: weighs as much as this many degrees of edge angle.
 HOP_COST_DEG = 10.0
+#: Markers seen more obliquely than this (ray-to-normal angle, degrees) are left out of the
+#: calibration: beyond about 70 degrees their corners are off by pixels, and a calibration can
+#: wait for better views, which tracking cannot.
+MAX_ANGLE_DEG = 65.0
+#: A marker whose corners miss by more than this after adjustment (RMS, pixels) is an outlier in that frame.
+OUTLIER_PX = 1.0
 
 
 @dataclass
@@ -59,7 +64,7 @@ class CompositeCalibration:
         poses = {}
         for i, c in detected.items():
             p = marker_pose(i, c, self.size_mm, self.K, self.dist)
-            if p is not None and p.angle_deg <= GRAZING_DEG:
+            if p is not None and p.angle_deg <= MAX_ANGLE_DEG:
                 poses[i] = p
         self.seen.update(poses)
         if len(poses) < 2:
@@ -115,26 +120,43 @@ class CompositeCalibration:
         return {i: self.T_phantom_from_root @ T for i, T in self.shortest_paths().items()}
 
     def refine(self, T_root_from_marker: dict[int, np.ndarray] | None = None) -> tuple[dict[int, np.ndarray], float]:
-        """Bundle-adjusted T_phantom_from_marker of every connected marker and the final RMS (pixels)."""
+        """Bundle-adjusted T_phantom_from_marker of every connected marker and the final RMS (pixels).
+
+        A marker whose corners in one frame still miss by more than OUTLIER_PX after the first
+        adjustment (a misread corner, a marker seen at a grazing angle) is dropped from that frame
+        and the adjustment is run again.
+        """
         start = T_root_from_marker or self.shortest_paths()
-        markers = [i for i in self.marker_ids if i in start and i != self.root_id]
-        index = {m: k for k, m in enumerate(markers)}
         corners = marker_corners(self.size_mm)
         # Initial phantom (root) pose of each frame: PnP over its markers with the graph layout.
-        frames, poses0 = [], []
+        frames, poses = [], []
         for det in self.frames:
             det = {i: c for i, c in det.items() if i in start}
             if len(det) < 2:
                 continue
             obj = np.concatenate([corners @ start[i][:3, :3].T + start[i][:3, 3] for i in det])
-            img = np.concatenate([det[i] for i in det])
-            T = _pnp(obj, img, self.K, self.dist)
-            if T is None:
-                continue
-            frames.append(det)
-            poses0.append(T)
+            T = _pnp(obj, np.concatenate([det[i] for i in det]), self.K, self.dist)
+            if T is not None:
+                frames.append(det)
+                poses.append(T)
         if not frames:
-            return {self.root_id: self.T_phantom_from_root}, float("nan")
+            return {self.root_id: self.T_phantom_from_root.copy()}, float("nan")
+        layout = start
+        for _ in range(2):
+            layout, poses, errors = self._adjust(frames, layout, poses)
+            kept = [{i: c for i, c in det.items() if errors[f][i] <= OUTLIER_PX} for f, det in enumerate(frames)]
+            if all(len(k) == len(d) for k, d in zip(kept, frames)):
+                break
+            keep = [f for f, k in enumerate(kept) if len(k) >= 2]
+            frames, poses = [kept[f] for f in keep], [poses[f] for f in keep]
+        rms = float(np.sqrt(np.mean([e ** 2 for f in errors for e in f.values()])))
+        return {i: self.T_phantom_from_root @ T for i, T in layout.items()}, rms
+
+    def _adjust(self, frames, start, poses0):
+        """One bundle adjustment: (T_root_from_marker, T_webcam_from_root per frame, per frame {id: RMS px})."""
+        markers = sorted({i for det in frames for i in det} - {self.root_id})
+        index = {m: k for k, m in enumerate(markers)}
+        corners = marker_corners(self.size_mm)
         nm, nf = len(markers), len(frames)
         # Observations: (frame index, marker index or -1 for the root, corner k) -> pixel.
         f_idx, m_idx, pts, img = [], [], [], []
@@ -148,26 +170,25 @@ class CompositeCalibration:
         pts, img = np.concatenate(pts), np.concatenate(img)
 
         def unpack(x):
-            mk = x[:6 * nm].reshape(nm, 6)
-            fr = x[6 * nm:].reshape(nf, 6)
-            return mk, fr
+            return x[:6 * nm].reshape(nm, 6), x[6 * nm:].reshape(nf, 6)
 
         def residuals(x):
             mk, fr = unpack(x)
             Rm = Rotation.from_rotvec(np.vstack([mk[:, :3], np.zeros((1, 3))]))
             tm = np.vstack([mk[:, 3:], np.zeros((1, 3))])
-            p = Rm[m_idx].apply(pts) + tm[m_idx]                  # root frame (root is the last row)
+            p = Rm[m_idx].apply(pts) + tm[m_idx]                  # root frame (the root is the last row)
             p = Rotation.from_rotvec(fr[:, :3])[f_idx].apply(p) + fr[f_idx, 3:]
-            return (project(p, self.K, self.dist) - img).ravel()
+            return (distort(p[:, :2] / p[:, 2:3], self.K, self.dist) - img).ravel()
 
-        x0 = np.concatenate([np.concatenate([Rotation.from_matrix(start[m][:3, :3]).as_rotvec(), start[m][:3, 3]])
-                             for m in markers] +
-                            [np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]]) for T in poses0])
+        def params(T):
+            return np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]])
+
+        x0 = np.concatenate([params(start[m]) for m in markers] + [params(T) for T in poses0])
         # Each corner's two residuals depend on its frame's 6 parameters and its marker's 6 (none for the root).
         rr, cc = [], []
+        has = m_idx >= 0
         for axis in (0, 1):
             r = 2 * np.arange(len(pts)) + axis
-            has = m_idx >= 0
             for k in range(6):
                 rr += [r, r[has]]
                 cc += [6 * nm + 6 * f_idx + k, 6 * m_idx[has] + k]
@@ -175,24 +196,19 @@ class CompositeCalibration:
         sparsity = coo_matrix((np.ones(rr.size, np.uint8), (rr, cc)), shape=(2 * len(pts), x0.size)).tocsr()
         result = least_squares(residuals, x0, jac_sparsity=sparsity, method="trf", x_scale="jac",
                                loss="huber", f_scale=1.0, max_nfev=100)
-        mk, _ = unpack(result.x)
-        r = residuals(result.x).reshape(-1, 2)
-        rms = float(np.sqrt(np.mean(np.sum(r ** 2, axis=1))))
-        out = {self.root_id: self.T_phantom_from_root.copy()}
+        mk, fr = unpack(result.x)
+        layout = {self.root_id: np.eye(4)}
         for m, k in index.items():
-            out[m] = self.T_phantom_from_root @ make_transform(Rotation.from_rotvec(mk[k, :3]).as_matrix(), mk[k, 3:])
-        return out, rms
-
-
-def project(points: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    """(n, 2) pixels of (n, 3) camera-frame points (mm) through K and OpenCV's k1 k2 p1 p2 k3."""
-    x, y = points[:, 0] / points[:, 2], points[:, 1] / points[:, 2]
-    k1, k2, p1, p2, k3 = (list(np.asarray(dist).reshape(-1)) + [0.0] * 5)[:5]
-    r2 = x * x + y * y
-    radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 ** 3
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    return np.stack([K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]], axis=1)
+            layout[m] = make_transform(Rotation.from_rotvec(mk[k, :3]).as_matrix(), mk[k, 3:])
+        poses = [make_transform(Rotation.from_rotvec(fr[f, :3]).as_matrix(), fr[f, 3:]) for f in range(nf)]
+        d2 = np.sum(residuals(result.x).reshape(-1, 2) ** 2, axis=1).reshape(-1, 4).mean(axis=1)
+        errors: list[dict[int, float]] = [{} for _ in range(nf)]
+        obs = 0
+        for f, det in enumerate(frames):
+            for i in det:
+                errors[f][i] = float(np.sqrt(d2[obs]))
+                obs += 1
+        return layout, poses, errors
 
 
 def _pnp(obj: np.ndarray, img: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray | None:

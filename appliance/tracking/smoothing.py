@@ -14,16 +14,27 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..config.appliance import Tracking
 from ..geometry import make_transform
+
+
+_PROFILE_DEFAULTS = Tracking()
 
 
 @dataclass
 class SmoothingSettings:
-    min_cutoff_hz: float = 0.3          # cut-off at standstill (Hz): lower removes more jitter
-    beta_per_mm_s: float = 0.05         # cut-off increase per mm/s of translation speed (Hz per mm/s)
-    beta_per_deg_s: float = 0.1         # cut-off increase per deg/s of rotation speed (Hz per deg/s)
-    d_cutoff_hz: float = 1.0            # cut-off of the speed estimate itself (Hz)
-    reset_after_s: float = 0.5          # a gap longer than this (s) restarts the filter at the measurement
+    """The filter's numbers; they come from the appliance profile's `tracking` section (units there)."""
+
+    min_cutoff_hz: float = _PROFILE_DEFAULTS.min_cutoff_hz
+    beta_per_mm_s: float = _PROFILE_DEFAULTS.beta_per_mm_s
+    beta_per_deg_s: float = _PROFILE_DEFAULTS.beta_per_deg_s
+    d_cutoff_hz: float = _PROFILE_DEFAULTS.d_cutoff_hz
+    reset_after_s: float = _PROFILE_DEFAULTS.reset_after_s
+
+    @classmethod
+    def from_profile(cls, tracking: Tracking) -> "SmoothingSettings":
+        return cls(tracking.min_cutoff_hz, tracking.beta_per_mm_s, tracking.beta_per_deg_s, tracking.d_cutoff_hz,
+                   tracking.reset_after_s)
 
 
 def _alpha(cutoff_hz: float, dt: float) -> float:

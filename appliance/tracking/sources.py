@@ -1,4 +1,4 @@
-"""Open the camera the appliance profile names: the synthetic webcam, a V4L2 device, or a file source."""
+"""The camera and the tracker the appliance profile asks for."""
 
 from __future__ import annotations
 
@@ -8,6 +8,8 @@ from drivers.camera import CameraSource, FileCamera, V4L2Camera
 
 from ..config.loading import ApplianceConfig
 from .scene import synthetic_camera
+from .smoothing import SmoothingSettings
+from .tracker import Tracker
 from .trajectory import load_trajectory
 
 #: The scripted demo path shipped with the appliance, used when the profile names none.
@@ -24,3 +26,10 @@ def open_camera(config: ApplianceConfig) -> CameraSource:
     if cam.source.startswith("/dev/"):
         return V4L2Camera(cam.source, cam.width, cam.height, cam.fps, cam.fourcc)
     return FileCamera(source, fps=cam.fps)
+
+
+def tracker_for(config: ApplianceConfig) -> Tracker:
+    """The tracker of `config.appliance.tracking` for the active phantom and webcam."""
+    t = config.appliance.tracking
+    return Tracker(config.phantom, config.webcam, method=t.method, smoothing=t.smoothing,
+                   smoothing_settings=SmoothingSettings.from_profile(t))
