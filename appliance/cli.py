@@ -20,6 +20,7 @@ COMMAND_MODULES = (
     "appliance.config.commands",
     "appliance.display.commands",
     "appliance.xray.commands",
+    "appliance.tracking.commands",
 )
 
 
