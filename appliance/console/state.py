@@ -222,13 +222,11 @@ class Console:
     def _start_run(self, out: list, t: float, reason: str) -> None:
         self.runs += 1
         self.fluoro_on = True
-        h, v = self.collimation
         mode = self.mode
         self._run = {"run": self.runs, "reason_on": reason, "start_t": t, "duration_s": 0.0, "air_kerma_mgy": 0.0,
                      "dap_gy_cm2": 0.0, "pulses": 0, "pulse_origin_t": t, "pulses_since_origin": 0,
                      "next_pulse_t": t, "next_progress_t": t + self.progress_period_s}
-        self._emit(out, t, "fluoro_on", run=self.runs, reason=reason, mode=mode.name, zoom=self.zoom,
-                   collimation_h_mm=h, collimation_v_mm=v)
+        self._emit(out, t, "fluoro_on", run=self.runs, reason=reason, **self._settings())
         self._exposed_since_tick = True
         if mode.pulse_rate_per_s is None:
             self.has_image = True
@@ -236,17 +234,24 @@ class Console:
             self._pulse(out, t)
 
     def _end_run(self, out: list, t: float, reason: str) -> None:
-        run, mode, fl = self._run, self.mode, self.fl
-        h, v = self.collimation
+        run = self._run
         self.fluoro_on = False
         self._emit(out, t, "fluoro_off", run=run["run"], reason=reason, start_t=run["start_t"],
                    duration_s=run["duration_s"], air_kerma_mgy=run["air_kerma_mgy"], dap_gy_cm2=run["dap_gy_cm2"],
-                   pulses=run["pulses"], mode=mode.name, pulse_rate_per_s=mode.pulse_rate_per_s,
-                   pulse_width_ms=fl.tube.pulse_width_ms if mode.pulse_rate_per_s else None,
-                   kvp=fl.tube.kvp, ma=fl.tube.ma, zoom=self.zoom, fov_mm=fl.zoom_levels[self.zoom - 1].fov_mm,
-                   collimation_h_mm=h, collimation_v_mm=v, field_area_cm2=self._area_cm2(),
-                   air_kerma_rate_mgy_per_min=self._rate())
+                   pulses=run["pulses"], **self._settings())
         self._run = None
+
+    def _settings(self) -> dict:
+        """The exposure settings of a run, as recorded with it (mm, kV, mA, ms, 1/s, cm^2, mGy/min)."""
+        fl, mode = self.fl, self.mode
+        h, v = self.collimation
+        return {"mode": mode.name, "pulse_rate_per_s": mode.pulse_rate_per_s,
+                "pulse_width_ms": fl.tube.pulse_width_ms if mode.pulse_rate_per_s else None,
+                "kvp": fl.tube.kvp, "ma": fl.tube.ma, "focal_spot_mm": fl.tube.focal_spot_mm, "zoom": self.zoom,
+                "fov_mm": fl.zoom_levels[self.zoom - 1].fov_mm, "collimation_h_mm": h, "collimation_v_mm": v,
+                "field_area_cm2": self._area_cm2(), "air_kerma_rate_mgy_per_min": self._rate(),
+                "sid_mm": fl.geometry.source_to_image_mm, "source_to_isocentre_mm": fl.geometry.source_to_isocentre_mm,
+                "source_to_reference_mm": dose.reference_distance_mm(fl)}
 
     def _change_settings(self, out: list, t: float, apply, kind: str, detail) -> None:
         """Change exposure settings; while exposing, the current run ends and a new one starts."""

@@ -229,9 +229,12 @@ class Ledger:
             raise
 
     def start_session(self, operator: str, case: str, fluoroscope: str, t_wall: float,
-                      t_monotonic: float | None = None) -> int:
+                      t_monotonic: float | None = None, equipment: dict | None = None,
+                      patient: dict | None = None) -> int:
         """Open a session; console times map to wall time as t_wall + (t - t_monotonic).
-        Without `t_monotonic`, the anchor is time.monotonic() now."""
+        Without `t_monotonic`, the anchor is time.monotonic() now. `equipment` (manufacturer,
+        model, serial) and `patient` (the case's demographics) are kept with the session for
+        the dose reports (see records.rdsr.equipment_of and patient_of)."""
         if self.session_id is not None:
             raise RuntimeError("a session is already open; end it first")
         self._anchor = (float(t_wall), time.monotonic() if t_monotonic is None else float(t_monotonic))
@@ -242,7 +245,8 @@ class Ledger:
                                      (operator, case, fluoroscope, float(t_wall)))
             holder["id"] = cur.lastrowid
             self._insert(cur.lastrowid, t_wall, self._anchor[1], "session_start", (0, 0, 0), (0, 0, 0),
-                         {"operator": operator, "case": case, "fluoroscope": fluoroscope})
+                         {"operator": operator, "case": case, "fluoroscope": fluoroscope, "equipment": equipment or {},
+                          "patient": patient or {}})
         self._transaction(work)
         self.session_id = holder["id"]
         return self.session_id
@@ -283,14 +287,11 @@ class Ledger:
             # The exposure was cut off: close it with what its committed events account for.
             on = json.loads(open_run["detail"])
             within = [e for e in events if e["id"] > open_run["id"]]
-            detail = {"run": on["run"], "reason": reason, "start_t": open_run["t_monotonic"],
-                      "start_wall": open_run["t_wall"],
+            detail = {**on, "reason": reason, "start_t": open_run["t_monotonic"], "start_wall": open_run["t_wall"],
                       "duration_s": sum(e["d_fluoro_time_s"] for e in within),
                       "air_kerma_mgy": sum(e["d_air_kerma_mgy"] for e in within),
                       "dap_gy_cm2": sum(e["d_dap_gy_cm2"] for e in within),
-                      "pulses": sum(1 for e in within if e["kind"] == "pulse"),
-                      "mode": on.get("mode"), "zoom": on.get("zoom"),
-                      "collimation_h_mm": on.get("collimation_h_mm"), "collimation_v_mm": on.get("collimation_v_mm")}
+                      "pulses": sum(1 for e in within if e["kind"] == "pulse")}
             self._insert(session_id, last["t_wall"], last["t_monotonic"], "fluoro_off", totals, (0, 0, 0), detail)
         sums = self._conn.execute(
             "SELECT sum(d_fluoro_time_s), sum(d_air_kerma_mgy), sum(d_dap_gy_cm2), "
