@@ -238,23 +238,33 @@ def test_unwritable_target_gives_one_clear_error(ledger_file, tmp_path):
 
 
 def run_cli(*args):
+    """The real `fluorosim` command in a child process."""
     return subprocess.run([sys.executable, "-m", "appliance", *args], capture_output=True, text=True, cwd=REPO)
 
 
-def test_cli_verify_export_and_bad_input(ledger_file, tmp_path):
+def cli(capsys, *args):
+    """The same command line in this process (argument parsing, error handling, exit status)."""
+    from appliance.cli import main
+    code = main(list(args))
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def test_cli_verify_export_and_bad_input(ledger_file, tmp_path, capsys):
     ok = run_cli("logs", "verify", "--ledger", str(ledger_file))
     assert ok.returncode == 0 and "chain intact" in ok.stdout
     out = tmp_path / "cli"
-    res = run_cli("logs", "export", "--ledger", str(ledger_file), "--since", "2023-11-14T00:00Z", "--until", "2023-11-16T00:00Z",
-                  "--format", "csv", "--out", str(out))
-    assert res.returncode == 0, res.stderr
+    code, stdout, err = cli(capsys, "logs", "export", "--ledger", str(ledger_file), "--since", "2023-11-14T00:00Z",
+                            "--until", "2023-11-16T00:00Z", "--format", "csv", "--out", str(out))
+    assert code == 0, err
     assert len(list(csv.DictReader(open(out / "sessions.csv")))) == 2
-    again = run_cli("logs", "export", "--ledger", str(ledger_file), "--format", "csv", "--out", str(out))
-    assert again.returncode == 2 and again.stderr.count("\n") == 1 and "refusing to overwrite" in again.stderr
-    bad = run_cli("logs", "export", "--ledger", str(ledger_file), "--since", "last week", "--format", "csv", "--out", str(out))
-    assert bad.returncode == 2 and "is not a date" in bad.stderr and "Traceback" not in bad.stderr
-    missing = run_cli("logs", "verify", "--ledger", str(tmp_path / "nope.sqlite"))
-    assert missing.returncode == 2 and "no ledger there" in missing.stderr
+    code, _, err = cli(capsys, "logs", "export", "--ledger", str(ledger_file), "--format", "csv", "--out", str(out))
+    assert code == 2 and err.count("\n") == 1 and "refusing to overwrite" in err
+    code, _, err = cli(capsys, "logs", "export", "--ledger", str(ledger_file), "--since", "last week", "--format", "csv",
+                       "--out", str(out))
+    assert code == 2 and "is not a date" in err and "Traceback" not in err
+    code, _, err = cli(capsys, "logs", "verify", "--ledger", str(tmp_path / "nope.sqlite"))
+    assert code == 2 and "no ledger there" in err
     # Tampering shows up as the first broken link, exit 1.
     copy = tmp_path / "tampered.sqlite"
     shutil.copy(ledger_file, copy)
@@ -263,15 +273,15 @@ def test_cli_verify_export_and_bad_input(ledger_file, tmp_path):
     conn.execute("UPDATE events SET d_fluoro_time_s = 0 WHERE id = 5")
     conn.commit()
     conn.close()
-    broken = run_cli("logs", "verify", "--ledger", str(copy))
-    assert broken.returncode == 1 and "first broken link at event 5" in broken.stderr
+    code, _, err = cli(capsys, "logs", "verify", "--ledger", str(copy))
+    assert code == 1 and "first broken link at event 5" in err
 
 
-def test_ledger_found_through_the_appliance_profile(tmp_path):
+def test_ledger_found_through_the_appliance_profile(tmp_path, capsys):
     config = tmp_path / "configs"
     shutil.copytree(REPO / "configs", config)
     data = tmp_path / "var"
     data.mkdir()
     make_ledger(data / "ledger.sqlite")
-    res = run_cli("logs", "verify", "--config", str(config / "appliance.yaml"))
-    assert res.returncode == 0 and str(data / "ledger.sqlite") in res.stdout.replace("configs/../", "")
+    code, stdout, _ = cli(capsys, "logs", "verify", "--config", str(config / "appliance.yaml"))
+    assert code == 0 and str(data / "ledger.sqlite") in stdout.replace("configs/../", "")

@@ -27,7 +27,9 @@ def scripted_session(ledger: Ledger, report=None, frames: int = 10**9, seed: int
     The console clock runs 0.25 s per frame so runs, pulses and alarms all happen quickly."""
     rng = random.Random(seed)
     console = Console(II, KEYMAP, t0=0.0)
-    ledger.start_session("trainee", "Case", II.name, t_wall=1_700_000_000.0, t_monotonic=0.0)
+    sid = ledger.start_session("trainee", "Case", II.name, t_wall=1_700_000_000.0, t_monotonic=0.0)
+    if report is not None:
+        os.write(report, f"session {sid}\n".encode())
     keys = ["KEY_KP5", "KEY_KP2", "KEY_KP9", "KEY_KP7", "KEY_KP1", "KEY_KPPLUS", "KEY_KPASTERISK", "KEY_KPMINUS"]
     t, pedal = 0.0, False
     for _ in range(frames):
@@ -144,7 +146,6 @@ def test_full_or_readonly_disk_keeps_what_was_recorded(tmp_path):
 def _child(path: Path, write_fd: int, seed: int) -> None:
     try:
         ledger = Ledger(path)
-        os.write(write_fd, f"session {ledger.session_id}\n".encode())
         scripted_session(ledger, report=write_fd, seed=seed)
     finally:
         os._exit(0)
@@ -155,6 +156,7 @@ def test_kill_9_at_200_random_moments_loses_nothing_committed(tmp_path):
     rng = random.Random(2024)
     sessions_seen = runs_cut = 0
     checked = None
+    Ledger(path).close()   # the schema exists before the first kill (creation itself is one transaction)
     for i in range(200):
         r, w = os.pipe()
         pid = os.fork()
@@ -162,11 +164,20 @@ def test_kill_9_at_200_random_moments_loses_nothing_committed(tmp_path):
             os.close(r)
             _child(path, w, seed=i)
         os.close(w)
-        time.sleep(rng.uniform(0.002, 0.05))
+        head = b""
+        if rng.random() < 0.25:
+            time.sleep(rng.uniform(0.0, 0.02))          # while the child opens the ledger and starts a session
+        else:
+            while not head.endswith(b"\n"):              # or once its session is open, mid-session
+                chunk = os.read(r, 1)
+                if not chunk:
+                    break
+                head += chunk
+            time.sleep(rng.uniform(0.0, 0.03))
         os.kill(pid, signal.SIGKILL)
         os.waitpid(pid, 0)
         with os.fdopen(r, "rb") as f:
-            lines = f.read().decode().splitlines()
+            lines = (head + f.read()).decode().splitlines()
         commits = [l.split() for l in lines if not l.startswith("session")]
         # What the killed child committed is all there, and the chain holds.
         conn = open_readonly(path)
@@ -210,4 +221,4 @@ def test_kill_9_at_200_random_moments_loses_nothing_committed(tmp_path):
         checked = report.last
         conn.close()
     assert verify(open_readonly(path)).ok
-    assert sessions_seen > 120 and runs_cut > 30
+    assert sessions_seen > 140 and runs_cut > 30
