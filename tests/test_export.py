@@ -285,3 +285,26 @@ def test_ledger_found_through_the_appliance_profile(tmp_path, capsys):
     make_ledger(data / "ledger.sqlite")
     code, stdout, _ = cli(capsys, "logs", "verify", "--config", str(config / "appliance.yaml"))
     assert code == 0 and str(data / "ledger.sqlite") in stdout.replace("configs/../", "")
+
+
+@pytest.mark.skipif(shutil.which("dciodvfy") is None, reason="dciodvfy (Debian package dicom3tools) is not installed; `make test` installs it")
+def test_rdsr_of_a_session_cut_off_mid_run(tmp_path):
+    path = tmp_path / "ledger.sqlite"
+    ledger = Ledger(path)
+    console = Console(FLAT, KEYMAP, t0=0.0)
+    ledger.start_session("Dr Trainee", "Child torso", FLAT.name, t_wall=DAY1, t_monotonic=0.0)
+    ledger.record(press(console, 1.0, "pedal") + console.tick(4.0) + console.tick(7.5))
+    ledger.close()                    # no end_session: as after a power cut, the run still open
+    with Ledger(path) as reopened:
+        assert reopened.recovered == [1]
+    written, _ = do_export(path, "rdsr", tmp_path / "out")
+    result = subprocess.run(["dciodvfy", "-profile", "IHEREM", str(written[0])], capture_output=True, text=True)
+    assert not [l for l in (result.stdout + result.stderr).splitlines() if l.startswith("Error")]
+    ds = pydicom.dcmread(written[0])
+    events = [i for i in ds.ContentSequence if name(i) == "Irradiation Event X-Ray Data"]
+    assert len(events) == 1
+    items = list(events[0].ContentSequence)
+    # Continuous at 6 mGy/min: the last committed progress record is at 7.0 s, 6 s after pedal-down.
+    assert num(items, "Irradiation Duration")[0] == pytest.approx(6.0)
+    assert num(items, "Dose (RP)")[0] == pytest.approx(6.0 * 6.0 / 60 / 1000)
+    assert any(name(i) == "Comment" and "cut off" in i.TextValue for i in items)
