@@ -246,3 +246,13 @@ def test_profile_reload_keeps_settings_that_still_apply():
     console.set_fluoroscope(FLAT)
     s = console.snapshot()
     assert s.mode == "pulsed-15" and s.collimation_mm == (220.0, 300.0) and s.fov_mm == 300.0
+
+
+def test_reference_point_beyond_the_source_is_refused(tmp_path):
+    from appliance.config.yamlfile import ProfileProblems
+    text = (REPO / "configs/fluoroscopes/generic-ii-carm.yaml").read_text()
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text.replace("reference_point_from_isocentre_mm: 150", "reference_point_from_isocentre_mm: 700"))
+    with pytest.raises(ProfileProblems) as e:
+        load_profile(bad, FluoroscopeProfile)
+    assert "dose.reference_point_from_isocentre_mm" in str(e.value.problems[0])
