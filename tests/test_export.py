@@ -263,6 +263,11 @@ def test_cli_verify_export_and_bad_input(ledger_file, tmp_path, capsys):
     code, _, err = cli(capsys, "logs", "export", "--ledger", str(ledger_file), "--since", "last week", "--format", "csv",
                        "--out", str(out))
     assert code == 2 and "is not a date" in err and "Traceback" not in err
+    code, stdout, _ = cli(capsys, "logs", "list", "--ledger", str(ledger_file), "--since", "2023-11-14T00:00Z",
+                          "--until", "2023-11-15T00:00Z")
+    rows = stdout.splitlines()[1:]
+    assert code == 0 and len(rows) == 1 and rows[0].split()[0] == "1"
+    assert float(rows[0].split()[-6]) == pytest.approx(TOTAL_TIME / 60, abs=0.05)
     code, _, err = cli(capsys, "logs", "verify", "--ledger", str(tmp_path / "nope.sqlite"))
     assert code == 2 and "no ledger there" in err
     # Tampering shows up as the first broken link, exit 1.

@@ -59,6 +59,24 @@ def run_export(args) -> int:
     return 0
 
 
+def run_list(args) -> int:
+    since = export_module.parse_when(args.since) if args.since else None
+    until = export_module.parse_when(args.until, end=True) if args.until else None
+    path = ledger_path(args)
+    conn = open_readonly(path)
+    try:
+        sessions = export_module.sessions_between(conn, since, until)
+    finally:
+        conn.close()
+    print(f"{'id':>6}  {'started (UTC)':<24} {'operator':<16} {'fluoro min':>10} {'kerma mGy':>10} {'DAP Gy cm2':>11} "
+          f"{'runs':>5} {'alarms':>6}  end")
+    for s in sessions:
+        print(f"{s['id']:>6}  {export_module.iso(s['started_wall']):<24} {s['operator'][:16]:<16} "
+              f"{s['fluoro_time_s'] / 60:>10.1f} {s['air_kerma_mgy']:>10.2f} {s['dap_gy_cm2']:>11.3f} "
+              f"{s['runs']:>5} {s['alarms']:>6}  {s['end_reason'] or 'open'}")
+    return 0
+
+
 def _ledger_options(p) -> None:
     p.add_argument("--config", default=DEFAULT_CONFIG, metavar="PATH",
                    help=f"appliance profile whose data_dir holds ledger.sqlite (default {DEFAULT_CONFIG})")
@@ -70,6 +88,13 @@ def register(commands, benches) -> None:
     from .bench import register_bench
 
     logs = command_group(commands, "logs", "read, verify and export the dose and session ledger")
+    ls = logs.add_parser("list", help="list sessions with their fluoroscopy time and dose",
+                         description="One line per session that started in [--since, --until]: fluoroscopy time "
+                                     "(minutes), reference air kerma (mGy), dose-area product (Gy cm2), runs, alarms.")
+    _ledger_options(ls)
+    ls.add_argument("--since", metavar="DATE", help="first day (or date-time) to include")
+    ls.add_argument("--until", metavar="DATE", help="last day (or date-time, exclusive) to include")
+    ls.set_defaults(run=run_list)
     v = logs.add_parser("verify", help="check the ledger's hash chain",
                         description="Walk the ledger's hash chain and the sessions' totals. Exit 0 when intact; "
                                     "1 with the first broken link when an event was changed or removed.")
