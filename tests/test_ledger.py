@@ -222,3 +222,21 @@ def test_kill_9_at_200_random_moments_loses_nothing_committed(tmp_path):
         conn.close()
     assert verify(open_readonly(path)).ok
     assert sessions_seen > 140 and runs_cut > 30
+
+
+def test_unreadable_or_newer_ledger_gives_one_clear_error(tmp_path):
+    junk = tmp_path / "junk.sqlite"
+    junk.write_bytes(b"this is not a database, it is a text file" * 100)
+    with pytest.raises(FluorosimError, match="cannot open the ledger"):
+        Ledger(junk)
+    assert junk.read_bytes().startswith(b"this is not a database")     # left as it was
+    newer = tmp_path / "newer.sqlite"
+    Ledger(newer).close()
+    conn = sqlite3.connect(newer)
+    conn.execute("PRAGMA user_version = 99")
+    conn.commit()
+    conn.close()
+    with pytest.raises(FluorosimError, match="newer than this fluorosim knows"):
+        Ledger(newer)
+    with pytest.raises(FluorosimError, match="newer than this fluorosim knows"):
+        open_readonly(newer)

@@ -187,12 +187,16 @@ class Ledger:
             os.close(self._lock_fd)
             self._conn.close()
             raise FluorosimError(f"{self.path}: the ledger is open in another fluorosim process; stop it first") from None
-        _migrate(self._conn, self.path)
         self.session_id: int | None = None
         self._anchor = (0.0, 0.0)
-        last = self._conn.execute("SELECT hash FROM events ORDER BY id DESC LIMIT 1").fetchone()
-        self._head = last["hash"] if last else GENESIS
-        self.recovered: list[int] = self._recover()
+        try:
+            _migrate(self._conn, self.path)
+            last = self._conn.execute("SELECT hash FROM events ORDER BY id DESC LIMIT 1").fetchone()
+            self._head = last["hash"] if last else GENESIS
+            self.recovered: list[int] = self._recover()
+        except BaseException:
+            self.close()
+            raise
 
     # --- writing ------------------------------------------------------------------
     def _insert(self, session_id: int, t_wall: float, t_mono: float | None, kind: str, totals: tuple, deltas: tuple,
