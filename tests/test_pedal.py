@@ -96,5 +96,8 @@ def test_unplug_releases_and_replug_reattaches(pty_link, monkeypatch):
 
 
 def test_missing_port_says_so():
+    from appliance.console.inputs import problems
+    from drivers.input_event import NoInput
     p = SerialPedal("/dev/fluorosim-no-such-pedal")
     assert p.state == "unplugged" and "not found" in p.problem and p.poll(0.0) == []
+    assert problems([NoInput(), p]) == [p.problem] and "/dev/fluorosim-no-such-pedal" in p.problem

@@ -49,3 +49,12 @@ def open_pedal(config: ApplianceConfig, now: float):
 def open_inputs(config: ApplianceConfig, now: float) -> list:
     """The keypad and pedal (either may be a NoInput), ready to poll with the console's clock."""
     return [open_keypad(config, now), open_pedal(config, now)]
+
+
+def problems(devices) -> list[str]:
+    """One line per configured device that is not working now (unplugged, silent), for the screen."""
+    lines = []
+    for device in devices:
+        if getattr(device, "state", "none") not in ("ok", "none"):
+            lines.append(getattr(device, "problem", "") or f"{getattr(device, 'source', 'input')} unplugged")
+    return lines
