@@ -226,7 +226,10 @@ class Ledger:
         except BaseException as e:
             self._head = head
             if self._conn.in_transaction:
-                self._conn.execute("ROLLBACK")
+                try:
+                    self._conn.execute("ROLLBACK")
+                except sqlite3.Error:
+                    pass  # SQLite rolls back an unfinished transaction on its own at the next open
             if isinstance(e, sqlite3.OperationalError):
                 raise FluorosimError(f"{self.path}: cannot write the ledger ({e}); free disk space or fix permissions; "
                                      "nothing already recorded is lost") from None
@@ -310,6 +313,8 @@ class Ledger:
                            (float(t_wall), reason, ft, k, d, runs, alarms, saves, session_id))
 
     def end_session(self, t_wall: float) -> None:
+        """Close the open session with totals from its events. Record `Console.end(now)` first,
+        so an exposure still in progress is accounted to its last instant."""
         if self.session_id is None:
             return
         sid = self.session_id
