@@ -21,6 +21,7 @@ COMMAND_MODULES = (
     "appliance.display.commands",
     "appliance.xray.commands",
     "appliance.tracking.commands",
+    "appliance.records.commands",
 )
 
 

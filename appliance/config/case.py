@@ -38,6 +38,15 @@ class Breathing(Section):
     period_s: float = Field(gt=0, le=30, description="One breath (s); the phases span one cycle.")
 
 
+class Patient(Section):
+    """The virtual patient's demographics, as dose reports (IHE REM) require them."""
+
+    sex: Literal["M", "F", "O"] = Field("O", description="M, F or O (other/unknown), as DICOM Patient's Sex.")
+    age_years: int = Field(30, ge=0, le=130, description="Age at the time of the case (years).")
+    weight_kg: float = Field(70.0, gt=0, le=500, description="Body mass (kg).")
+    height_m: float = Field(1.70, gt=0, le=3, description="Body height (m).")
+
+
 class CaseProfile(Section):
     title: str = Field(min_length=1, description="Shown on screen and recorded with each session.")
     description: str = Field("", description="What the trainee should practise.")
@@ -49,6 +58,7 @@ class CaseProfile(Section):
     materials: Materials = Field(default_factory=Materials)
     contrast: Contrast | None = None
     breathing: Breathing | None = None
+    patient: Patient = Field(default_factory=Patient, description="Demographics recorded in dose reports.")
 
     def problems(self):
         if (self.builtin is None) == (self.phases is None):

@@ -144,6 +144,9 @@ class FluoroscopeProfile(Section):
             if set(z.air_kerma_rate_mgy_per_min) != modes:
                 yield (("zoom_levels", i, "air_kerma_rate_mgy_per_min"),
                        f"must give a rate for each of tube.modes {sorted(modes)}, got {sorted(z.air_kerma_rate_mgy_per_min)}")
+        if self.dose.reference_point_from_isocentre_mm >= self.geometry.source_to_isocentre_mm:
+            yield (("dose", "reference_point_from_isocentre_mm"),
+                   "must be less than geometry.source_to_isocentre_mm: the reference point lies between source and isocentre")
         if self.collimator.min_opening_mm >= fovs[0]:
             yield ("collimator", "min_opening_mm"), "must be smaller than the widest field of view"
 
