@@ -68,8 +68,8 @@ CAVITY_BOTTOM_Z = -178.0        # pelvic floor
 CAVITY_TOP_Z = 182.0            # lung apices, above the clavicles as in a child
 
 #: Diaphragm domes at end-expiration: right dome higher (the liver under it).
-RIGHT_DOME = (-45.0, 5.0, 45.0)     # apex x, y, z (mm)
-LEFT_DOME = (45.0, 5.0, 33.0)
+RIGHT_DOME = (-50.0, 5.0, 45.0)     # apex x, y, z (mm)
+LEFT_DOME = (55.0, 5.0, 33.0)
 DOME_DROP_MM = 45.0                 # how far the dome falls over DOME_RADIUS_MM from its apex
 DOME_RADIUS_MM = 55.0
 DIAPHRAGM_MM = 4.0
@@ -90,6 +90,11 @@ BLADDER_WALL_MM = 3.0
 URETHRA_PATH = ((0, -15, -150), (0, -17, -162), (0, -20, -172), (0, -26, -180),
                 (0, -36, -187), (0, -48, -192), (0, -58, -199.5))
 URETHRA_RADII = (3.5, 4.0, 3.5, 2.5, 3.5, 3.0, 3.0)
+
+#: The feeding tube a VCUG fills the bladder through: 8 French (2.7 mm), with a barium
+#: stripe that makes it faintly radiopaque.
+CATHETER_RADIUS_MM = 1.35
+HU_CATHETER = 600.0
 
 SEED = 20120504
 
@@ -151,16 +156,20 @@ class Vertebra:
 
 
 def spine_y(z):
-    """y of the vertebral body centres (mm): thoracic kyphosis, lumbar lordosis."""
+    """y of the vertebral body centres (mm): cervical lordosis, thoracic kyphosis, lumbar lordosis."""
     z = np.asarray(z, float)
-    thoracic = 20.0 + 4.0 * np.sin(np.pi * np.clip(z, 0, 174) / 174.0)
+    thoracic = 20.0 + 4.0 * np.sin(np.pi * np.clip(z, 0, 174) / 174.0) - 0.6 * np.clip(z - 174, 0, None)
     lumbar = 20.0 - 6.0 * np.sin(np.pi * np.clip(-z, 0, 96) / 96.0)
     return np.where(z >= 0, thoracic, lumbar)
 
 
 def vertebrae() -> list[Vertebra]:
-    """T1-L5: thoracic bodies 10-12 mm high with 3-4 mm discs, lumbar 13.5-15 mm with 4.5 mm discs."""
-    out, top = [], 172.0
+    """C6-L5: cervical bodies 9 mm high, thoracic 10-12 mm with 3-4 mm discs, lumbar 13.5-15 mm
+    with 4.5 mm discs; T1 starts 172 mm above the centre of the volume."""
+    out = []
+    for name, zc in (("C6", 191.5), ("C7", 179.5)):
+        out.append(Vertebra(name, zc, 9.0, 3.0, 9.0, 7.0, float(spine_y(zc))))
+    top = 172.0
     specs = [(f"T{i + 1}", h, d, a, b) for i, (h, d, a, b) in enumerate(zip(
         np.linspace(10, 12, 12), np.linspace(3, 4, 12), np.linspace(10, 14, 12), np.linspace(8, 11.5, 12)))]
     specs += [(f"L{i + 1}", h, 4.5, a, b) for i, (h, a, b) in enumerate(zip(
@@ -174,16 +183,17 @@ def vertebrae() -> list[Vertebra]:
 
 def _paint_vertebra(bones: Layer, v: Vertebra) -> None:
     lumbar = v.name.startswith("L")
+    cervical = v.name.startswith("C")
     back = v.y + v.b
     r = 3.5 if lumbar else 3.0
     for s in (-1, 1):
         root = (s * 0.55 * v.a, v.y + 0.6 * v.b, v.z + 1)
         ped = (s * 0.6 * v.a, back + 8, v.z + 1)
         lamina = (0.0, back + 15, v.z - 2)
-        tp = (s * (v.a + (20 if lumbar else 15)), back + (3 if lumbar else 13), v.z + 2)
+        tp = (s * (v.a + (20 if lumbar else 8 if cervical else 15)), back + (3 if lumbar else 0 if cervical else 13), v.z + 2)
         for path, radius in (([root, ped], r), ([ped, lamina], r - 0.4), ([ped, tp], r)):
             paint_tube(bones, path, radius, HU_CORTICAL * 0.8)
-    spinous_end = (0.0, back + 25, v.z - (3 if lumbar else 8))
+    spinous_end = (0.0, back + (16 if cervical else 25), v.z - (3 if lumbar else 8))
     paint_tube(bones, [(0.0, back + 15, v.z - 2), spinous_end], (4.5 if lumbar else 3.2, 2.5), HU_CORTICAL * 0.8)
     # The body last, so the roots of the pedicles lie under its cortex.
     c = (0.0, v.y, v.z)
@@ -204,7 +214,9 @@ def _paint_sacrum(bones: Layer) -> None:
 
     def sacrum(X, Y, Z):
         y, w, t = np.interp(Z, zk, yk), np.interp(Z, zk, wk), np.interp(Z, zk, tk)
-        return intersect((np.sqrt((X / w) ** 2 + ((Y - y) / t) ** 2) - 1.0) * np.minimum(w, t), Z + 98.5, -160.0 - Z)
+        # The base (S1 endplate) is level in the middle; the alae slope down laterally.
+        base = -98.5 - 0.5 * np.maximum(np.abs(X) - 16.0, 0.0)
+        return intersect((np.sqrt((X / w) ** 2 + ((Y - y) / t) ** 2) - 1.0) * np.minimum(w, t), Z - base, -160.0 - Z)
     paint_bone(bones, sacrum, (-46, 0, -165), (46, 65, -95), 2.0, HU_CORTICAL, HU_TRABECULAR)
 
 
@@ -273,7 +285,7 @@ def _paint_ribs(bones: Layer) -> None:
         yc = float(np.interp(zr, _BODY_Z, _BODY_YC))
         if i == 0:
             a, b = a - 14.0, b - 6.0
-        drop = 18.0 + 2.0 * min(i, 8)
+        drop = 28.0 + 2.5 * min(i, 8)
         end = (0.78 * np.pi if i < 7 else 0.72 * np.pi if i < 10 else 0.55 * np.pi if i == 10 else 0.42 * np.pi)
         if i < 7:
             cart_end, cart_z = np.pi, sternal_z[i]
@@ -281,10 +293,13 @@ def _paint_ribs(bones: Layer) -> None:
             cart_end, cart_z = (0.93 - 0.03 * (i - 7)) * np.pi, sternal_z[6] - 6.0 * (i - 6)
         else:
             cart_end, cart_z = end, None
-        half_t, half_h = (2.5, 3.5) if i in (0, 10, 11) else (2.8, 4.5)
+        half_t, half_h = (2.5, 3.2) if i in (0, 10, 11) else (2.8, 3.8)
 
         def z_bone(th, zr=zr, drop=drop):
-            return zr - drop * np.clip((th - theta0) / (np.pi - theta0), 0, None) ** 1.2
+            # A rib lies roughly in a plane tilted down toward the front: its height falls
+            # with the antero-posterior position, (1 - cos) of the angle from the back.
+            f = (np.cos(theta0) - np.cos(np.maximum(th, theta0))) / (np.cos(theta0) + 1.0)
+            return zr - drop * f
 
         z_end = float(z_bone(end))
 
@@ -420,7 +435,7 @@ def dome_z(X, Y, shift):
 
 
 def heart_centre(shift):
-    return (12.0, -14.0, 52.0 - HEART_MOTION * shift)
+    return (18.0, -14.0, 50.0 - HEART_MOTION * shift)
 
 
 def _heart(X, Y, Z, shift):
@@ -507,8 +522,10 @@ def _paint_lung_vessels(layer: Layer, shift: float, rng: np.random.Generator) ->
 
 # --- the voiding cystourethrogram ---
 
-def paint_bladder(layer: Layer, volume_ml: float, urethra_open: bool) -> tuple[tuple[slice, slice, slice], np.ndarray]:
-    """Draw the bladder holding `volume_ml` and, while voiding, the distended urethra.
+def paint_bladder(layer: Layer, volume_ml: float, urethra_open: bool,
+                  catheter: bool = False) -> tuple[tuple[slice, slice, slice], np.ndarray]:
+    """Draw the bladder holding `volume_ml`, while voiding the distended urethra, and the
+    filling catheter (8 Fr, radiopaque) up the urethra into the bladder when `catheter`.
 
     Returns the slices of a box of the grid and the fraction (0-1) of each voxel of it that
     the lumen (urine or contrast) fills, for the caller to mark contrast.
@@ -516,19 +533,38 @@ def paint_bladder(layer: Layer, volume_ml: float, urethra_open: bool) -> tuple[t
     grid = layer.grid
     radii = bladder_radii(volume_ml)
     centre = np.array(BLADDER_NECK) + [0.0, 0.0, radii[2]]
-    lo, hi = (-60.0, -70.0, -200.0), (60.0, 60.0, -50.0)
+    reach = radii + BLADDER_WALL_MM + 2 * grid.spacing_mm
+    # One box round the bladder and the urethra below it; the tubes only in their own part.
+    path = np.array(URETHRA_PATH, float)
+    tube_lo, tube_hi = bounds(path, 6.0)
+    # The catheter runs up the urethra and 18 mm into the bladder.
+    tip = np.array([*URETHRA_PATH[::-1], (0.0, -15.0, -132.0)], float)
+    cath_lo, cath_hi = bounds(tip, 4.0)
+    lo = np.minimum.reduce([centre - reach, tube_lo, cath_lo])
+    hi = np.maximum.reduce([centre + reach, tube_hi, cath_hi])
     sl, X, Y, Z = grid.box(lo, hi)
     wall = ellipsoid(X, Y, Z, centre, radii + BLADDER_WALL_MM)
     lumen = ellipsoid(X, Y, Z, centre, radii)
+    sub = grid.box(tube_lo, tube_hi)[0]
+    inner = tuple(slice(t.start - b.start, t.stop - b.start) for t, b in zip(sub, sl))
+    Xt, Yt, Zt = X[..., inner[2]], Y[:, inner[1], :], Z[inner[0]]
     if urethra_open:
-        path = np.array(URETHRA_PATH, float)
         rads = np.array(URETHRA_RADII, float)
-        tube = union(*[segment(X, Y, Z, p, q, r0, r1) for p, q, r0, r1 in zip(path[:-1], path[1:], rads[:-1], rads[1:])])
-        wall = np.minimum(wall, tube - 1.5)
-        lumen = np.minimum(lumen, tube)
+        tube = union(*[segment(Xt, Yt, Zt, p, q, r0, r1) for p, q, r0, r1 in zip(path[:-1], path[1:], rads[:-1], rads[1:])])
+        wall[inner] = np.minimum(wall[inner], tube - 1.5)
+        lumen[inner] = np.minimum(lumen[inner], tube)
     v = layer.value[sl]
     a = layer.coverage(wall)
     v += a * (np.float32(HU_SOFT) - v)
     fill = layer.coverage(lumen)
     v += fill * (np.float32(HU_URINE) - v)
+    if catheter:
+        region = grid.box(cath_lo, cath_hi)[0]
+        inner = tuple(slice(t.start - b.start, t.stop - b.start) for t, b in zip(region, sl))
+        Xc, Yc, Zc = X[..., inner[2]], Y[:, inner[1], :], Z[inner[0]]
+        tube = union(*[segment(Xc, Yc, Zc, p, q, CATHETER_RADIUS_MM, CATHETER_RADIUS_MM) for p, q in zip(tip[:-1], tip[1:])])
+        a = layer.coverage(tube)
+        vc = v[inner]
+        vc += a * (np.float32(HU_CATHETER) - vc)
+        fill[inner] *= 1.0 - a
     return sl, fill

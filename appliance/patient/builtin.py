@@ -13,8 +13,8 @@ mid-expiration: breath(t) = (1 - cos(2 pi t / 4 s)) / 2 moves the diaphragm dome
 spleen down by up to BREATH_AMPLITUDE_MM (12 mm). A real VCUG fills over minutes and voids
 in under a minute; the stages are compressed so a trainee sees both processes in one loop.
 
-Grid: 1.5 mm isotropic voxels, 160 x 112 x 266 (x, y, z; 240 x 168 x 399 mm), 10.6 MB per
-phase as int16. Ribs (5-9 mm) and the distended urethra (5-8 mm) span several voxels,
+Grid: 1.5 mm isotropic voxels, 161 x 113 x 267 (x, y, z; 241.5 x 169.5 x 400.5 mm), 9.7 MB
+per phase as int16. Ribs (5-9 mm) and the distended urethra (5-8 mm) span several voxels,
 while the 24 distinct volumes still build in well under 30 s on two cores and fit in memory
 together (255 MB); a 1 mm grid would triple both.
 
@@ -57,7 +57,8 @@ MIN_MARKED_MG_PER_ML = 1.0
 BREATH_PERIOD_S = 4.0
 PHASE_STEP_S = 1.0
 SPACING_MM = 1.5
-EXTENT_MM = (240.0, 168.0, 399.0)
+#: Voxels along x, y, z: odd, so the midline and the centre of the volume are voxel centres.
+GRID_SHAPE_XYZ = (161, 113, 267)
 
 
 @dataclass(frozen=True)
@@ -68,19 +69,21 @@ class Stage:
     bladder_ml: float
     contrast: bool
     voiding: bool
+    catheter: bool
 
 
-#: Catheter in and bladder drained; contrast instilled to the capacity of a 7 year old
-#: (about 250 mL); voiding with the urethra distended; a small post-void residual.
+#: Catheter in and bladder drained; contrast instilled through it to the capacity of a 7
+#: year old (about 250 mL); catheter out, voiding with the urethra distended; a small
+#: post-void residual.
 STAGES = (
-    Stage("bladder drained", 10.0, False, False),
-    Stage("filling", 80.0, True, False),
-    Stage("filling", 160.0, True, False),
-    Stage("full", 250.0, True, False),
-    Stage("voiding begins", 235.0, True, True),
-    Stage("voiding", 160.0, True, True),
-    Stage("voiding", 80.0, True, True),
-    Stage("post-void residual", 15.0, True, False),
+    Stage("bladder drained", 10.0, False, False, True),
+    Stage("filling", 80.0, True, False, True),
+    Stage("filling", 160.0, True, False, True),
+    Stage("full", 250.0, True, False, True),
+    Stage("voiding begins", 235.0, True, True, False),
+    Stage("voiding", 160.0, True, True, False),
+    Stage("voiding", 80.0, True, True, False),
+    Stage("post-void residual", 15.0, True, False, False),
 )
 PHASES_PER_STAGE = int(round(BREATH_PERIOD_S / PHASE_STEP_S))
 
@@ -119,13 +122,13 @@ def timeline() -> list[PhaseSpec]:
 
 
 def grid() -> shapes.Grid:
-    return shapes.Grid.centred(EXTENT_MM, SPACING_MM)
+    return shapes.Grid.centred(GRID_SHAPE_XYZ, SPACING_MM)
 
 
 def cache_key() -> str:
     """Generator version, parameters and a digest of the drawing code, hashed."""
     h = hashlib.sha256()
-    params = dict(version=GENERATOR_VERSION, spacing=SPACING_MM, extent=EXTENT_MM, seed=anatomy.SEED,
+    params = dict(version=GENERATOR_VERSION, spacing=SPACING_MM, grid=GRID_SHAPE_XYZ, seed=anatomy.SEED,
                   stages=[s.__dict__ for s in STAGES], step=PHASE_STEP_S, period=BREATH_PERIOD_S,
                   amplitude=BREATH_AMPLITUDE_MM, contrast=[CONTRAST_BASE_HU, HU_PER_MG_PER_ML, CONTRAST_MG_PER_ML],
                   numpy=np.__version__.split(".")[0])
@@ -159,7 +162,7 @@ class Builder:
         """The int16 HU array (nz, ny, nx) of one phase."""
         stage = STAGES[spec.stage]
         soft = self.breathing_state(spec.breath).copy()
-        sl, fill = anatomy.paint_bladder(soft, stage.bladder_ml, stage.voiding)
+        sl, fill = anatomy.paint_bladder(soft, stage.bladder_ml, stage.voiding, stage.catheter)
         hu = self.bones.over(soft.value)
         if stage.contrast:
             iodine = CONTRAST_MG_PER_ML * fill
@@ -214,6 +217,7 @@ def build(target: Path, progress: Callable[[str], None] | None = None) -> None:
             {"time_s": s.time_s, "file": s.file_name, "stage": STAGES[s.stage].name, "breath": s.breath}
             for s in specs]}
         (work / "manifest.json").write_text(json.dumps(manifest, indent=1))
+        os.chmod(work, 0o755)      # mkdtemp makes it private; the renderer may run as another user
         try:
             os.rename(work, target)
         except OSError:

@@ -58,10 +58,11 @@ def write_previews(volume: Volume, out_dir: Path, stem: str) -> list[Path]:
     rel = np.clip(hu.astype(np.float32), -1000, 2000) / 1000.0 + 1.0
     iodine = np.maximum(hu.astype(np.float32) - 2500.0, 0) / 10.0
     rel = np.where(hu >= 2500, 1.0 + iodine * 0.03, rel)
-    line = rel.sum(axis=1) * volume.spacing_mm[1] * mu_water
-    img = np.exp(-line)[::-1]
-    img = (img - img.min()) / (np.ptp(img) + 1e-9)
-    save((255 * (1 - img) ** 0.8).astype(np.uint8), "ap-projection")
+    line = (rel.sum(axis=1) * volume.spacing_mm[1] * mu_water)[::-1]
+    # Log-domain display as a fluoroscope shows it: bone and contrast bright, lung dark.
+    body = line[line > 0.5]
+    lo, hi = (np.percentile(body, 1), np.percentile(body, 99.7)) if body.size else (0.0, 1.0)
+    save((255 * np.clip((line - lo) / (hi - lo + 1e-9), 0, 1)).astype(np.uint8), "ap-projection")
     return written
 
 

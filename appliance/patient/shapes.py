@@ -28,11 +28,10 @@ class Grid:
     origin_mm: tuple[float, float, float]
 
     @classmethod
-    def centred(cls, extent_mm: tuple[float, float, float], spacing_mm: float) -> "Grid":
-        """The grid of about `extent_mm` (x, y, z) with the centre of the middle voxel at the origin."""
-        n = [int(round(e / spacing_mm)) for e in extent_mm]
-        origin = tuple(-(k - 1) / 2 * spacing_mm for k in n)
-        return cls((n[2], n[1], n[0]), spacing_mm, origin)
+    def centred(cls, shape_xyz: tuple[int, int, int], spacing_mm: float) -> "Grid":
+        """The grid of `shape_xyz` voxels whose middle lies at the origin (a voxel centre when the count is odd)."""
+        origin = tuple(-(n - 1) / 2 * spacing_mm for n in shape_xyz)
+        return cls((shape_xyz[2], shape_xyz[1], shape_xyz[0]), spacing_mm, origin)
 
     def axis(self, which: int) -> np.ndarray:
         """Voxel-centre coordinates along x (0), y (1) or z (2), mm, float32."""
