@@ -347,11 +347,12 @@ def _paint_shoulder_girdle_and_sternum(bones: Layer) -> None:
         paint_tube(bones, clav, 5.0, HU_CORTICAL)
         paint_tube(bones, clav, 3.5, HU_TRABECULAR)
         # Scapula: a thin plate over the upper posterior ribs with its spine.
-        c = (s * 60.0, 50.0, 128.0)
-        R = rotation("y", -s * 12) @ rotation("z", s * 20)
+        # It follows the back, turning forward laterally (about 22 degrees).
+        c = (s * 60.0, 46.0, 128.0)
+        R = rotation("y", -s * 12) @ rotation("z", -s * 22)
         plate = lambda X, Y, Z, c=c, R=R: ellipsoid(X, Y, Z, c, (24.0, 3.5, 40.0), R)
         paint_bone(bones, plate, *bounds([c], 42), 1.0, HU_CORTICAL, HU_TRABECULAR)
-        paint_tube(bones, [(s * 42, 56, 148), (s * 84, 50, 158)], 3.5, HU_CORTICAL)
+        paint_tube(bones, [(s * 40, 54, 150), (s * 78, 40, 156)], 3.5, HU_CORTICAL)
 
 
 def bones(grid: Grid) -> Layer:
