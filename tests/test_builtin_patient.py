@@ -64,6 +64,8 @@ def test_timeline_has_both_processes_in_order(cache):
     times = [t for t, _ in phases]
     assert len(phases) >= 8
     assert times[0] == 0.0 and all(b > a for a, b in zip(times, times[1:]))
+    # One phase a second; the sequence (eight 4 s breaths) is 32 s long.
+    assert times[-1] + 1.0 == builtin.SEQUENCE_S == 32.0
     assert any("building" in m for m in messages)
 
 
@@ -232,10 +234,19 @@ def test_cache_reused_then_rebuilt_identically_when_the_version_changes(cache, t
 def test_mistakes_are_one_line_errors(cache, tmp_path):
     with pytest.raises(FluorosimError, match="no built-in patient called 'adult'"):
         builtin_phases("adult", tmp_path)
+    not_a_folder = tmp_path / "data"
+    not_a_folder.write_text("a file where the data folder should be")
+    with pytest.raises(FluorosimError, match="cannot create the cache folder"):
+        builtin_phases("child-torso", not_a_folder / "cache")
     root, _, _ = cache
     copy = tmp_path / "cache"
     shutil.copytree(root, copy)
     (folder,) = [p for p in copy.iterdir() if p.is_dir()]
+    loaders = builtin_phases("child-torso", copy)
+    phase_file = folder / "stage0-breath0000.mha"
+    phase_file.write_bytes(phase_file.read_bytes()[:5000])        # truncated, as by a full disk
+    with pytest.raises(FluorosimError, match="stage0-breath0000.mha: cannot read this cached phase"):
+        loaders[0][1]()
     (folder / "manifest.json").write_text("{not json")
     with pytest.raises(FluorosimError, match="manifest.json: damaged cache"):
         builtin_phases("child-torso", copy)

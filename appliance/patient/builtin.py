@@ -86,6 +86,9 @@ STAGES = (
     Stage("post-void residual", 15.0, True, False, False),
 )
 PHASES_PER_STAGE = int(round(BREATH_PERIOD_S / PHASE_STEP_S))
+#: The whole sequence (s): the last phase lasts PHASE_STEP_S like the others, so a case
+#: that loops starts again at this time, not at the last time stamp.
+SEQUENCE_S = len(STAGES) * PHASES_PER_STAGE * PHASE_STEP_S
 
 NAMES = ("child-torso",)
 
@@ -200,8 +203,12 @@ def load_mha(path: Path) -> Volume:
 def build(target: Path, progress: Callable[[str], None] | None = None) -> None:
     """Build every phase into the folder `target` (created here, atomically: all or nothing)."""
     progress = progress or (lambda message: None)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        work = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
+    except OSError as e:
+        raise FluorosimError(f"{target.parent}: cannot create the cache folder of the built-in patient "
+                             f"({e.strerror or e}); check the data folder in configs/appliance.yaml") from None
     try:
         builder = Builder(progress)
         specs = timeline()
@@ -225,10 +232,12 @@ def build(target: Path, progress: Callable[[str], None] | None = None) -> None:
                 raise
             # Another process finished the same build first; its result is identical.
             shutil.rmtree(work, ignore_errors=True)
-    except OSError as e:
+    except (OSError, RuntimeError) as e:
+        # RuntimeError: SimpleITK's writer reports a full disk or an I/O error this way.
         shutil.rmtree(work, ignore_errors=True)
-        raise FluorosimError(f"{target.parent}: cannot write the built-in patient ({e.strerror or e}); "
-                             "check that the data folder is writable and has 300 MB free") from None
+        reason = getattr(e, "strerror", None) or str(e).strip().splitlines()[-1]
+        raise FluorosimError(f"{target.parent}: cannot write the built-in patient ({reason}); "
+                             "check that the data folder is writable and has 100 MB free") from None
     except BaseException:
         shutil.rmtree(work, ignore_errors=True)
         raise
