@@ -150,6 +150,30 @@ def test_diaphragm_moves_by_the_specified_amplitude(volumes):
     assert 57 <= hu_at(inspiration, (-50, 5, 45 - 12 - 10)) <= 63
 
 
+def _manubrium_top(volume):
+    """z (mm) of the top of the manubrium (x = 0, y = -53 mm), where HU rises above 300 going down."""
+    i = int(round((0 - volume.T_ct_from_voxel[0, 3]) / 1.5))
+    j = int(round((-53 - volume.T_ct_from_voxel[1, 3]) / 1.5))
+    z0 = volume.T_ct_from_voxel[2, 3]
+    profile = volume.hu[:, j - 1:j + 2, i].astype(float).mean(axis=1)
+    k = int(round((170 - z0) / 1.5))
+    while profile[k] < 300:
+        k -= 1
+    f = (profile[k] - 300) / (profile[k] - profile[k + 1])
+    return z0 + 1.5 * (k + f)
+
+
+def test_rib_cage_rises_with_inspiration_and_spine_stays(volumes):
+    expiration, inspiration = volumes(0), volumes(2)
+    # The manubrium (centre 143 mm, 16 mm high) tops out at 151 mm and rises 4 mm.
+    assert _manubrium_top(expiration) == pytest.approx(151.0, abs=1.5)
+    assert _manubrium_top(inspiration) - _manubrium_top(expiration) == pytest.approx(4.0, abs=0.7)
+    # The thoracic spine does not move: T6 (z 95-110 mm) is the same voxel for voxel.
+    k0, k1 = (int(round((z - expiration.T_ct_from_voxel[2, 3]) / 1.5)) for z in (95, 110))
+    j = int(round((20 - expiration.T_ct_from_voxel[1, 3]) / 1.5))
+    assert np.array_equal(expiration.hu[k0:k1, j - 5:j + 5, 70:91], inspiration.hu[k0:k1, j - 5:j + 5, 70:91])
+
+
 def test_contrast_fills_then_voids(cache, volumes):
     _, phases, _ = cache
     voxel_ml = 1.5 ** 3 / 1000.0

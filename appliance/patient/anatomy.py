@@ -4,9 +4,10 @@ Three parts are drawn separately so that a 4D series costs little more than one 
 
 - `static_soft`: skin, subcutaneous fat, muscle, the body cavities, paraspinal and psoas
   muscles, bowel — everything that does not move with the breath;
-- `bones`: a transparent layer of the skeleton (vertebrae with discs and posterior
-  elements, ribs with costal cartilage, sternum, clavicles, scapulae, pelvis, femora),
-  laid over every phase — the skeleton is taken as rigid during quiet breathing;
+- `skeleton`: a transparent layer of the bones that stay still (vertebrae with discs and
+  posterior elements, clavicles, scapulae, pelvis, femora), laid over every phase;
+- `rib_cage`: ribs with costal cartilage and the sternum for one breathing state, their
+  front raised by the pump-handle motion of inspiration;
 - `paint_breathing`: lungs, diaphragm, heart, great vessels, airways, liver, spleen,
   stomach and kidneys for one breathing state (0 = end-expiration, 1 = end-inspiration);
 - `paint_bladder`: bladder and urethra for one stage of the voiding cystourethrogram,
@@ -78,6 +79,9 @@ DIAPHRAGM_MM = 4.0
 #: the kidneys and heart partly.
 BREATH_AMPLITUDE_MM = 12.0
 KIDNEY_MOTION = 0.6
+#: Elevation of the sternum and the front of the ribs at end-inspiration (pump handle),
+#: the second, independent breathing motion of the seed simulators.
+RIB_LIFT_MM = 4.0
 HEART_MOTION = 0.8
 
 #: Bladder: the full bladder of a 7 year old holds about (age + 2) x 30 = 270 mL; the
@@ -266,7 +270,7 @@ def _paint_pelvis(bones: Layer) -> None:
             paint_tube(bones, path, radius - 1.5, HU_TRABECULAR)
 
 
-def _paint_ribs(bones: Layer) -> None:
+def _paint_ribs(bones: Layer, lift: float) -> None:
     """Twelve pairs, each following the chest wall from its vertebra round to the front.
 
     A rib is drawn in the angular coordinate of its own ellipse: for each voxel, its angle
@@ -295,7 +299,7 @@ def _paint_ribs(bones: Layer) -> None:
             cart_end, cart_z = end, None
         half_t, half_h = (2.5, 3.2) if i in (0, 10, 11) else (2.8, 3.8)
 
-        def z_bone(th, zr=zr, drop=drop):
+        def z_bone(th, zr=zr, drop=drop - lift):
             # A rib lies roughly in a plane tilted down toward the front: its height falls
             # with the antero-posterior position, (1 - cos) of the angle from the back.
             f = (np.cos(theta0) - np.cos(np.maximum(th, theta0))) / (np.cos(theta0) + 1.0)
@@ -320,7 +324,7 @@ def _paint_ribs(bones: Layer) -> None:
         bone = lambda X, Y, Z: rib_sdf(X, Y, Z, theta0, end, z_bone, half_t, half_h)
         paint_bone(bones, bone, lo, hi, 1.5, HU_CORTICAL, HU_TRABECULAR)
         if cart_z is not None:
-            def z_cart(th, end=end, cart_end=cart_end, z_end=z_end, cart_z=cart_z):
+            def z_cart(th, end=end, cart_end=cart_end, z_end=z_end, cart_z=cart_z + lift):
                 f = np.clip((th - end) / (cart_end - end), 0, 1)
                 return z_end + (cart_z - z_end) * f
             bones.paint(lambda X, Y, Z: rib_sdf(X, Y, Z, end - 0.02, cart_end, z_cart, half_t, half_h - 0.5),
@@ -335,13 +339,22 @@ def _paint_ribs(bones: Layer) -> None:
             paint_tube(bones, [start, tp, head], (half_t - 0.4, half_t - 0.7, half_t - 0.9), HU_TRABECULAR)
 
 
-def _paint_shoulder_girdle_and_sternum(bones: Layer) -> None:
-    yst = float(np.interp(110, _BODY_Z, _BODY_YC) - np.interp(110, _BODY_Z, _BODY_B)) + 14.0
-    # Sternum: manubrium and three sternebrae of a child, separated by cartilage.
+def _sternum_y() -> float:
+    return float(np.interp(110, _BODY_Z, _BODY_YC) - np.interp(110, _BODY_Z, _BODY_B)) + 14.0
+
+
+def _paint_sternum(bones: Layer, lift: float) -> None:
+    """Manubrium and three sternebrae of a child, separated by cartilage; raised by `lift` mm
+    and carried forward a little by the ribs' pump-handle motion."""
+    yst = _sternum_y() - 0.3 * lift
     for zc, half_w, half_h in ((143.0, 16.0, 8.0), (124.0, 11.0, 8.0), (105.0, 11.0, 8.0), (86.0, 10.0, 7.0)):
-        c = (0.0, yst, zc)
+        c = (0.0, yst, zc + lift)
         paint_bone(bones, lambda X, Y, Z, c=c, w=half_w, h=half_h: elliptic_prism(X, Y, Z, c, w, 5.0, h),
                    *bounds([c], 20), 1.0, HU_CORTICAL, HU_TRABECULAR)
+
+
+def _paint_shoulder_girdle(bones: Layer) -> None:
+    yst = _sternum_y()
     for s in (-1, 1):
         clav = [(s * 14, yst - 2, 156), (s * 45, yst + 4, 163), (s * 75, yst + 20, 167), (s * 92, yst + 40, 170)]
         paint_tube(bones, clav, 5.0, HU_CORTICAL)
@@ -355,15 +368,24 @@ def _paint_shoulder_girdle_and_sternum(bones: Layer) -> None:
         paint_tube(bones, [(s * 40, 54, 150), (s * 78, 40, 156)], 3.5, HU_CORTICAL)
 
 
-def bones(grid: Grid) -> Layer:
-    """The skeleton as a transparent layer to lay over every phase."""
+def skeleton(grid: Grid) -> Layer:
+    """The skeleton that stays still while breathing, as a transparent layer to lay over every phase."""
     layer = Layer(grid, opaque=False)
     for v in vertebrae():
         _paint_vertebra(layer, v)
     _paint_sacrum(layer)
     _paint_pelvis(layer)
-    _paint_ribs(layer)
-    _paint_shoulder_girdle_and_sternum(layer)
+    _paint_shoulder_girdle(layer)
+    return layer
+
+
+def rib_cage(grid: Grid, breath: float) -> Layer:
+    """Ribs, costal cartilage and sternum at breathing state `breath` (0 end-expiration, 1
+    end-inspiration): the pump-handle motion raises the front of the cage by up to
+    RIB_LIFT_MM while the rib heads stay at the spine."""
+    layer = Layer(grid, opaque=False)
+    _paint_ribs(layer, RIB_LIFT_MM * breath)
+    _paint_sternum(layer, RIB_LIFT_MM * breath)
     return layer
 
 

@@ -10,7 +10,9 @@ Timeline (32 phases, one every second, 32 s, then the case loops): the voiding
 cystourethrogram goes through eight stages, each held for one 4 s breath, and within each
 breath the four phases sample end-expiration, mid-inspiration, end-inspiration and
 mid-expiration: breath(t) = (1 - cos(2 pi t / 4 s)) / 2 moves the diaphragm domes, liver and
-spleen down by up to BREATH_AMPLITUDE_MM (12 mm). A real VCUG fills over minutes and voids
+spleen down by up to BREATH_AMPLITUDE_MM (12 mm), the kidneys and heart part of that, and
+raises the sternum and the front of the ribs by up to RIB_LIFT_MM (4 mm): the diaphragm
+and the rib cage, the two motions the seed simulators drive. A real VCUG fills over minutes and voids
 in under a minute; the stages are compressed so a trainee sees both processes in one loop.
 
 Grid: 1.5 mm isotropic voxels, 161 x 113 x 267 (x, y, z; 241.5 x 169.5 x 400.5 mm), 9.7 MB
@@ -41,7 +43,7 @@ import numpy as np
 
 from ..errors import FluorosimError
 from . import anatomy, shapes
-from .anatomy import BREATH_AMPLITUDE_MM
+from .anatomy import BREATH_AMPLITUDE_MM, RIB_LIFT_MM
 from .volume import Volume
 
 #: Bump when the drawing changes in a way the source digest would not catch.
@@ -133,7 +135,7 @@ def cache_key() -> str:
     h = hashlib.sha256()
     params = dict(version=GENERATOR_VERSION, spacing=SPACING_MM, grid=GRID_SHAPE_XYZ, seed=anatomy.SEED,
                   stages=[s.__dict__ for s in STAGES], step=PHASE_STEP_S, period=BREATH_PERIOD_S,
-                  amplitude=BREATH_AMPLITUDE_MM, contrast=[CONTRAST_BASE_HU, HU_PER_MG_PER_ML, CONTRAST_MG_PER_ML],
+                  amplitude=BREATH_AMPLITUDE_MM, rib_lift=RIB_LIFT_MM, contrast=[CONTRAST_BASE_HU, HU_PER_MG_PER_ML, CONTRAST_MG_PER_ML],
                   numpy=np.__version__.split(".")[0])
     h.update(json.dumps(params, sort_keys=True).encode())
     here = Path(__file__).parent
@@ -150,23 +152,25 @@ class Builder:
         self.grid = grid()
         self.progress("drawing the body and skeleton")
         self.static = anatomy.static_soft(self.grid, np.random.default_rng(anatomy.SEED))
-        self.bones = anatomy.bones(self.grid)
-        self._breaths: dict[float, shapes.Layer] = {}
+        self.skeleton = anatomy.skeleton(self.grid)
+        self._breaths: dict[float, tuple[shapes.Layer, shapes.Layer]] = {}
 
-    def breathing_state(self, breath: float) -> shapes.Layer:
+    def breathing_state(self, breath: float) -> tuple[shapes.Layer, shapes.Layer]:
+        """Soft tissue and rib cage at one breathing state, drawn once and kept."""
         if breath not in self._breaths:
-            self.progress(f"drawing the breathing organs at breath {breath:.2f}")
+            self.progress(f"drawing the breathing organs and ribs at breath {breath:.2f}")
             layer = self.static.copy()
             anatomy.paint_breathing(layer, breath)
-            self._breaths[breath] = layer
+            self._breaths[breath] = layer, anatomy.rib_cage(self.grid, breath)
         return self._breaths[breath]
 
     def phase(self, spec: PhaseSpec) -> np.ndarray:
         """The int16 HU array (nz, ny, nx) of one phase."""
         stage = STAGES[spec.stage]
-        soft = self.breathing_state(spec.breath).copy()
+        soft, ribs = self.breathing_state(spec.breath)
+        soft = soft.copy()
         sl, fill = anatomy.paint_bladder(soft, stage.bladder_ml, stage.voiding, stage.catheter)
-        hu = self.bones.over(soft.value)
+        hu = ribs.over(self.skeleton.over(soft.value))
         if stage.contrast:
             iodine = CONTRAST_MG_PER_ML * fill
             box = hu[sl]
@@ -213,11 +217,12 @@ def build(target: Path, progress: Callable[[str], None] | None = None) -> None:
         builder = Builder(progress)
         specs = timeline()
         written = set()
+        distinct = len({s.file_name for s in specs})
         T = builder.grid.T_ct_from_voxel
         for spec in specs:
             if spec.file_name in written:
                 continue
-            progress(f"phase {spec.file_name[:-4]}: {STAGES[spec.stage].name}")
+            progress(f"phase {len(written) + 1}/{distinct} ({spec.file_name[:-4]}): {STAGES[spec.stage].name}")
             _write_mha(work / spec.file_name, builder.phase(spec), T)
             written.add(spec.file_name)
         manifest = {"name": target.name, "phases": [
