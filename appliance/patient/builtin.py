@@ -35,6 +35,7 @@ import os
 import shutil
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -219,12 +220,20 @@ def build(target: Path, progress: Callable[[str], None] | None = None) -> None:
         written = set()
         distinct = len({s.file_name for s in specs})
         T = builder.grid.T_ct_from_voxel
-        for spec in specs:
-            if spec.file_name in written:
-                continue
-            progress(f"phase {len(written) + 1}/{distinct} ({spec.file_name[:-4]}): {STAGES[spec.stage].name}")
-            _write_mha(work / spec.file_name, builder.phase(spec), T)
-            written.add(spec.file_name)
+        # Compressing and writing one phase overlaps drawing the next (the second core);
+        # at most two phases wait, so memory stays bounded.
+        with ThreadPoolExecutor(max_workers=1) as writer:
+            pending = []
+            for spec in specs:
+                if spec.file_name in written:
+                    continue
+                progress(f"phase {len(written) + 1}/{distinct} ({spec.file_name[:-4]}): {STAGES[spec.stage].name}")
+                pending.append(writer.submit(_write_mha, work / spec.file_name, builder.phase(spec), T))
+                written.add(spec.file_name)
+                if len(pending) >= 2:
+                    pending.pop(0).result()
+            for job in pending:
+                job.result()
         manifest = {"name": target.name, "phases": [
             {"time_s": s.time_s, "file": s.file_name, "stage": STAGES[s.stage].name, "breath": s.breath}
             for s in specs]}
