@@ -19,7 +19,7 @@ from appliance.config.case import CaseProfile
 from appliance.config.loading import load_profile
 from appliance.config.phantom import PhantomProfile
 from appliance.errors import FluorosimError
-from appliance.patient import builtin
+from appliance.patient import builtin, shapes
 from appliance.patient.builtin import builtin_phases, iodine_mg_per_ml
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -287,3 +287,33 @@ def test_mistakes_are_one_line_errors(cache, tmp_path):
     (folder / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(FluorosimError, match="missing.mha: missing from the cache"):
         builtin_phases("child-torso", copy)
+
+
+# --- the drawing primitives, against analytic volumes ---
+
+@pytest.mark.parametrize("shape, exact_mm3", [
+    # Sphere r = 10 mm: 4/3 pi r^3.
+    (lambda X, Y, Z: shapes.ellipsoid(X, Y, Z, (0.3, -0.2, 0.1), (10, 10, 10)), 4 / 3 * np.pi * 1000),
+    # Ellipsoid 14 x 9 x 6 mm, turned 30 degrees about z and 20 about x: 4/3 pi abc.
+    (lambda X, Y, Z: shapes.ellipsoid(X, Y, Z, (1, 2, -1), (14, 9, 6), shapes.rotation("z", 30) @ shapes.rotation("x", 20)),
+     4 / 3 * np.pi * 14 * 9 * 6),
+    # Capsule r = 5 mm, 30 mm between the end centres, oblique: pi r^2 L + 4/3 pi r^3.
+    (lambda X, Y, Z: shapes.segment(X, Y, Z, (-10, -8, -15), (10, 8, 6.3), 5, 5),
+     np.pi * 25 * np.linalg.norm([20, 16, 21.3]) + 4 / 3 * np.pi * 125),
+])
+def test_painted_shapes_have_their_analytic_volume(shape, exact_mm3):
+    grid = shapes.Grid.centred((41, 41, 41), 1.5)
+    layer = shapes.Layer(grid, 0.0)
+    layer.paint(shape, 1.0, (-30, -30, -30), (30, 30, 30))
+    # Partial-volume edges make the sum of coverages the volume, to well under a voxel layer.
+    assert layer.value.sum() * 1.5 ** 3 == pytest.approx(exact_mm3, rel=0.015)
+
+
+def test_transparent_layer_composites_over_tissue():
+    grid = shapes.Grid.centred((11, 11, 11), 1.5)
+    bone = shapes.Layer(grid, opaque=False)
+    bone.paint(lambda X, Y, Z: X - 0.0, 1000.0, (-10, -10, -10), (10, 10, 10))   # half space x < 0
+    below = np.full(grid.shape, 40.0, np.float32)
+    out = bone.over(below)
+    assert np.allclose(out[..., :5], 1000.0) and np.allclose(out[..., 6:], 40.0)
+    assert out[0, 0, 5] == pytest.approx(520.0)      # the voxel the surface halves
