@@ -22,6 +22,7 @@ COMMAND_MODULES = (
     "appliance.xray.commands",
     "appliance.tracking.commands",
     "appliance.records.commands",
+    "appliance.patient.commands",
 )
 
 
