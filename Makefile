@@ -8,8 +8,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 # Debian packages: libsystemd-dev and pkg-config build systemd-python; dicom3tools gives
 # dciodvfy, which checks exported dose reports; systemd gives systemd-analyze for unit checks;
-# gcc and linux-libc-dev let a test check the framebuffer structs against <linux/fb.h>.
-# gcc and linux-libc-dev check the framebuffer ioctl structures against <linux/fb.h>;
+# gcc and linux-libc-dev let a test check the framebuffer structs against <linux/fb.h>;
 # alsa-utils gives aplay, which sounds the fluoroscopy-time alarm.
 APT_PACKAGES := libsystemd-dev pkg-config dicom3tools systemd python3-venv gcc linux-libc-dev alsa-utils
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
