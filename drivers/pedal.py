@@ -47,7 +47,8 @@ class SerialPedal:
         except (serial.SerialException, OSError) as e:
             self._serial = None
             self.state = "unplugged"
-            self.problem = f"{self.port}: pedal not found ({getattr(e, 'strerror', None) or e}); plug it in"
+            self.problem = (f"{self.port}: cannot open the pedal ({getattr(e, 'strerror', None) or e}); "
+                            "plug it in, or check the port name and its permissions")
             return
         self._buffer = b""
         self._last_heard = now

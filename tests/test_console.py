@@ -256,3 +256,21 @@ def test_reference_point_beyond_the_source_is_refused(tmp_path):
     with pytest.raises(ProfileProblems) as e:
         load_profile(bad, FluoroscopeProfile)
     assert "dose.reference_point_from_isocentre_mm" in str(e.value.problems[0])
+
+
+def test_hid_usages_and_direct_actions_map_through_the_keymap():
+    console = Console(II, KEYMAP, t0=0.0)
+    console.handle(InputEvent(1.0, "keypad", "hid:0x58", True))          # keypad Enter usage: fluoro
+    assert console.snapshot().fluoro_on
+    console.handle(InputEvent(2.0, "keypad", "hid:0x58", False))
+    assert not console.snapshot().fluoro_on
+    console.handle(InputEvent(3.0, "keypad", "hid:0x5a", True))          # zoom_2
+    console.handle(press(4.0, "zoom_next"))
+    assert console.snapshot().zoom == 3
+    console.handle(press(5.0, "zoom_next"))
+    console.handle(press(6.0, "zoom_next"))                               # stays at the narrowest
+    assert console.snapshot().zoom == 4
+    console.handle(press(7.0, "zoom_prev"))
+    assert console.snapshot().zoom == 3
+    assert console.handle(InputEvent(8.0, "keypad", "hid:0x04", True)) == []   # 'a': not mapped
+    assert console.handle(InputEvent(8.0, "keypad", "hid:zz", True)) == []

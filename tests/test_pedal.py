@@ -99,5 +99,5 @@ def test_missing_port_says_so():
     from appliance.console.inputs import problems
     from drivers.input_event import NoInput
     p = SerialPedal("/dev/fluorosim-no-such-pedal")
-    assert p.state == "unplugged" and "not found" in p.problem and p.poll(0.0) == []
+    assert p.state == "unplugged" and "cannot open the pedal" in p.problem and p.poll(0.0) == []
     assert problems([NoInput(), p]) == [p.problem] and "/dev/fluorosim-no-such-pedal" in p.problem

@@ -107,7 +107,7 @@ def register(commands, benches) -> None:
                                     "Never overwrites: an --out folder that already holds those files is refused.")
     _ledger_options(e)
     e.add_argument("--since", metavar="DATE", help="first day (or date-time) to include; default: the beginning")
-    e.add_argument("--until", metavar="DATE", help="last day (or date-time, exclusive) to include; default: now")
+    e.add_argument("--until", metavar="DATE", help="last day to include (a date-time is exclusive); default: no limit")
     e.add_argument("--format", choices=export_module.FORMATS, required=True)
     e.add_argument("--out", required=True, metavar="DIR", help="folder to write into (created if missing)")
     e.set_defaults(run=run_export)

@@ -160,7 +160,10 @@ def verify(conn: sqlite3.Connection, resume: tuple[int, str] | None = None) -> C
         prev = row["hash"]
         expected_id = row["id"] + 1
         last = (row["id"], row["hash"])
-    for s in conn.execute("SELECT * FROM sessions WHERE ended_wall IS NOT NULL ORDER BY id"):
+    # Sessions whose end was checked by an earlier report (before `resume`) are not checked again.
+    for s in conn.execute("SELECT * FROM sessions WHERE ended_wall IS NOT NULL AND id NOT IN "
+                          "(SELECT session_id FROM events WHERE kind = 'session_end' AND id <= ?) ORDER BY id",
+                          (0 if resume is None else resume[0],)):
         end = conn.execute("SELECT detail FROM events WHERE session_id = ? AND kind = 'session_end' ORDER BY id DESC LIMIT 1",
                            (s["id"],)).fetchone()
         if end is None:

@@ -5,7 +5,7 @@ Structure (PS3.16): the root "X-Ray Radiation Dose Report" container names the p
 System, which importers such as OpenREM use to file the report as fluoroscopy), the device
 observer, the scope of accumulation (the study); one "Accumulated X-Ray Dose Data" container
 (TID 10002 with TID 10004 and TID 10007 rows); one "Irradiation Event X-Ray Data" container
-(TID 10003 with its source and mechanical rows) per fluoroscopy run; and the source of the
+(TID 10003 with its X-ray source rows) per fluoroscopy run; and the source of the
 dose information. Code meanings are the standard's, verbatim: importers match them as text.
 
 Units in the report: Gy.m2 for dose-area products, Gy for reference-point doses, s, kV, mA,
@@ -85,8 +85,6 @@ TUBE_CURRENT = ("113734", "DCM", "X-Ray Tube Current")
 PULSE_WIDTH = ("113793", "DCM", "Pulse Width")
 FOCAL_SPOT_SIZE = ("113766", "DCM", "Focal Spot Size")
 COLLIMATED_FIELD_AREA = ("113790", "DCM", "Collimated Field Area")
-DISTANCE_SOURCE_TO_DETECTOR = ("113750", "DCM", "Distance Source to Detector")
-DISTANCE_SOURCE_TO_ISOCENTER = ("113748", "DCM", "Distance Source to Isocenter")
 COMMENT = ("121106", "DCM", "Comment")
 # Local codes (a "99" scheme, as PS3.16 8.2 allows): a training session has no real diagnosis
 # or requested procedure, but IHE REM requires both to be coded.
@@ -246,10 +244,6 @@ def _irradiation_event(run: dict, event_hash: str) -> Dataset:
         children.append(num_item("CONTAINS", FOCAL_SPOT_SIZE, run["focal_spot_mm"], U_MM))
     if run.get("field_area_cm2") is not None:
         children.append(num_item("CONTAINS", COLLIMATED_FIELD_AREA, run["field_area_cm2"] / 1e4, U_M2))
-    if run.get("sid_mm") is not None:
-        children.append(num_item("CONTAINS", DISTANCE_SOURCE_TO_DETECTOR, run["sid_mm"], U_MM))
-    if run.get("source_to_isocentre_mm") is not None:
-        children.append(num_item("CONTAINS", DISTANCE_SOURCE_TO_ISOCENTER, run["source_to_isocentre_mm"], U_MM))
     if run.get("reason") == "recovered":
         children.append(text_item("CONTAINS", COMMENT, "Run cut off by a power loss or crash; "
                                                        "values cover the exposure recorded before it."))
@@ -296,7 +290,9 @@ def session_report(session: dict, events: list[dict]) -> Dataset:
                   [uid_item("HAS PROPERTIES", STUDY_INSTANCE_UID, study_uid)]),
         code_item("CONTAINS", DETECTOR_DATA_AVAILABLE, NO),
         code_item("CONTAINS", SOURCE_DATA_AVAILABLE, YES),
-        code_item("CONTAINS", MECHANICAL_DATA_AVAILABLE, YES),
+        # Positioner angles and table positions (TID 10003C) are not modelled; the fixed source
+        # to reference point distance is given once with the totals (TID 10007).
+        code_item("CONTAINS", MECHANICAL_DATA_AVAILABLE, NO),
         container("CONTAINS", ACCUMULATED, accumulated, "10002"),
         *[_irradiation_event(run, h) for run, h in runs],
         text_item("CONTAINS", COMMENT, f"Simulated fluoroscopy (fluorosim training session {session['id']}, "
