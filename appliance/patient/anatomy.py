@@ -246,13 +246,16 @@ def _paint_pelvis(bones: Layer) -> None:
                    1.5, HU_CORTICAL, HU_TRABECULAR)
         # Acetabulum and femur: head (with its growth plate), neck, greater trochanter, shaft.
         head = np.array([s * 55.0, -5.0, -152.0])
-        # The acetabulum: the medial and superior part of a spherical shell round the head.
-        paint_bone(bones, lambda X, Y, Z, h=head, s=s: np.maximum(
-                       np.abs(np.sqrt((X - h[0]) ** 2 + (Y - h[1]) ** 2 + (Z - h[2]) ** 2) - 20.0) - 3.0,
-                       0.7 * s * (X - h[0]) - 0.7 * (Z - h[2]) - 5.0),
-                   *bounds([head], 26), 1.2, HU_CORTICAL, HU_TRABECULAR)
-        paint_bone(bones, lambda X, Y, Z, h=head: np.sqrt((X - h[0]) ** 2 + (Y - h[1]) ** 2 + (Z - h[2]) ** 2) - 15.0,
-                   *bounds([head], 18), 1.2, HU_CORTICAL, HU_TRABECULAR)
+        # The acetabulum: a block of bone medial to and above the head, where ilium, ischium
+        # and pubis meet, with the socket (head plus 2 mm of joint cartilage) carved out and
+        # open laterally and downward.
+        block_c = head + [-s * 6.0, 0.0, 5.0]
+
+        def acetabulum(X, Y, Z, h=head, c=block_c, s=s):
+            block = np.sqrt((X - c[0]) ** 2 + (Y - c[1]) ** 2 + (Z - c[2]) ** 2) - 24.0
+            socket = np.sqrt((X - h[0]) ** 2 + (Y - h[1]) ** 2 + (Z - h[2]) ** 2) - 17.0
+            return intersect(block, -socket, 0.7 * s * (X - h[0]) - 0.7 * (Z - h[2]) - 6.0)
+        paint_bone(bones, acetabulum, *bounds([block_c], 28), 1.5, HU_CORTICAL, HU_TRABECULAR)
         neck_end = head + [s * 22, 4, -16]
         shaft_end = np.array([s * 68.0, 8.0, -215.0])
         troch = head + [s * 30, 8, -8]
@@ -261,6 +264,9 @@ def _paint_pelvis(bones: Layer) -> None:
         for path, radius in (([head, neck_end], 7.0), ([neck_end, troch], 8.5)):
             paint_tube(bones, path, radius, HU_TRABECULAR)
         paint_tube(bones, [neck_end + [0, 0, 4], shaft_end], 6.0, HU_MARROW_SHAFT)
+        # The head last: its cortex across the top of the neck stands for the growth plate.
+        paint_bone(bones, lambda X, Y, Z, h=head: np.sqrt((X - h[0]) ** 2 + (Y - h[1]) ** 2 + (Z - h[2]) ** 2) - 15.0,
+                   *bounds([head], 18), 1.2, HU_CORTICAL, HU_TRABECULAR)
         # Pubis and ischium around the obturator foramen, meeting at the symphysis.
         sup_ramus = [(s * 45, -12, -146), (s * 20, -32, -155), (s * 4.5, -40, -162)]
         inf_ramus = [(s * 4.5, -38, -170), (s * 22, -24, -182), (s * 40, -2, -184)]
