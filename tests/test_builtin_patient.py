@@ -317,3 +317,17 @@ def test_transparent_layer_composites_over_tissue():
     out = bone.over(below)
     assert np.allclose(out[..., :5], 1000.0) and np.allclose(out[..., 6:], 40.0)
     assert out[0, 0, 5] == pytest.approx(520.0)      # the voxel the surface halves
+
+
+def test_build_patient_command_and_previews(cache, volumes, tmp_path, capsys):
+    from appliance.cli import main
+    from appliance.patient.commands import write_previews
+    root, _, _ = cache
+    assert main(["build-patient", "--cache", str(root)]) == 0
+    assert "32 phases over 32 s" in capsys.readouterr().out
+    written = write_previews(volumes(20), tmp_path / "previews", "voiding")
+    assert len(written) == 7 and all(p.stat().st_size > 1000 for p in written)
+    blocked = tmp_path / "file"
+    blocked.write_text("")
+    assert main(["build-patient", "--cache", str(root), "--previews", str(blocked / "p")]) == 2
+    assert "cannot create the preview folder" in capsys.readouterr().err
