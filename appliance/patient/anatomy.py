@@ -508,8 +508,8 @@ def paint_breathing(layer: Layer, breath: float, rng_seed: int = SEED) -> None:
 
     def organ(centre, radii, R=None):
         return lambda X, Y, Z: intersect(*[ellipsoid(X, Y, Z, centre, radii, R), below(X, Y, Z), cavity(X, Y, Z, 1.0)])
-    liver_c = (-34.0, 0.0, 5.0 - shift)
-    layer.paint(organ(liver_c, (78.0, 64.0, 64.0), rotation("y", 18)), HU_LIVER, *bounds([liver_c], 80))
+    liver_c = (-32.0, 0.0, 0.0 - shift)
+    layer.paint(organ(liver_c, (84.0, 70.0, 70.0), rotation("y", 18)), HU_LIVER, *bounds([liver_c], 90))
     stomach_c = (40.0, -14.0, 6.0 - shift)
     stomach_R = rotation("y", -20)
     layer.paint(organ(stomach_c, (32.0, 26.0, 38.0), stomach_R), HU_SOFT, *bounds([stomach_c], 45))
@@ -528,7 +528,7 @@ def paint_breathing(layer: Layer, breath: float, rng_seed: int = SEED) -> None:
                    2.0, HU_SOFT)
     # Spleen: posterolateral under the left dome, along the 9th-11th ribs.
     spleen_c = (64.0, 18.0, 10.0 - shift)
-    layer.paint(organ(spleen_c, (13.0, 30.0, 38.0), rotation("z", -45)), HU_SPLEEN, *bounds([spleen_c], 45))
+    layer.paint(organ(spleen_c, (16.0, 34.0, 42.0), rotation("z", -45)), HU_SPLEEN, *bounds([spleen_c], 50))
 
 
 def _paint_lung_vessels(layer: Layer, shift: float, rng: np.random.Generator) -> None:
