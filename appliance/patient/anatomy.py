@@ -313,11 +313,16 @@ def _paint_ribs(bones: Layer, lift: float) -> None:
 
         z_end = float(z_bone(end))
 
-        def rib_sdf(X, Y, Z, t0, t1, zfun, ht, hh, a=a, b=b, yc=yc):
-            u, w = np.abs(X) / a, (Y - yc) / b
-            th = np.arctan2(u, w)
-            rho = (u ** BODY_POWER + np.abs(w) ** BODY_POWER) ** (1.0 / BODY_POWER)
-            R = np.sqrt((a * np.sin(th)) ** 2 + (b * np.cos(th)) ** 2)
+        zlo = min(z_end, cart_z if cart_z is not None else z_end) - 10
+        lo, hi = (-a - 8, yc - b - 8, zlo), (a + 8, yc + b + 8, zr + 10)
+        # The rib's angular coordinates of every voxel of its box, shared by bone and cartilage.
+        _, X, Y, Z = bones.grid.box(lo, hi)
+        u, w = np.abs(X) / a, (Y - yc) / b
+        th = np.arctan2(u, w)
+        rho = (u ** BODY_POWER + np.abs(w) ** BODY_POWER) ** (1.0 / BODY_POWER)
+        R = np.sqrt((a * np.sin(th)) ** 2 + (b * np.cos(th)) ** 2)
+
+        def rib_sdf(t0, t1, zfun, ht, hh, th=th, rho=rho, R=R, Z=Z):
             dr = (rho - 1.0) * R
             dz = Z - zfun(th)
             k0 = np.sqrt((dr / ht) ** 2 + (dz / hh) ** 2)
@@ -325,16 +330,14 @@ def _paint_ribs(bones: Layer, lift: float) -> None:
             d = k0 * (k0 - 1.0) / (k1 + 1e-6)
             return np.maximum(d, np.maximum(t0 - th, th - t1) * R)
 
-        zlo = min(z_end, cart_z if cart_z is not None else z_end) - 10
-        lo, hi = (-a - 8, yc - b - 8, zlo), (a + 8, yc + b + 8, zr + 10)
-        bone = lambda X, Y, Z: rib_sdf(X, Y, Z, theta0, end, z_bone, half_t, half_h)
-        paint_bone(bones, bone, lo, hi, 1.5, HU_CORTICAL, HU_TRABECULAR)
+        bone = rib_sdf(theta0, end, z_bone, half_t, half_h)
+        paint_bone(bones, lambda *box: bone, lo, hi, 1.5, HU_CORTICAL, HU_TRABECULAR)
         if cart_z is not None:
             def z_cart(th, end=end, cart_end=cart_end, z_end=z_end, cart_z=cart_z + lift):
                 f = np.clip((th - end) / (cart_end - end), 0, 1)
                 return z_end + (cart_z - z_end) * f
-            bones.paint(lambda X, Y, Z: rib_sdf(X, Y, Z, end - 0.02, cart_end, z_cart, half_t, half_h - 0.5),
-                        HU_CARTILAGE, lo, hi)
+            cartilage = rib_sdf(end - 0.02, cart_end, z_cart, half_t, half_h - 0.5)
+            bones.paint(lambda *box: cartilage, HU_CARTILAGE, lo, hi)
         # Neck and head of the rib: from the rib's angle to the transverse process and the body.
         for s in (-1, 1):
             n = (np.sin(theta0) ** BODY_POWER + np.cos(theta0) ** BODY_POWER) ** (1.0 / BODY_POWER)

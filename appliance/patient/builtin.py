@@ -154,24 +154,27 @@ class Builder:
         self.progress("drawing the body and skeleton")
         self.static = anatomy.static_soft(self.grid, np.random.default_rng(anatomy.SEED))
         self.skeleton = anatomy.skeleton(self.grid)
-        self._breaths: dict[float, tuple[shapes.Layer, shapes.Layer]] = {}
+        self._breaths: dict[float, tuple[shapes.Layer, shapes.Layer, np.ndarray]] = {}
 
-    def breathing_state(self, breath: float) -> tuple[shapes.Layer, shapes.Layer]:
-        """Soft tissue and rib cage at one breathing state, drawn once and kept."""
+    def breathing_state(self, breath: float) -> tuple[shapes.Layer, shapes.Layer, np.ndarray]:
+        """Soft tissue, rib cage and the two composited (HU, float32) at one breathing state, drawn once and kept."""
         if breath not in self._breaths:
             self.progress(f"drawing the breathing organs and ribs at breath {breath:.2f}")
-            layer = self.static.copy()
-            anatomy.paint_breathing(layer, breath)
-            self._breaths[breath] = layer, anatomy.rib_cage(self.grid, breath)
+            soft = self.static.copy()
+            anatomy.paint_breathing(soft, breath)
+            ribs = anatomy.rib_cage(self.grid, breath)
+            self._breaths[breath] = soft, ribs, ribs.over(self.skeleton.over(soft.value))
         return self._breaths[breath]
 
     def phase(self, spec: PhaseSpec) -> np.ndarray:
         """The int16 HU array (nz, ny, nx) of one phase."""
         stage = STAGES[spec.stage]
-        soft, ribs = self.breathing_state(spec.breath)
+        soft, ribs, composited = self.breathing_state(spec.breath)
         soft = soft.copy()
         sl, fill = anatomy.paint_bladder(soft, stage.bladder_ml, stage.voiding, stage.catheter)
-        hu = ribs.over(self.skeleton.over(soft.value))
+        # Only the bladder's box changed: lay the bones over it again there.
+        hu = composited.copy()
+        hu[sl] = ribs.over(self.skeleton.over(soft.value[sl], sl), sl)
         if stage.contrast:
             iodine = CONTRAST_MG_PER_ML * fill
             box = hu[sl]
