@@ -403,9 +403,10 @@ def rib_cage(grid: Grid, breath: float) -> Layer:
 def static_soft(grid: Grid, rng: np.random.Generator) -> Layer:
     layer = Layer(grid, HU_AIR)
     everywhere = ((-1e4, -1e4, -1e4), (1e4, 1e4, 1e4))
-    layer.paint(torso, HU_SKIN, *everywhere)
-    layer.paint(lambda X, Y, Z: torso(X, Y, Z, SKIN_MM), HU_FAT, *everywhere)
-    layer.paint(lambda X, Y, Z: torso(X, Y, Z, SKIN_MM + SUBCUT_FAT_MM), HU_MUSCLE, *everywhere)
+    skin = torso(*grid.box(*everywhere)[1:])     # once: fat and muscle are the same surface moved in
+    layer.paint(lambda *box: skin, HU_SKIN, *everywhere)
+    layer.paint(lambda *box: skin + np.float32(SKIN_MM), HU_FAT, *everywhere)
+    layer.paint(lambda *box: skin + np.float32(SKIN_MM + SUBCUT_FAT_MM), HU_MUSCLE, *everywhere)
     layer.paint(cavity, HU_VISCERAL_FAT, *everywhere)
     # Paraspinal muscles behind the spine, psoas muscles beside the lumbar spine.
     for s in (-1, 1):
