@@ -1,6 +1,6 @@
 """The anatomy of the built-in child: a procedurally drawn torso and pelvis of a 5-8 year old.
 
-Three parts are drawn separately so that a 4D series costs little more than one volume:
+The parts are drawn separately so that a 4D series costs little more than one volume:
 
 - `static_soft`: skin, subcutaneous fat, muscle, the body cavities, paraspinal and psoas
   muscles, bowel — everything that does not move with the breath;
@@ -10,13 +10,13 @@ Three parts are drawn separately so that a 4D series costs little more than one 
   front raised by the pump-handle motion of inspiration;
 - `paint_breathing`: lungs, diaphragm, heart, great vessels, airways, liver, spleen,
   stomach and kidneys for one breathing state (0 = end-expiration, 1 = end-inspiration);
-- `paint_bladder`: bladder and urethra for one stage of the voiding cystourethrogram,
-  returning the fraction of each voxel filled with iodinated contrast.
+- `paint_bladder`: bladder, urethra and filling catheter for one stage of the voiding
+  cystourethrogram, returning the fraction of each voxel that the lumen fills.
 
 Coordinates are the `ct` frame (LPS, mm): x toward the patient's left, y posterior, z
 superior, the patient centred at the origin. Sizes are those of a 5-8 year old child
-(Hounsfield units and dimensions are module constants below, each with its source of truth
-in the comment); the random bowel gas and pulmonary vessels come from a fixed seed.
+(Hounsfield units and the main dimensions are module constants below; smaller placements
+sit where they are drawn); the random bowel gas and pulmonary vessels come from a fixed seed.
 """
 
 from __future__ import annotations
