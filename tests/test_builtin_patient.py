@@ -186,6 +186,10 @@ def test_contrast_fills_then_voids(cache, volumes):
     expected = [0, 80, 160, 250, 235, 160, 80, 15]
     for got, want in zip(per_stage, expected):
         assert got == pytest.approx(want, rel=0.03, abs=0.5) or (want in (235, 160, 80) and 0 < got - want < 4)
+    # The bladder's partial-volume edge is encoded as dilute iodine, never as a HU between
+    # bone (<= 1500) and contrast (>= 2500) that the renderer would take for dense bone.
+    full = volumes(12).hu
+    assert not np.any((full > 1500) & (full < 2510))
     peak = int(np.argmax(per_stage))
     assert peak == 3
     assert all(b > a for a, b in zip(per_stage[:peak], per_stage[1:peak + 1]))
