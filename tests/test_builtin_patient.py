@@ -186,6 +186,10 @@ def test_contrast_fills_then_voids(cache, volumes):
     expected = [0, 80, 160, 250, 235, 160, 80, 15]
     for got, want in zip(per_stage, expected):
         assert got == pytest.approx(want, rel=0.03, abs=0.5) or (want in (235, 160, 80) and 0 < got - want < 4)
+    # The bladder's partial-volume edge is encoded as dilute iodine, never as a HU between
+    # bone (<= 1500) and contrast (>= 2500) that the renderer would take for dense bone.
+    full = volumes(12).hu
+    assert not np.any((full > 1500) & (full < 2510))
     peak = int(np.argmax(per_stage))
     assert peak == 3
     assert all(b > a for a, b in zip(per_stage[:peak], per_stage[1:peak + 1]))
@@ -317,3 +321,17 @@ def test_transparent_layer_composites_over_tissue():
     out = bone.over(below)
     assert np.allclose(out[..., :5], 1000.0) and np.allclose(out[..., 6:], 40.0)
     assert out[0, 0, 5] == pytest.approx(520.0)      # the voxel the surface halves
+
+
+def test_build_patient_command_and_previews(cache, volumes, tmp_path, capsys):
+    from appliance.cli import main
+    from appliance.patient.commands import write_previews
+    root, _, _ = cache
+    assert main(["build-patient", "--cache", str(root)]) == 0
+    assert "32 phases over 32 s" in capsys.readouterr().out
+    written = write_previews(volumes(20), tmp_path / "previews", "voiding")
+    assert len(written) == 7 and all(p.stat().st_size > 1000 for p in written)
+    blocked = tmp_path / "file"
+    blocked.write_text("")
+    assert main(["build-patient", "--cache", str(root), "--previews", str(blocked / "p")]) == 2
+    assert "cannot create the preview folder" in capsys.readouterr().err

@@ -1,6 +1,6 @@
 """The anatomy of the built-in child: a procedurally drawn torso and pelvis of a 5-8 year old.
 
-Three parts are drawn separately so that a 4D series costs little more than one volume:
+The parts are drawn separately so that a 4D series costs little more than one volume:
 
 - `static_soft`: skin, subcutaneous fat, muscle, the body cavities, paraspinal and psoas
   muscles, bowel — everything that does not move with the breath;
@@ -10,13 +10,13 @@ Three parts are drawn separately so that a 4D series costs little more than one 
   front raised by the pump-handle motion of inspiration;
 - `paint_breathing`: lungs, diaphragm, heart, great vessels, airways, liver, spleen,
   stomach and kidneys for one breathing state (0 = end-expiration, 1 = end-inspiration);
-- `paint_bladder`: bladder and urethra for one stage of the voiding cystourethrogram,
-  returning the fraction of each voxel filled with iodinated contrast.
+- `paint_bladder`: bladder, urethra and filling catheter for one stage of the voiding
+  cystourethrogram, returning the fraction of each voxel that the lumen fills.
 
 Coordinates are the `ct` frame (LPS, mm): x toward the patient's left, y posterior, z
 superior, the patient centred at the origin. Sizes are those of a 5-8 year old child
-(Hounsfield units and dimensions are module constants below, each with its source of truth
-in the comment); the random bowel gas and pulmonary vessels come from a fixed seed.
+(Hounsfield units and the main dimensions are module constants below; smaller placements
+sit where they are drawn); the random bowel gas and pulmonary vessels come from a fixed seed.
 """
 
 from __future__ import annotations
@@ -246,13 +246,16 @@ def _paint_pelvis(bones: Layer) -> None:
                    1.5, HU_CORTICAL, HU_TRABECULAR)
         # Acetabulum and femur: head (with its growth plate), neck, greater trochanter, shaft.
         head = np.array([s * 55.0, -5.0, -152.0])
-        # The acetabulum: the medial and superior part of a spherical shell round the head.
-        paint_bone(bones, lambda X, Y, Z, h=head, s=s: np.maximum(
-                       np.abs(np.sqrt((X - h[0]) ** 2 + (Y - h[1]) ** 2 + (Z - h[2]) ** 2) - 20.0) - 3.0,
-                       0.7 * s * (X - h[0]) - 0.7 * (Z - h[2]) - 5.0),
-                   *bounds([head], 26), 1.2, HU_CORTICAL, HU_TRABECULAR)
-        paint_bone(bones, lambda X, Y, Z, h=head: np.sqrt((X - h[0]) ** 2 + (Y - h[1]) ** 2 + (Z - h[2]) ** 2) - 15.0,
-                   *bounds([head], 18), 1.2, HU_CORTICAL, HU_TRABECULAR)
+        # The acetabulum: a block of bone medial to and above the head, where ilium, ischium
+        # and pubis meet, with the socket (head plus 2 mm of joint cartilage) carved out and
+        # open laterally and downward.
+        block_c = head + [-s * 6.0, 0.0, 5.0]
+
+        def acetabulum(X, Y, Z, h=head, c=block_c, s=s):
+            block = np.sqrt((X - c[0]) ** 2 + (Y - c[1]) ** 2 + (Z - c[2]) ** 2) - 24.0
+            socket = np.sqrt((X - h[0]) ** 2 + (Y - h[1]) ** 2 + (Z - h[2]) ** 2) - 17.0
+            return intersect(block, -socket, 0.7 * s * (X - h[0]) - 0.7 * (Z - h[2]) - 6.0)
+        paint_bone(bones, acetabulum, *bounds([block_c], 28), 1.5, HU_CORTICAL, HU_TRABECULAR)
         neck_end = head + [s * 22, 4, -16]
         shaft_end = np.array([s * 68.0, 8.0, -215.0])
         troch = head + [s * 30, 8, -8]
@@ -261,6 +264,9 @@ def _paint_pelvis(bones: Layer) -> None:
         for path, radius in (([head, neck_end], 7.0), ([neck_end, troch], 8.5)):
             paint_tube(bones, path, radius, HU_TRABECULAR)
         paint_tube(bones, [neck_end + [0, 0, 4], shaft_end], 6.0, HU_MARROW_SHAFT)
+        # The head last: its cortex across the top of the neck stands for the growth plate.
+        paint_bone(bones, lambda X, Y, Z, h=head: np.sqrt((X - h[0]) ** 2 + (Y - h[1]) ** 2 + (Z - h[2]) ** 2) - 15.0,
+                   *bounds([head], 18), 1.2, HU_CORTICAL, HU_TRABECULAR)
         # Pubis and ischium around the obturator foramen, meeting at the symphysis.
         sup_ramus = [(s * 45, -12, -146), (s * 20, -32, -155), (s * 4.5, -40, -162)]
         inf_ramus = [(s * 4.5, -38, -170), (s * 22, -24, -182), (s * 40, -2, -184)]
@@ -307,11 +313,16 @@ def _paint_ribs(bones: Layer, lift: float) -> None:
 
         z_end = float(z_bone(end))
 
-        def rib_sdf(X, Y, Z, t0, t1, zfun, ht, hh, a=a, b=b, yc=yc):
-            u, w = np.abs(X) / a, (Y - yc) / b
-            th = np.arctan2(u, w)
-            rho = (u ** BODY_POWER + np.abs(w) ** BODY_POWER) ** (1.0 / BODY_POWER)
-            R = np.sqrt((a * np.sin(th)) ** 2 + (b * np.cos(th)) ** 2)
+        zlo = min(z_end, cart_z if cart_z is not None else z_end) - 10
+        lo, hi = (-a - 8, yc - b - 8, zlo), (a + 8, yc + b + 8, zr + 10)
+        # The rib's angular coordinates of every voxel of its box, shared by bone and cartilage.
+        _, X, Y, Z = bones.grid.box(lo, hi)
+        u, w = np.abs(X) / a, (Y - yc) / b
+        th = np.arctan2(u, w)
+        rho = (u ** BODY_POWER + np.abs(w) ** BODY_POWER) ** (1.0 / BODY_POWER)
+        R = np.sqrt((a * np.sin(th)) ** 2 + (b * np.cos(th)) ** 2)
+
+        def rib_sdf(t0, t1, zfun, ht, hh, th=th, rho=rho, R=R, Z=Z):
             dr = (rho - 1.0) * R
             dz = Z - zfun(th)
             k0 = np.sqrt((dr / ht) ** 2 + (dz / hh) ** 2)
@@ -319,16 +330,14 @@ def _paint_ribs(bones: Layer, lift: float) -> None:
             d = k0 * (k0 - 1.0) / (k1 + 1e-6)
             return np.maximum(d, np.maximum(t0 - th, th - t1) * R)
 
-        zlo = min(z_end, cart_z if cart_z is not None else z_end) - 10
-        lo, hi = (-a - 8, yc - b - 8, zlo), (a + 8, yc + b + 8, zr + 10)
-        bone = lambda X, Y, Z: rib_sdf(X, Y, Z, theta0, end, z_bone, half_t, half_h)
-        paint_bone(bones, bone, lo, hi, 1.5, HU_CORTICAL, HU_TRABECULAR)
+        bone = rib_sdf(theta0, end, z_bone, half_t, half_h)
+        paint_bone(bones, lambda *box: bone, lo, hi, 1.5, HU_CORTICAL, HU_TRABECULAR)
         if cart_z is not None:
             def z_cart(th, end=end, cart_end=cart_end, z_end=z_end, cart_z=cart_z + lift):
                 f = np.clip((th - end) / (cart_end - end), 0, 1)
                 return z_end + (cart_z - z_end) * f
-            bones.paint(lambda X, Y, Z: rib_sdf(X, Y, Z, end - 0.02, cart_end, z_cart, half_t, half_h - 0.5),
-                        HU_CARTILAGE, lo, hi)
+            cartilage = rib_sdf(end - 0.02, cart_end, z_cart, half_t, half_h - 0.5)
+            bones.paint(lambda *box: cartilage, HU_CARTILAGE, lo, hi)
         # Neck and head of the rib: from the rib's angle to the transverse process and the body.
         for s in (-1, 1):
             n = (np.sin(theta0) ** BODY_POWER + np.cos(theta0) ** BODY_POWER) ** (1.0 / BODY_POWER)
@@ -394,9 +403,10 @@ def rib_cage(grid: Grid, breath: float) -> Layer:
 def static_soft(grid: Grid, rng: np.random.Generator) -> Layer:
     layer = Layer(grid, HU_AIR)
     everywhere = ((-1e4, -1e4, -1e4), (1e4, 1e4, 1e4))
-    layer.paint(torso, HU_SKIN, *everywhere)
-    layer.paint(lambda X, Y, Z: torso(X, Y, Z, SKIN_MM), HU_FAT, *everywhere)
-    layer.paint(lambda X, Y, Z: torso(X, Y, Z, SKIN_MM + SUBCUT_FAT_MM), HU_MUSCLE, *everywhere)
+    skin = torso(*grid.box(*everywhere)[1:])     # once: fat and muscle are the same surface moved in
+    layer.paint(lambda *box: skin, HU_SKIN, *everywhere)
+    layer.paint(lambda *box: skin + np.float32(SKIN_MM), HU_FAT, *everywhere)
+    layer.paint(lambda *box: skin + np.float32(SKIN_MM + SUBCUT_FAT_MM), HU_MUSCLE, *everywhere)
     layer.paint(cavity, HU_VISCERAL_FAT, *everywhere)
     # Paraspinal muscles behind the spine, psoas muscles beside the lumbar spine.
     for s in (-1, 1):
@@ -502,8 +512,8 @@ def paint_breathing(layer: Layer, breath: float, rng_seed: int = SEED) -> None:
 
     def organ(centre, radii, R=None):
         return lambda X, Y, Z: intersect(*[ellipsoid(X, Y, Z, centre, radii, R), below(X, Y, Z), cavity(X, Y, Z, 1.0)])
-    liver_c = (-34.0, 0.0, 5.0 - shift)
-    layer.paint(organ(liver_c, (78.0, 64.0, 64.0), rotation("y", 18)), HU_LIVER, *bounds([liver_c], 80))
+    liver_c = (-32.0, 0.0, 0.0 - shift)
+    layer.paint(organ(liver_c, (84.0, 70.0, 70.0), rotation("y", 18)), HU_LIVER, *bounds([liver_c], 90))
     stomach_c = (40.0, -14.0, 6.0 - shift)
     stomach_R = rotation("y", -20)
     layer.paint(organ(stomach_c, (32.0, 26.0, 38.0), stomach_R), HU_SOFT, *bounds([stomach_c], 45))
@@ -522,7 +532,7 @@ def paint_breathing(layer: Layer, breath: float, rng_seed: int = SEED) -> None:
                    2.0, HU_SOFT)
     # Spleen: posterolateral under the left dome, along the 9th-11th ribs.
     spleen_c = (64.0, 18.0, 10.0 - shift)
-    layer.paint(organ(spleen_c, (13.0, 30.0, 38.0), rotation("z", -45)), HU_SPLEEN, *bounds([spleen_c], 45))
+    layer.paint(organ(spleen_c, (16.0, 34.0, 42.0), rotation("z", -45)), HU_SPLEEN, *bounds([spleen_c], 50))
 
 
 def _paint_lung_vessels(layer: Layer, shift: float, rng: np.random.Generator) -> None:

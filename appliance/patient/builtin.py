@@ -1,30 +1,34 @@
 """The built-in 4D patient: a generated child's torso that breathes through a voiding cystourethrogram.
 
 `builtin_phases("child-torso", cache_dir)` gives the phases as (time_s, loader) pairs. The
-first call builds every phase (a few seconds) and writes it to `cache_dir` as MetaImage
-(.mha, zlib-compressed; any CT viewer opens it); later calls only read the manifest. The
-cache folder's name carries a key made of GENERATOR_VERSION, the timeline and grid
-parameters and a digest of the generator's source, so a changed generator rebuilds.
+first call builds every phase (5-15 s on a busy 2-core machine) and writes it to
+`cache_dir` as MetaImage (.mha, zlib-compressed; any CT viewer opens it); later calls only
+read the manifest. The cache folder's name carries a key made of GENERATOR_VERSION, the
+timeline and grid parameters and a digest of the generator's source, so a changed
+generator rebuilds.
 
-Timeline (32 phases, one every second, 32 s, then the case loops): the voiding
-cystourethrogram goes through eight stages, each held for one 4 s breath, and within each
-breath the four phases sample end-expiration, mid-inspiration, end-inspiration and
-mid-expiration: breath(t) = (1 - cos(2 pi t / 4 s)) / 2 moves the diaphragm domes, liver and
-spleen down by up to BREATH_AMPLITUDE_MM (12 mm), the kidneys and heart part of that, and
-raises the sternum and the front of the ribs by up to RIB_LIFT_MM (4 mm): the diaphragm
-and the rib cage, the two motions the seed simulators drive. A real VCUG fills over minutes and voids
-in under a minute; the stages are compressed so a trainee sees both processes in one loop.
+Timeline (32 phases, one every second; SEQUENCE_S = 32 s, then the case loops): the
+voiding cystourethrogram goes through eight stages (STAGES: drained with the catheter in,
+filling, full, voiding with the urethra distended, residual), each held for one 4 s
+breath, and within each breath the four phases sample end-expiration, mid-inspiration,
+end-inspiration and mid-expiration. breath(t) = (1 - cos(2 pi t / 4 s)) / 2 moves the
+diaphragm domes, liver and spleen down by up to BREATH_AMPLITUDE_MM (12 mm), the kidneys
+and heart part of that, and raises the sternum and the front of the ribs by up to
+RIB_LIFT_MM (4 mm): the diaphragm and the rib cage, the two motions the seed simulators
+drive. A real VCUG fills over minutes and voids in under a minute; the stages are
+compressed so a trainee sees both processes in one loop, each at every breathing state.
 
 Grid: 1.5 mm isotropic voxels, 161 x 113 x 267 (x, y, z; 241.5 x 169.5 x 400.5 mm), 9.7 MB
-per phase as int16. Ribs (5-9 mm) and the distended urethra (5-8 mm) span several voxels,
-while the 24 distinct volumes still build in well under 30 s on two cores and fit in memory
-together (255 MB); a 1 mm grid would triple both.
+per phase as int16. Ribs (5-8 mm) and the distended urethra (5-8 mm) span several voxels,
+while the 24 distinct volumes build in well under 30 s on two cores and fit in memory
+together (233 MB); a 1 mm grid would cost 3.4 times both.
 
 Contrast encoding, for the renderer: voxels at or above CONTRAST_BASE_HU (2500, the case's
 `materials.contrast_min_hu`) are water-density tissue holding iodine at
-    iodine_mg_per_ml = (HU - 2500) / 10,
+    iodine_mg_per_ml = (HU - 2500) / 10            (see `iodine_mg_per_ml`),
 so the instilled 150 mg/mL reads 4000 HU, and a voxel half filled at the bladder wall reads
-2500 + 10 x 75 = 3250 HU (its iodine mass is kept). Bone never exceeds 1500 HU.
+2500 + 10 x 75 = 3250 HU (its iodine mass is kept; the rest of it counts as water).
+Everything else stays below 2500 HU: cortical bone is 1500 HU, the catheter 600 HU.
 """
 
 from __future__ import annotations
@@ -154,24 +158,27 @@ class Builder:
         self.progress("drawing the body and skeleton")
         self.static = anatomy.static_soft(self.grid, np.random.default_rng(anatomy.SEED))
         self.skeleton = anatomy.skeleton(self.grid)
-        self._breaths: dict[float, tuple[shapes.Layer, shapes.Layer]] = {}
+        self._breaths: dict[float, tuple[shapes.Layer, shapes.Layer, np.ndarray]] = {}
 
-    def breathing_state(self, breath: float) -> tuple[shapes.Layer, shapes.Layer]:
-        """Soft tissue and rib cage at one breathing state, drawn once and kept."""
+    def breathing_state(self, breath: float) -> tuple[shapes.Layer, shapes.Layer, np.ndarray]:
+        """Soft tissue, rib cage and the two composited (HU, float32) at one breathing state, drawn once and kept."""
         if breath not in self._breaths:
             self.progress(f"drawing the breathing organs and ribs at breath {breath:.2f}")
-            layer = self.static.copy()
-            anatomy.paint_breathing(layer, breath)
-            self._breaths[breath] = layer, anatomy.rib_cage(self.grid, breath)
+            soft = self.static.copy()
+            anatomy.paint_breathing(soft, breath)
+            ribs = anatomy.rib_cage(self.grid, breath)
+            self._breaths[breath] = soft, ribs, ribs.over(self.skeleton.over(soft.value))
         return self._breaths[breath]
 
     def phase(self, spec: PhaseSpec) -> np.ndarray:
         """The int16 HU array (nz, ny, nx) of one phase."""
         stage = STAGES[spec.stage]
-        soft, ribs = self.breathing_state(spec.breath)
+        soft, ribs, composited = self.breathing_state(spec.breath)
         soft = soft.copy()
         sl, fill = anatomy.paint_bladder(soft, stage.bladder_ml, stage.voiding, stage.catheter)
-        hu = ribs.over(self.skeleton.over(soft.value))
+        # Only the bladder's box changed: lay the bones over it again there.
+        hu = composited.copy()
+        hu[sl] = ribs.over(self.skeleton.over(soft.value[sl], sl), sl)
         if stage.contrast:
             iodine = CONTRAST_MG_PER_ML * fill
             box = hu[sl]

@@ -13,6 +13,7 @@ import numpy as np
 from ..config.appliance import ApplianceProfile
 from ..config.commands import default_config_dir
 from ..config.loading import load_profile, resolve
+from ..errors import FluorosimError
 from .builtin import NAMES, STAGES, builtin_phases, timeline
 from .volume import Volume
 
@@ -36,7 +37,10 @@ def write_previews(volume: Volume, out_dir: Path, stem: str) -> list[Path]:
     y, for checking anatomy by eye, not the renderer's physics.
     """
     from PIL import Image
-    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise FluorosimError(f"{out_dir}: cannot create the preview folder ({e.strerror or e}); choose another --previews") from None
     hu = volume.hu
     nz, ny, nx = hu.shape
     T = np.linalg.inv(volume.T_ct_from_voxel)
@@ -47,7 +51,10 @@ def write_previews(volume: Volume, out_dir: Path, stem: str) -> list[Path]:
 
     def save(img: np.ndarray, name: str) -> None:
         path = out_dir / f"{stem}-{name}.png"
-        Image.fromarray(img).save(path)
+        try:
+            Image.fromarray(img).save(path)
+        except OSError as e:
+            raise FluorosimError(f"{path}: cannot write the preview ({e.strerror or e}); check the folder and free space") from None
         written.append(path)
     for z in (120.0, 30.0, -30.0, -120.0):
         save(_window(hu[index((0, 0, z))[2]]), f"axial{z:+.0f}")
