@@ -128,6 +128,24 @@ kernel void joseph_materials(global const short *vol,
                                 (v)[(i).s6], (v)[(i).s7], (v)[(i).s8], (v)[(i).s9], (v)[(i).sa], (v)[(i).sb], \
                                 (v)[(i).sc], (v)[(i).sd], (v)[(i).se], (v)[(i).sf]))
 
+#ifdef UNALIGNED_PAIRS
+// Where the in-slice axis b is x (stride 1), a voxel and its b-neighbour are adjacent int16s:
+// one 32-bit load fetches both, halving the loads. Such loads are only 2-byte aligned, which
+// x86 and ARM CPUs accept; the renderer defines UNALIGNED_PAIRS only for CPU devices.
+#define W(v, i) (*(global const int *)((global const char *)(v) + 2 * (i)))
+#define PAIR(v, i, lo, hi) do { \
+    const int16 w_ = (int16)(W(v, (i).s0), W(v, (i).s1), W(v, (i).s2), W(v, (i).s3), W(v, (i).s4), W(v, (i).s5), \
+                             W(v, (i).s6), W(v, (i).s7), W(v, (i).s8), W(v, (i).s9), W(v, (i).sa), W(v, (i).sb), \
+                             W(v, (i).sc), W(v, (i).sd), W(v, (i).se), W(v, (i).sf)); \
+    lo = convert_float16((w_ << 16) >> 16); hi = convert_float16(w_ >> 16); } while (0)
+#define CORNERS(v, g00, g10, g01, g11) do { \
+    if (sb == 1) { PAIR(v, i00, g00, g10); PAIR(v, i01, g01, g11); } \
+    else { g00 = GATHER(v, i00); g10 = GATHER(v, i10); g01 = GATHER(v, i01); g11 = GATHER(v, i11); } } while (0)
+#else
+#define CORNERS(v, g00, g10, g01, g11) do { \
+    g00 = GATHER(v, i00); g10 = GATHER(v, i10); g01 = GATHER(v, i01); g11 = GATHER(v, i11); } while (0)
+#endif
+
 kernel void joseph_packet(global const short *vol,
 #ifdef BLEND
                           global const short *vol_b, const float w_b,
@@ -203,9 +221,12 @@ kernel void joseph_packet(global const short *vol,
         const int16 ib = convert_int16(fb), ic = convert_int16(fc);
         const float16 wb = fb - convert_float16(ib), wc = fc - convert_float16(ic);
         const int16 i00 = k * sa + ib * sb + ic * sc, i10 = i00 + sb, i01 = i00 + sc, i11 = i01 + sb;
-        float16 h = mix(mix(GATHER(vol, i00), GATHER(vol, i10), wb), mix(GATHER(vol, i01), GATHER(vol, i11), wb), wc);
+        float16 g00, g10, g01, g11;
+        CORNERS(vol, g00, g10, g01, g11);
+        float16 h = mix(mix(g00, g10, wb), mix(g01, g11, wb), wc);
 #ifdef BLEND
-        h = mix(h, mix(mix(GATHER(vol_b, i00), GATHER(vol_b, i10), wb), mix(GATHER(vol_b, i01), GATHER(vol_b, i11), wb), wc), w_b);
+        CORNERS(vol_b, g00, g10, g01, g11);
+        h = mix(h, mix(mix(g00, g10, wb), mix(g01, g11, wb), wc), w_b);
 #endif
         const int16 on = (k >= k0) & (k <= k1);
         const float16 rho_w = select((float16)0.0f, fmax(1.0f + 0.001f * h, 0.0f), on);

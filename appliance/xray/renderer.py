@@ -180,7 +180,8 @@ class Renderer:
         self.ctx = cl.Context([self.device])
         self.queue = cl.CommandQueue(self.ctx)
         src = resources.files("appliance.xray").joinpath("drr.cl").read_text()
-        self._program = cl.Program(self.ctx, src).build()
+        self._options = ["-DUNALIGNED_PAIRS"] if self.device.type & cl.device_type.CPU else []
+        self._program = cl.Program(self.ctx, src).build(options=self._options)
         self._source = src
         # CPUs get the explicitly vectorised packet kernel; GPUs one ray per work-item.
         self.packet = bool(self.device.type & cl.device_type.CPU) if packet is None else packet
@@ -360,7 +361,7 @@ class Renderer:
             kernel, first = self._joseph, (volume.buffer,)
         else:
             if self._joseph_blend is None:
-                program = cl.Program(self.ctx, self._source).build(options=["-DBLEND"])
+                program = cl.Program(self.ctx, self._source).build(options=["-DBLEND", *self._options])
                 self._joseph_blend = cl.Kernel(program, self._joseph_name)
             kernel, first = self._joseph_blend, (volume.buffer, blend[0].buffer, np.float32(blend[1]))
         args = (*first, np.int32(nx), np.int32(ny), np.int32(nz), dirs, mask_buf, geo_buf, box_buf, self._mat_buf)
