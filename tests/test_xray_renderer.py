@@ -8,7 +8,7 @@ import pytest
 import spekpy
 import xraylib
 
-from appliance.config.case import Materials
+from appliance.config.case import Contrast, Materials
 from appliance.config.fluoroscope import FluoroscopeProfile
 from appliance.config.loading import load_profile
 from appliance.errors import FluorosimError
@@ -207,11 +207,15 @@ def test_cpu_packet_kernel_matches_one_ray_per_work_item():
     vol = type(vol)(hu=hu, T_ct_from_voxel=vol.T_ct_from_voxel)
     # (away from 45 degrees, where a packet may step along the other axis than a lone ray)
     T = make_transform(rotation_about([0.5, 1.0, 0.2], 0.35), [3.0, -4.0, 620.0])
-    out = []
+    out, intensity = [], []
     for packet in (True, False):
-        r = Renderer(f, Materials(contrast_min_hu=2500), device="cpu", packet=packet)
-        out.append(r.material_integrals(r.prepare(vol), T, View(collimation_mm=(150.0, 90.0))))
+        r = Renderer(f, Materials(contrast_min_hu=2500), Contrast(concentration_mg_per_ml=100), device="cpu", packet=packet)
+        prepared = r.prepare(vol)
+        out.append(r.material_integrals(prepared, T, View(collimation_mm=(150.0, 90.0))))
+        intensity.append(r.render(prepared, T, View(quantity="intensity", noise=False, collimation_mm=(150.0, 90.0))))
     np.testing.assert_allclose(out[0], out[1], rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(intensity[0], intensity[1], rtol=1e-5, atol=1e-6)
+    assert intensity[0].min() < 0.5
     assert out[0][..., 2].max() > 10 and out[0][..., 3].max() > 10        # bone and contrast both seen
 
 

@@ -221,8 +221,8 @@ def run(args) -> int:
         rss = proc.memory_info().rss
         held = sum(p.nbytes for p in timeline._prepared if p is not None)
         print(f"\nMemory: {n} phases of 512x512x136 prepared in {load_s:.1f} s by the background loader; "
-              f"device copies {held / 2**30:.2f} GiB; process resident {rss / 2**30:.2f} GiB "
-              f"({(rss - base) / 2**30:.2f} GiB more than before the renderer); limit 1.5 GB")
+              f"device copies {held / 1e9:.2f} GB; process resident {rss / 1e9:.2f} GB "
+              f"({(rss - base) / 1e9:.2f} GB more than before the renderer); limit 1.5 GB")
         timeline.close()
     return 0
 

@@ -188,7 +188,7 @@ class Renderer:
         self._joseph_name = "joseph_packet" if self.packet else "joseph_materials"
         self._joseph = cl.Kernel(self._program, self._joseph_name)
         self._joseph_blend = None        # built on the first blended frame
-        self._poly_kernel = cl.Kernel(self._program, "polychromatic")
+        self._poly_kernel = cl.Kernel(self._program, "polychromatic_packet" if self.packet else "polychromatic")
         self._siddon = cl.Kernel(self._program, "siddon_water")
         self._lock = threading.Lock()        # one frame at a time on the queue
         self.materials = materials
@@ -446,8 +446,12 @@ class Renderer:
             _, mask_buf = self._mask_buffer(view.zoom, view.collimation_mm,
                                             self.fluoroscope.detector.kind == "image_intensifier")
             out_buf = cl.Buffer(self.ctx, cl.mem_flags.WRITE_ONLY, rows * cols * 4)
-            self._poly_kernel(self.queue, (rows * cols,), None, lines, mask_buf, weights, mu_rho,
-                                        np.int32(n_e), out_buf)
+            if self.packet:
+                self._poly_kernel(self.queue, (-(-rows * cols // PACKET),), None, lines, mask_buf, weights, mu_rho,
+                                  np.int32(n_e), np.int32(rows * cols), out_buf)
+            else:
+                self._poly_kernel(self.queue, (rows * cols,), None, lines, mask_buf, weights, mu_rho,
+                                  np.int32(n_e), out_buf)
             image = np.empty((rows, cols), dtype=np.float32)
             cl.enqueue_copy(self.queue, image, out_buf)
             gain = self._gain(view.zoom)
