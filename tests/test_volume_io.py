@@ -1,7 +1,6 @@
 """Loading CT volumes from DICOM series, NIfTI, MHA and NRRD, keeping the physical frame."""
 
 import numpy as np
-import pydicom
 import pytest
 import SimpleITK as sitk
 from pydicom.dataset import FileDataset, FileMetaDataset
@@ -146,8 +145,6 @@ def test_bad_inputs_give_one_line(tmp_path):
     sitk.WriteImage(sitk.GetImageFromArray(np.zeros((4, 4), np.int16)), str(tmp_path / "flat.mha"))
     with pytest.raises(FluorosimError, match="2D image"):
         load_volume(tmp_path / "flat.mha")
-    for e in [FluorosimError]:
-        try:
-            load_volume(tmp_path / "broken.nii.gz")
-        except e as err:
-            assert "\n" not in str(err)
+    with pytest.raises(FluorosimError) as err:
+        load_volume(tmp_path / "broken.nii.gz")
+    assert "\n" not in str(err.value)

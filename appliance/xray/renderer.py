@@ -16,7 +16,6 @@ Units: lengths mm, energies keV, densities g/cm^3, mass attenuation cm^2/g.
 
 from __future__ import annotations
 
-import os
 import threading
 from dataclasses import dataclass, field
 from importlib import resources
