@@ -113,3 +113,13 @@ def test_phase_time_picks_the_phase_of_a_case(tmp_path):
         assert materials.bone_min_hu == 300 and contrast is None
     with pytest.raises(FluorosimError, match="phase-time"):
         _volume_and_case(tmp_path / "phase0.mha", 1.0)
+
+
+def test_render_and_bench_are_registered():
+    from appliance.cli import build_parser
+
+    args = build_parser().parse_args(["bench", "drr", "--skip", "speed,memory", "--frames", "3"])
+    assert args.frames == 3 and callable(args.run)
+    args = build_parser().parse_args(["render", "--volume", "v.nii", "--fluoroscope", "f.yaml", "--pose", "p.yaml",
+                                      "--quantity", "intensity", "--output", "o.npy", "--zoom", "4", "--phase-time", "1.5"])
+    assert (args.zoom, args.phase_time, args.quantity) == (4, 1.5, "intensity")
