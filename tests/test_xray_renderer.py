@@ -227,3 +227,17 @@ def test_low_counts_are_poisson():
     np.testing.assert_allclose(noisy, np.rint(noisy))            # whole photons
     assert noisy.mean() == pytest.approx(2.0, rel=0.03)
     assert (noisy == 0).mean() == pytest.approx(math.exp(-2.0), abs=0.01)
+
+
+def test_profile_reload_takes_the_new_tube(flat, slab):
+    prepared, _, _ = slab
+    before = flat.mu_water_per_mm
+    f = flat.fluoroscope
+    try:
+        flat.set_fluoroscope(f.model_copy(update={"tube": f.tube.model_copy(update={"kvp": 110.0})}))
+        assert flat.spectrum.effective_kev > 45
+        assert flat.mu_water_per_mm < before
+        assert flat.mu_water_per_mm == pytest.approx(xraylib.CS_Total_CP("Water, Liquid", flat.spectrum.effective_kev) / 10)
+    finally:
+        flat.set_fluoroscope(f)
+    assert flat.mu_water_per_mm == before
