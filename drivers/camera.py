@@ -40,11 +40,18 @@ class CameraFrame:
 
 
 class CameraSource:
-    """A capture thread that keeps the newest frame; subclasses implement `_run`."""
+    """A capture thread that keeps the newest frame; subclasses implement `_run`.
+
+    `state` also turns to "camera lost" on its own when no frame has come for
+    `stall_timeout_s`, so a capture call that hangs inside the driver is reported even
+    while the capture thread cannot report anything.
+    """
+
+    stall_timeout_s: float | None = None
 
     def __init__(self) -> None:
-        self.state = "starting"
-        self.message = ""
+        self._state = "starting"
+        self._message = ""
         self.frames_captured = 0
         self._lock = threading.Lock()
         self._frame: CameraFrame | None = None
@@ -64,6 +71,27 @@ class CameraSource:
         if self._thread is not None:
             self._thread.join(timeout=5.0)
             self._thread = None
+
+    @property
+    def state(self) -> str:
+        if self._state == "ok" and self._stalled():
+            return "camera lost"
+        return self._state
+
+    @property
+    def message(self) -> str:
+        if self._state == "ok" and self._stalled():
+            return f"{self.name}: no frame for {time.monotonic() - self._frame.t_monotonic:.1f} s"
+        return self._message
+
+    @property
+    def name(self) -> str:
+        return type(self).__name__
+
+    def _stalled(self) -> bool:
+        frame = self._frame
+        return (self.stall_timeout_s is not None and frame is not None
+                and time.monotonic() - frame.t_monotonic > self.stall_timeout_s)
 
     def latest(self, after_seq: int = -1) -> CameraFrame | None:
         """The newest frame if its seq is greater than `after_seq`, else None; never blocks."""
@@ -97,10 +125,10 @@ class CameraSource:
         self.frames_captured += 1
 
     def _set_state(self, state: str, message: str = "") -> None:
-        if state != self.state or message != self.message:
+        if state != self._state or message != self._message:
             if state == "camera lost":
                 log.warning("%s", message)
-            self.state, self.message = state, message
+            self._state, self._message = state, message
 
     def _guarded_run(self) -> None:
         # The capture thread must never die silently: a bug is reported as a lost camera.
@@ -123,6 +151,10 @@ class V4L2Camera(CameraSource):
         self.device, self.width, self.height, self.fps, self.fourcc = device, width, height, fps, fourcc
         self.stall_timeout_s, self.retry_interval_s = stall_timeout_s, retry_interval_s
         self.open_attempts = 0
+
+    @property
+    def name(self) -> str:
+        return f"camera {self.device}"
 
     def _open(self) -> cv2.VideoCapture | None:
         self.open_attempts += 1

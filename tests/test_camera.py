@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
 
@@ -232,3 +233,25 @@ def test_box_marker_quads_include_the_white_margin():
     q = box_marker_quads([3], [np.eye(4)], 60.0, DICT)[0]
     # DICT_4X4: 6 cells across the black square, plus one white cell on each side.
     assert q.half_w_mm == pytest.approx(30.0 * 8 / 6)
+
+
+def test_a_stalled_source_is_reported_while_its_thread_hangs():
+    hang = threading.Event()
+
+    class Hanging(CameraSource):
+        stall_timeout_s = 0.2
+
+        def _run(self):
+            self._publish(np.zeros((4, 4), np.uint8), time.monotonic())
+            self._set_state("ok")
+            hang.wait(10)            # stuck inside a driver call: the thread cannot report anything
+
+    cam = Hanging()
+    cam.start()
+    try:
+        assert cam.wait(-1, 2.0) is not None and cam.state == "ok"
+        time.sleep(0.35)
+        assert cam.state == "camera lost" and "no frame for" in cam.message
+    finally:
+        hang.set()
+        cam.stop()
