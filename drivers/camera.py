@@ -287,6 +287,7 @@ class RenderSettings:
     box_grey: float = 150.0             # grey level of the box's bare surface under full light
     background: float = 70.0            # grey level of the table and room behind the box
     margin_cells: float = 1.0           # white paper margin around each marker (marker cells)
+    jpeg_quality: int | None = None     # MJPG webcams: compress each frame at this JPEG quality (1-100), None: raw
 
 
 @dataclass
@@ -440,7 +441,11 @@ class SceneRenderer:
             noise = np.empty(img.shape, np.float32)
             cv2.randn(noise, 0.0, self.s.noise_sigma)
             img = img + noise
-        return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+        out = np.clip(img + 0.5, 0, 255).astype(np.uint8)
+        if self.s.jpeg_quality is not None:
+            ok, data = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(self.s.jpeg_quality)])
+            out = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
+        return out
 
 
 def box_marker_quads(marker_ids: Sequence[int], T_box_from_marker: Sequence[np.ndarray], marker_size_mm: float,

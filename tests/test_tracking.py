@@ -162,3 +162,15 @@ def test_track_command_bad_inputs_exit_2_with_one_line(tmp_path, capsys):
         assert main(bad) == 2
         err = capsys.readouterr().err
         assert len(err.strip().splitlines()) == 1 and name in err, err
+
+
+def test_a_poor_mjpg_webcam_frame_is_still_sub_millimetre(profiles):
+    from drivers.camera import RenderSettings
+    harsh = RenderSettings(noise_sigma=5.0, blur_sigma_px=1.2, jpeg_quality=70)
+    T = pose_from_angles([-30, 20, 650], -45, 10, -20)
+    image, truth = render(profiles, T, settings=harsh)
+    clean, _ = render(profiles, T)
+    assert np.abs(image.astype(int) - clean.astype(int)).mean() > 2      # the degradation is really there
+    pose = Tracker(*profiles, smoothing=False).track(image, 0.0)
+    et, er = errors(pose.T_webcam_from_phantom, truth)
+    assert pose.ok and et < 1.0 and er < 0.5

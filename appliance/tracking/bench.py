@@ -46,13 +46,18 @@ def _moving(rng: np.random.Generator, T: np.ndarray, speed_mm_s: float, spin_deg
     return Trajectory.from_poses([-0.5, 0.5], poses, loop=False)
 
 
-def bench_accuracy(phantom, webcam, rng, frames: int) -> dict:
+#: A worse webcam than the default synthetic one: more noise and blur, and MJPG compression.
+HARSH = RenderSettings(noise_sigma=5.0, blur_sigma_px=1.2, jpeg_quality=70, exposure_s=1.0 / 30.0)
+
+
+def bench_accuracy(phantom, webcam, rng, frames: int, settings: RenderSettings | None = None) -> dict:
+    settings = settings or RenderSettings()
     trackers = {m: Tracker(phantom, webcam, m, smoothing=False) for m in ("joint", "marker")}
     errs = {m: [] for m in trackers}
     found = {m: 0 for m in trackers}
     for T in random_poses(rng, frames):
         cam = synthetic_camera(phantom, webcam, _moving(rng, T, rng.uniform(0, 150), rng.uniform(0, 45)),
-                               seed=int(rng.integers(2**31)))
+                               seed=int(rng.integers(2**31)), settings=settings)
         image, truth = cam.render_at(0.0)
         for m, tr in trackers.items():
             pose = tr.track(image, 0.0)
@@ -60,7 +65,9 @@ def bench_accuracy(phantom, webcam, rng, frames: int) -> dict:
                 found[m] += 1
                 errs[m].append(_errors(pose.T_webcam_from_phantom, truth))
     print(f"accuracy: {frames} random 1280x720 frames, phantom 400-700 mm, roll +-90 deg, tilt +-20 deg, "
-          "moving 0-150 mm/s and 0-45 deg/s (motion blur over a 1/60 s exposure), noise sigma 2 grey levels")
+          f"moving 0-150 mm/s and 0-45 deg/s (motion blur over {settings.exposure_s * 1e3:.0f} ms), noise sigma "
+          f"{settings.noise_sigma:g} grey levels, blur sigma {settings.blur_sigma_px:g} px"
+          + (f", JPEG quality {settings.jpeg_quality}" if settings.jpeg_quality else ""))
     out = {}
     for m in trackers:
         e = np.array(errs[m]) if errs[m] else np.full((1, 2), np.nan)
@@ -69,6 +76,28 @@ def bench_accuracy(phantom, webcam, rng, frames: int) -> dict:
               f"p95 {np.percentile(e[:, 0], 95):.3f} mm; rotation error median {np.median(e[:, 1]):.3f} deg, "
               f"p95 {np.percentile(e[:, 1], 95):.3f} deg")
     return out
+
+
+def bench_intrinsics(phantom, webcam, rng, frames: int) -> None:
+    """How much a webcam calibration error costs: frames rendered with the true K, tracked with K off."""
+    print(f"sensitivity to the webcam calibration: {frames} still frames, tracked with fx and fy 0.5 % too large "
+          "and cx, cy 2 px off")
+    K = webcam.camera_matrix().copy()
+    K[0, 0] *= 1.005
+    K[1, 1] *= 1.005
+    K[0, 2] += 2.0
+    K[1, 2] -= 2.0
+    off = webcam.model_copy(update={"K": K.tolist()})
+    tracker = Tracker(phantom, off, "joint", smoothing=False)
+    et, er = [], []
+    for T in random_poses(rng, frames):
+        image, truth = synthetic_camera(phantom, webcam, Trajectory.still(T), seed=int(rng.integers(2**31))).render_at(0.0)
+        pose = tracker.track(image, 0.0)
+        if pose.ok:
+            e = _errors(pose.T_webcam_from_phantom, truth)
+            et.append(e[0])
+            er.append(e[1])
+    print(f"  joint : translation error median {np.median(et):.3f} mm, rotation error median {np.median(er):.3f} deg")
 
 
 def bench_roll(phantom, webcam, rng) -> None:
@@ -198,6 +227,8 @@ def run_bench(args) -> int:
     print(f"phantom {args.phantom}, webcam {args.webcam} ({webcam.width}x{webcam.height}), seed {args.seed}; "
           f"synthetic frames: {RenderSettings()}")
     bench_accuracy(phantom, webcam, rng, args.frames)
+    bench_accuracy(phantom, webcam, rng, args.frames, HARSH)
+    bench_intrinsics(phantom, webcam, rng, args.frames // 2)
     bench_roll(phantom, webcam, rng)
     bench_jitter(phantom, webcam, rng, 120)
     bench_lag(phantom, webcam, rng)
