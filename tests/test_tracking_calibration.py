@@ -15,7 +15,7 @@ from appliance.geometry import invert, make_transform, rotation_about, rotation_
 from appliance.tracking.composite import CompositeCalibration
 from appliance.tracking.markers import marker_corners
 from appliance.tracking.scene import synthetic_camera
-from appliance.tracking.trajectory import random_poses
+from appliance.tracking.trajectory import pose_from_angles, random_poses
 from appliance.tracking.webcam_calibration import BoardSpec
 from drivers.camera import RenderSettings, SceneRenderer, TexturedQuad
 
@@ -147,19 +147,22 @@ def test_calibrate_phantom_command_recovers_the_layout(profiles, tmp_path, capsy
     assert (tmp_path / "box.yaml.bak").read_text() == original
 
 
-def test_calibrate_phantom_refuses_when_markers_never_connect(profiles, tmp_path):
+def test_calibrate_phantom_refuses_when_markers_never_connect(profiles, tmp_path, capsys):
     phantom, webcam = profiles
+    # Views of the top face only: the side and end markers are never seen.
     frames = tmp_path / "frames"
     frames.mkdir()
-    cv2.imwrite(str(frames / "blank.png"), np.zeros((720, 1280, 3), np.uint8))
+    cam = synthetic_camera(phantom, webcam, lambda t: pose_from_angles([0, 0, 550], 0, 3 * t, 5 * t), seed=2)
+    for k in range(3):
+        cv2.imwrite(str(frames / f"{k}.bmp"), cam.render_at(float(k))[0])
     profile = tmp_path / "box.yaml"
     profile.write_text(PHANTOM.read_text())
     before = profile.read_bytes()
-    with pytest.raises(Exception) as e:
-        main_rc = main(["calibrate", "phantom", "--phantom", str(profile), "--webcam", str(WEBCAM),
-                        "--images", str(frames)])
-        assert main_rc == 2
-        raise AssertionError("exit 2")
+    rc = main(["calibrate", "phantom", "--phantom", str(profile), "--webcam", str(WEBCAM), "--images", str(frames)])
+    assert rc == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "markers seen 6/14" in err[-2]
+    assert "markers [6, 7, 8, 9, 10, 11, 12, 13] were never seen" in err[-1]
     assert profile.read_bytes() == before and not (tmp_path / "box.yaml.bak").exists()
 
 
