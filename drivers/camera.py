@@ -19,7 +19,7 @@ import logging
 import os
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
@@ -298,12 +298,6 @@ class TexturedQuad:
     half_w_mm: float
     half_h_mm: float
     textures: list[np.ndarray]          # the same print at several resolutions, finest last
-
-
-@dataclass
-class _Scene:
-    box_mm: tuple
-    quads: list[TexturedQuad] = field(default_factory=list)
 
 
 def marker_textures(dictionary: str, marker_id: int, margin_cells: float = 1.0,

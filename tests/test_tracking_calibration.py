@@ -11,7 +11,7 @@ from PIL import Image
 
 from appliance.cli import main
 from appliance.config import PhantomProfile, WebcamProfile, load_profile
-from appliance.geometry import invert, make_transform, rotation_about, rotation_angle_deg
+from appliance.geometry import make_transform, rotation_about, rotation_angle_deg
 from appliance.tracking.composite import CompositeCalibration
 from appliance.tracking.markers import marker_corners
 from appliance.tracking.scene import synthetic_camera

@@ -22,7 +22,6 @@ from ..geometry import make_transform, rotation_about, rotation_angle_deg
 from .composite import CompositeCalibration
 from .markers import MarkerDetector
 from .scene import synthetic_camera
-from .smoothing import PoseFilter
 from .trajectory import Trajectory, pose_from_angles, random_poses
 from .tracker import Tracker
 

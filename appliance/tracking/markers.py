@@ -87,15 +87,9 @@ class MarkerDetector:
         return out
 
 
-def refine_corners_by_edges(gray: np.ndarray, corners: np.ndarray, cells: int, K: np.ndarray,
-                            dist: np.ndarray) -> np.ndarray:
-    """Corners (4, 2) of one marker refined by `refine_markers_by_edges` (pixels)."""
-    return refine_markers_by_edges(gray, [corners], cells, K, dist)[0]
-
-
-#: Profiles across each edge: samples every PROFILE_STEP_PX along the normal, at EDGE_SAMPLES
-#: places spread over the middle of the side (clear of the corners' rounding).
-PROFILE_STEP_PX = 0.25
+#: Profiles across each edge: PROFILE_SAMPLES samples spanning +-reach along the normal, at
+#: EDGE_SAMPLES places spread over the middle of the side (clear of the corners' rounding).
+PROFILE_SAMPLES = 25
 EDGE_SAMPLES = 16
 
 
@@ -119,7 +113,7 @@ def refine_markers_by_edges(gray: np.ndarray, markers: list[np.ndarray], cells: 
     side = np.linalg.norm(b - a, axis=2)                            # (M, 4)
     cell_px = side.min(axis=1) / cells
     reach = np.minimum(3.0, 0.4 * cell_px)                          # (M,)
-    n_off = 25
+    n_off = PROFILE_SAMPLES
     frac_off = np.linspace(-1.0, 1.0, n_off)                        # times reach
     d = (b - a) / np.maximum(side, 1e-9)[..., None]
     normal = np.stack([d[..., 1], -d[..., 0]], axis=2)
