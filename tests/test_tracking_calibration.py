@@ -215,5 +215,10 @@ def test_print_markers_at_exact_scale(tmp_path, profiles):
         assert got is not None and got.ravel().tolist() == [m.id]
     board = Image.open(tmp_path / "charuco-board.png")
     assert board.size == (7 * 300, 5 * 300)
-    pdf = (tmp_path / "phantom-markers.pdf").read_bytes()
-    assert pdf.startswith(b"%PDF") and pdf.count(b"/Type /Page\n") + pdf.count(b"/Type /Page ") + pdf.count(b"/Type/Page") >= 1
+    # The PDF pages print at the same scale: the board's page is 210 mm plus two 10 mm margins wide.
+    import re
+    pdf = (tmp_path / "charuco-board.pdf").read_bytes()
+    width_pt = float(re.search(rb"/MediaBox \[ 0 0 ([0-9.]+) ([0-9.]+) \]", pdf).group(1))
+    assert width_pt == pytest.approx((210 + 20) / 25.4 * 72, abs=0.01)
+    markers_pdf = (tmp_path / "phantom-markers.pdf").read_bytes()
+    assert len(re.findall(rb"/MediaBox", markers_pdf)) == len(phantom.markers)     # one page per marker
