@@ -175,6 +175,17 @@ class V4L2Camera(CameraSource):
         cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # the newest frame, not a queue of old ones
         return cap
 
+    @staticmethod
+    def _capture_time(cap: cv2.VideoCapture, now: float) -> float:
+        """When the frame was captured (s, time.monotonic's clock).
+
+        OpenCV's V4L2 back end reports the driver's buffer time stamp, which UVC drivers take
+        from CLOCK_MONOTONIC when the frame arrives, so it excludes the time the frame waited
+        in the queue; anything implausible falls back to the time grab() returned.
+        """
+        stamp = cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
+        return stamp if 0.0 <= now - stamp < 0.5 else now
+
     def _run(self) -> None:
         while not self._stop.is_set():
             cap = self._open()
@@ -197,7 +208,7 @@ class V4L2Camera(CameraSource):
                     if not ok or image is None:
                         continue
                     last_frame = now
-                    self._publish(image, now)
+                    self._publish(image, self._capture_time(cap, now))
                     self._set_state("ok")
             finally:
                 cap.release()

@@ -255,3 +255,19 @@ def test_a_stalled_source_is_reported_while_its_thread_hangs():
     finally:
         hang.set()
         cam.stop()
+
+
+def test_v4l2_frame_time_prefers_a_plausible_driver_stamp():
+    class Cap:
+        def __init__(self, ms):
+            self.ms = ms
+
+        def get(self, prop):
+            assert prop == cv2.CAP_PROP_POS_MSEC
+            return self.ms
+
+    now = 1000.0
+    assert V4L2Camera._capture_time(Cap(999_960.0), now) == pytest.approx(999.96)   # 40 ms in the queue
+    assert V4L2Camera._capture_time(Cap(0.0), now) == now                           # no stamp
+    assert V4L2Camera._capture_time(Cap(1_000_100.0), now) == now                   # from the future
+    assert V4L2Camera._capture_time(Cap(5_000.0), now) == now                       # another clock
