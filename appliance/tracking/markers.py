@@ -216,27 +216,31 @@ def marker_pose(marker_id: int, corners_px: np.ndarray, size_mm: float, K: np.nd
     the normal turned away from the camera is impossible and dropped.
     """
     obj, img = marker_corners(size_mm), corners_px.reshape(4, 1, 2).astype(np.float64)
-    seeds = []
+    seeds = []                  # (rvec, tvec, RMS error in pixels or None when unknown)
     try:
         n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
-        seeds += list(zip(rvecs, tvecs))
-        if n == 0 or not np.any(np.asarray(errs) <= IPPE_SUSPECT_PX):      # (NaN counts as bad)
+        # OpenCV reports the RMS per coordinate; per corner (as everywhere here) it is sqrt(2) larger.
+        errs = np.asarray(errs, dtype=np.float64).reshape(-1) * np.sqrt(2.0)
+        seeds += [(r, t, float(e)) for r, t, e in zip(rvecs, tvecs, errs)]
+        if n == 0 or not np.any(errs <= IPPE_SUSPECT_PX):      # (NaN counts as bad)
             ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_SQPNP)
             if ok:
-                seeds.append((rvec, tvec))
+                seeds.append((rvec, tvec, None))
     except cv2.error:
         return None
     found = []
-    for rvec, tvec in seeds:
+    for rvec, tvec, err in seeds:
         if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
             continue
         if polish:
             rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvec.copy(), tvec.copy())
+            err = None
         T = _transform(rvec, tvec)
         if not np.all(np.isfinite(T)) or T[2, 3] <= 0 or ray_to_normal_deg(T) >= 90.0:
             continue
-        proj, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
-        err = float(np.sqrt(np.mean(np.sum((proj.reshape(4, 2) - img.reshape(4, 2)) ** 2, axis=1))))
+        if err is None:
+            proj, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
+            err = float(np.sqrt(np.mean(np.sum((proj.reshape(4, 2) - img.reshape(4, 2)) ** 2, axis=1))))
         found.append((err, T))
     if not found:
         return None

@@ -25,7 +25,7 @@ from ..config.phantom import PhantomProfile
 from ..config.webcam import WebcamProfile
 from ..errors import FluorosimError
 from ..geometry import invert, make_transform
-from .markers import MarkerDetector, MarkerPose, marker_corners, marker_pose
+from .markers import MarkerDetector, MarkerPose, distort, marker_corners, marker_pose
 from .smoothing import PoseFilter, SmoothingSettings
 
 METHODS = ("auto", "joint", "marker")
@@ -115,12 +115,19 @@ class Tracker:
                 if T_wm is not None:
                     candidates.append(T_wm @ invert(self.layout[p.marker_id]))
 
-        def score(T):
-            err = self._residuals(T, detected)
-            # The median marker error, so that one misplaced marker cannot veto a good candidate.
-            return float(np.median([np.sqrt(np.mean(e ** 2)) for e in err.values()]))
-
-        T0 = min(candidates, key=score)
+        # Score every candidate at once by its median marker error (RMS over the marker's corners),
+        # so that one misplaced marker cannot veto a good candidate.
+        ids = list(detected)
+        obj = np.concatenate([self._obj[i] for i in ids])                       # (n, 3) phantom frame
+        img = np.concatenate([detected[i] for i in ids])                        # (n, 2)
+        Ts = np.array(candidates)
+        cam = np.einsum("cij,nj->cni", Ts[:, :3, :3], obj) + Ts[:, None, :3, 3]   # (c, n, 3)
+        in_front = np.all(cam[..., 2] > 1.0, axis=1)
+        cam[..., 2] = np.maximum(cam[..., 2], 1.0)
+        proj = distort((cam[..., :2] / cam[..., 2:3]).reshape(-1, 2), self.K, self.dist).reshape(cam.shape[0], -1, 2)
+        d2 = np.sum((proj - img) ** 2, axis=2).reshape(len(Ts), len(ids), 4).mean(axis=2)
+        scores = np.where(in_front, np.median(np.sqrt(d2), axis=1), np.inf)
+        T0 = candidates[int(np.argmin(scores))]
         err = self._residuals(T0, detected)
         inliers = {i: detected[i] for i, e in err.items() if np.sqrt(np.mean(e ** 2)) < OUTLIER_PX * 3}
         if not inliers:
