@@ -174,3 +174,33 @@ def test_a_poor_mjpg_webcam_frame_is_still_sub_millimetre(profiles):
     pose = Tracker(*profiles, smoothing=False).track(image, 0.0)
     et, er = errors(pose.T_webcam_from_phantom, truth)
     assert pose.ok and et < 1.0 and er < 0.5
+
+
+def test_window_search_finds_the_same_corners(profiles):
+    phantom, webcam = profiles
+    image, _ = render(profiles, pose_from_angles([0, 0, 600], 20, 5, 10))
+    det = MarkerDetector(phantom.aruco_dictionary, webcam.camera_matrix(), webcam.distortion())
+    full = det.detect(image)
+    xy = np.concatenate(list(full.values()))
+    window = (int(xy[:, 0].min()) - 30, int(xy[:, 1].min()) - 30, int(xy[:, 0].max()) + 30, int(xy[:, 1].max()) + 30)
+    part = det.detect(image, window)
+    assert set(part) == set(full)
+    for i in full:
+        np.testing.assert_allclose(part[i], full[i], atol=1e-3)
+
+
+def test_following_a_path_searches_a_window_and_agrees_with_whole_images(profiles):
+    phantom, webcam = profiles
+    from appliance.tracking.trajectory import load_trajectory
+    path = load_trajectory(ROOT / "configs" / "trajectories" / "demo.jsonl")
+    cam = synthetic_camera(phantom, webcam, path, seed=5)
+    windowed = Tracker(phantom, webcam, smoothing=False)
+    whole = Tracker(phantom, webcam, smoothing=False, window=False)
+    for k in range(12):
+        t = 9.0 + k / 30.0                      # rolling toward 45 degrees, moving away
+        image, truth = cam.render_at(t)
+        a, b = windowed.track(image, t), whole.track(image, t)
+        assert a.ok and b.ok
+        assert np.abs(a.T_webcam_from_phantom - b.T_webcam_from_phantom).max() < 1e-3
+        assert errors(a.T_webcam_from_phantom, truth)[0] < 1.0
+    assert windowed.window_searches == 11 and windowed.full_searches == 1

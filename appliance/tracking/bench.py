@@ -22,7 +22,8 @@ from ..geometry import make_transform, rotation_about, rotation_angle_deg
 from .composite import CompositeCalibration
 from .markers import MarkerDetector
 from .scene import synthetic_camera
-from .trajectory import Trajectory, pose_from_angles, random_poses
+from .sources import DEMO_TRAJECTORY
+from .trajectory import Trajectory, load_trajectory, pose_from_angles, random_poses
 from .tracker import Tracker
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
@@ -199,24 +200,32 @@ def bench_calibration(phantom, webcam, rng, frames: int) -> None:
 
 def bench_speed(phantom, webcam, rng, frames: int) -> None:
     cv2.setNumThreads(1)
-    print(f"speed: detection + pose per 1280x720 frame on one core (cv2.setNumThreads(1)), {frames} frames")
+    segments = 6
+    per = frames // segments
+    print(f"speed: detection + pose per 1280x720 frame on one core (cv2.setNumThreads(1)); {segments} stretches of "
+          f"{per} frames at 30 fps along the demo path")
+    path = load_trajectory(DEMO_TRAJECTORY)
+    cam = synthetic_camera(phantom, webcam, path, seed=int(rng.integers(2**31)))
     images, render = [], []
-    for T in random_poses(rng, frames):
-        cam = synthetic_camera(phantom, webcam, Trajectory.still(T), seed=int(rng.integers(2**31)))
-        t0 = time.perf_counter()
-        images.append(cam.render_at(0.0)[0])
-        render.append(time.perf_counter() - t0)
-    for method in ("joint", "marker"):
-        tr = Tracker(phantom, webcam, method, smoothing=True)
+    for s in range(segments):
+        for k in range(per):
+            t = s * path.duration / segments + k / 30.0
+            t0 = time.perf_counter()
+            images.append((t, cam.render_at(t)[0]))
+            render.append(time.perf_counter() - t0)
+    for method, window in (("joint", True), ("joint", False), ("marker", True)):
+        tr = Tracker(phantom, webcam, method, smoothing=True, window=window)
         ts, cpu = [], []
-        for k, image in enumerate(images):
+        for t, image in images:
             t0, c0 = time.perf_counter(), time.thread_time()
-            tr.track(image, k / 30.0)
+            tr.track(image, t)
             ts.append(time.perf_counter() - t0)
             cpu.append(time.thread_time() - c0)
         # CPU time of this thread is what one core spends; wall time also counts waiting for a shared core.
-        print(f"  {method:6s}: wall median {np.median(ts) * 1e3:.2f} ms (p95 {np.percentile(ts, 95) * 1e3:.2f} ms); "
-              f"CPU median {np.median(cpu) * 1e3:.2f} ms (p95 {np.percentile(cpu, 95) * 1e3:.2f} ms)")
+        where = (f"search window ({tr.window_searches} windowed, {tr.full_searches} whole-image searches)" if window
+                 else "whole image")
+        print(f"  {method:6s}, {where}: wall median {np.median(ts) * 1e3:.2f} ms (p95 {np.percentile(ts, 95) * 1e3:.2f}); "
+              f"CPU median {np.median(cpu) * 1e3:.2f} ms (p95 {np.percentile(cpu, 95) * 1e3:.2f})")
     print(f"  synthetic camera rendering: median {np.median(render) * 1e3:.2f} ms per frame")
 
 

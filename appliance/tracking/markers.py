@@ -65,9 +65,17 @@ class MarkerDetector:
         self.K = None if K is None else np.asarray(K, dtype=np.float64)
         self.dist = np.zeros(5) if dist is None else np.asarray(dist, dtype=np.float64).reshape(-1)
 
-    def detect(self, image: np.ndarray) -> dict[int, np.ndarray]:
-        """{marker id: (4, 2) corner pixels} of every marker found; a repeated id is dropped as ambiguous."""
-        gray = to_gray(image)
+    def detect(self, image: np.ndarray, window: tuple[int, int, int, int] | None = None) -> dict[int, np.ndarray]:
+        """{marker id: (4, 2) corner pixels} of every marker found; a repeated id is dropped as ambiguous.
+
+        `window` = (x0, y0, x1, y1) searches only that part of the image (corners are still in
+        whole-image pixels).
+        """
+        x0, y0 = 0, 0
+        if window is not None:
+            x0, y0, x1, y1 = window
+            image = image[y0:y1, x0:x1]
+        gray = np.ascontiguousarray(to_gray(image))
         corners, ids, _ = self.detector.detectMarkers(gray)
         out: dict[int, np.ndarray] = {}
         if ids is None:
@@ -81,9 +89,15 @@ class MarkerDetector:
         for i in repeated:
             del out[i]
         if self.K is not None and out:
+            # In the window's own pixels the camera's principal point moves by the window's offset.
+            K = self.K.copy()
+            K[0, 2] -= x0
+            K[1, 2] -= y0
             ids = list(out)
-            for i, c in zip(ids, refine_markers_by_edges(gray, [out[i] for i in ids], self.cells, self.K, self.dist)):
+            for i, c in zip(ids, refine_markers_by_edges(gray, [out[i] for i in ids], self.cells, K, self.dist)):
                 out[i] = c
+        if x0 or y0:
+            out = {i: c + [x0, y0] for i, c in out.items()}
         return out
 
 

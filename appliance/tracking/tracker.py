@@ -38,6 +38,13 @@ OUTLIER_PX = 4.0
 #: Markers seen more obliquely than this (ray-to-normal angle, degrees) have corners off by up to
 #: pixels (the printed square is a few pixels tall); they are used only when nothing better is seen.
 GRAZING_DEG = 75.0
+#: The search window: the markers' box at the last pose grown by the larger of WINDOW_PAD_PX and
+#: WINDOW_PAD_FRACTION of its size (room for a frame's motion), used while the last pose is at
+#: most WINDOW_MAX_AGE_S old and covers less than WINDOW_MAX_SHARE of the image.
+WINDOW_PAD_PX = 48
+WINDOW_PAD_FRACTION = 0.15
+WINDOW_MAX_AGE_S = 0.25
+WINDOW_MAX_SHARE = 0.7
 
 
 @dataclass
@@ -55,7 +62,8 @@ class Tracker:
     """Pose of the phantom in the webcam frame, one image at a time."""
 
     def __init__(self, phantom: PhantomProfile, webcam: WebcamProfile, method: str = "auto",
-                 smoothing: bool = True, smoothing_settings: SmoothingSettings | None = None) -> None:
+                 smoothing: bool = True, smoothing_settings: SmoothingSettings | None = None,
+                 window: bool = True) -> None:
         if method not in METHODS:
             raise FluorosimError(f"tracking method {method!r} is not one of {', '.join(METHODS)}")
         self.method = "joint" if method == "auto" else method
@@ -66,14 +74,55 @@ class Tracker:
         self.filter = PoseFilter(smoothing_settings) if smoothing else None
         corners = marker_corners(self.size_mm)
         self._obj = {i: corners @ T[:3, :3].T + T[:3, 3] for i, T in self.layout.items()}
+        self.window = window
+        self._last: tuple[float, np.ndarray] | None = None     # (t, unsmoothed pose) of the last success
+        self.window_searches = 0
+        self.full_searches = 0
 
     def track(self, image: np.ndarray, t_monotonic: float | None = None) -> Pose:
         t = time.monotonic() if t_monotonic is None else t_monotonic
-        detected = {i: c for i, c in self.detector.detect(image).items() if i in self.layout}
-        pose = self.pose_from_corners(detected, t)
-        if pose.ok and self.filter is not None:
-            pose.T_webcam_from_phantom = self.filter(pose.T_webcam_from_phantom, t)
+        roi = self._window(image.shape[1], image.shape[0], t) if self.window else None
+        pose = None
+        if roi is not None:
+            # Search only where the markers were a moment ago; the whole image if that finds nothing.
+            self.window_searches += 1
+            pose = self._detect_and_solve(image, t, roi)
+        if pose is None or not pose.ok:
+            self.full_searches += 1
+            pose = self._detect_and_solve(image, t, None)
+        if pose.ok:
+            self._last = (t, pose.T_webcam_from_phantom.copy())
+            if self.filter is not None:
+                pose.T_webcam_from_phantom = self.filter(pose.T_webcam_from_phantom, t)
         return pose
+
+    def _detect_and_solve(self, image: np.ndarray, t: float, roi) -> Pose:
+        detected = {i: c for i, c in self.detector.detect(image, roi).items() if i in self.layout}
+        return self.pose_from_corners(detected, t)
+
+    def _window(self, width: int, height: int, t: float) -> tuple[int, int, int, int] | None:
+        """(x0, y0, x1, y1) around every marker facing the camera at the last pose, or None for the whole image."""
+        if self._last is None or t - self._last[0] > WINDOW_MAX_AGE_S or t < self._last[0]:
+            return None
+        T = self._last[1]
+        pts = []
+        for i, obj in self._obj.items():
+            Tm = T @ self.layout[i]
+            if Tm[:3, 2] @ Tm[:3, 3] < 0:                         # facing the camera
+                cam = obj @ T[:3, :3].T + T[:3, 3]
+                if np.all(cam[:, 2] > 1.0):
+                    pts.append(cam)
+        if not pts:
+            return None
+        cam = np.concatenate(pts)
+        uv = distort(cam[:, :2] / cam[:, 2:3], self.K, self.dist)
+        lo, hi = uv.min(axis=0), uv.max(axis=0)
+        pad = max(WINDOW_PAD_PX, WINDOW_PAD_FRACTION * float(np.max(hi - lo)))
+        x0, y0 = (int(max(0, v)) for v in np.floor(lo - pad))
+        x1, y1 = int(min(width, np.ceil(hi[0] + pad))), int(min(height, np.ceil(hi[1] + pad)))
+        if x1 <= x0 or y1 <= y0 or (x1 - x0) * (y1 - y0) > WINDOW_MAX_SHARE * width * height:
+            return None
+        return x0, y0, x1, y1
 
     def pose_from_corners(self, detected: dict[int, np.ndarray], t: float) -> Pose:
         """The unsmoothed pose from detected corners {marker id: (4, 2) pixels}."""
