@@ -204,3 +204,16 @@ def test_following_a_path_searches_a_window_and_agrees_with_whole_images(profile
         assert np.abs(a.T_webcam_from_phantom - b.T_webcam_from_phantom).max() < 1e-3
         assert errors(a.T_webcam_from_phantom, truth)[0] < 1.0
     assert windowed.window_searches == 11 and windowed.full_searches == 1
+
+
+def test_a_window_that_misses_markers_falls_back_to_the_whole_image(profiles):
+    # Two unrelated views 0.1 s apart: the window around the first holds only part of the second.
+    phantom, webcam = profiles
+    first, _ = render(profiles, pose_from_angles([-120, -60, 450], 0, 0, 0))
+    second, truth = render(profiles, pose_from_angles([110, 70, 500], 30, 10, 0), seed=2)
+    windowed, whole = Tracker(phantom, webcam, smoothing=False), Tracker(phantom, webcam, smoothing=False, window=False)
+    assert windowed.track(first, 0.0).ok
+    a, b = windowed.track(second, 0.1), whole.track(second, 0.1)
+    assert windowed.window_searches == 1 and windowed.full_searches == 2
+    assert a.markers == b.markers
+    np.testing.assert_allclose(a.T_webcam_from_phantom, b.T_webcam_from_phantom, atol=1e-6)

@@ -25,7 +25,7 @@ from ..config.phantom import PhantomProfile
 from ..config.webcam import WebcamProfile
 from ..errors import FluorosimError
 from ..geometry import invert, make_transform
-from .markers import MarkerDetector, MarkerPose, distort, marker_corners, marker_pose
+from .markers import MarkerDetector, MarkerPose, distort, marker_corners, marker_pose, ray_to_normal_deg
 from .smoothing import PoseFilter, SmoothingSettings
 
 METHODS = ("auto", "joint", "marker")
@@ -45,6 +45,8 @@ WINDOW_PAD_PX = 48
 WINDOW_PAD_FRACTION = 0.15
 WINDOW_MAX_AGE_S = 0.25
 WINDOW_MAX_SHARE = 0.7
+#: Markers viewed more head-on than this (degrees) at the last pose must be found in the window.
+WINDOW_EXPECT_DEG = 60.0
 
 
 @dataclass
@@ -81,12 +83,15 @@ class Tracker:
 
     def track(self, image: np.ndarray, t_monotonic: float | None = None) -> Pose:
         t = time.monotonic() if t_monotonic is None else t_monotonic
-        roi = self._window(image.shape[1], image.shape[0], t) if self.window else None
+        roi, expected = self._window(image.shape[1], image.shape[0], t) if self.window else (None, set())
         pose = None
         if roi is not None:
-            # Search only where the markers were a moment ago; the whole image if that finds nothing.
+            # Search only where the markers were a moment ago; the whole image if that misses any
+            # marker that should be in clear view (the phantom moved further than the margin).
             self.window_searches += 1
             pose = self._detect_and_solve(image, t, roi)
+            if not expected <= set(pose.markers):
+                pose = None
         if pose is None or not pose.ok:
             self.full_searches += 1
             pose = self._detect_and_solve(image, t, None)
@@ -100,29 +105,33 @@ class Tracker:
         detected = {i: c for i, c in self.detector.detect(image, roi).items() if i in self.layout}
         return self.pose_from_corners(detected, t)
 
-    def _window(self, width: int, height: int, t: float) -> tuple[int, int, int, int] | None:
-        """(x0, y0, x1, y1) around every marker facing the camera at the last pose, or None for the whole image."""
+    def _window(self, width: int, height: int, t: float) -> tuple[tuple[int, int, int, int] | None, set[int]]:
+        """((x0, y0, x1, y1) around every marker facing the camera at the last pose, or None for the
+        whole image; the markers that were in clear view there and must be found again)."""
         if self._last is None or t - self._last[0] > WINDOW_MAX_AGE_S or t < self._last[0]:
-            return None
+            return None, set()
         T = self._last[1]
-        pts = []
+        pts, expected = [], set()
         for i, obj in self._obj.items():
             Tm = T @ self.layout[i]
             if Tm[:3, 2] @ Tm[:3, 3] < 0:                         # facing the camera
                 cam = obj @ T[:3, :3].T + T[:3, 3]
                 if np.all(cam[:, 2] > 1.0):
-                    pts.append(cam)
+                    uv = distort(cam[:, :2] / cam[:, 2:3], self.K, self.dist)
+                    pts.append(uv)
+                    inside = np.all((uv > WINDOW_PAD_PX / 4) & (uv < [width - WINDOW_PAD_PX / 4, height - WINDOW_PAD_PX / 4]))
+                    if inside and ray_to_normal_deg(Tm) < WINDOW_EXPECT_DEG:
+                        expected.add(i)
         if not pts:
-            return None
-        cam = np.concatenate(pts)
-        uv = distort(cam[:, :2] / cam[:, 2:3], self.K, self.dist)
+            return None, set()
+        uv = np.concatenate(pts)
         lo, hi = uv.min(axis=0), uv.max(axis=0)
         pad = max(WINDOW_PAD_PX, WINDOW_PAD_FRACTION * float(np.max(hi - lo)))
         x0, y0 = (int(max(0, v)) for v in np.floor(lo - pad))
         x1, y1 = int(min(width, np.ceil(hi[0] + pad))), int(min(height, np.ceil(hi[1] + pad)))
         if x1 <= x0 or y1 <= y0 or (x1 - x0) * (y1 - y0) > WINDOW_MAX_SHARE * width * height:
-            return None
-        return x0, y0, x1, y1
+            return None, set()
+        return (x0, y0, x1, y1), expected
 
     def pose_from_corners(self, detected: dict[int, np.ndarray], t: float) -> Pose:
         """The unsmoothed pose from detected corners {marker id: (4, 2) pixels}."""
