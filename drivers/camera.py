@@ -27,6 +27,8 @@ import cv2
 import numpy as np
 
 log = logging.getLogger(__name__)
+# The service configures logging; a command-line tool reports `state` itself, on one line.
+log.addHandler(logging.NullHandler())
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
 

@@ -222,3 +222,13 @@ def test_print_markers_at_exact_scale(tmp_path, profiles):
     assert width_pt == pytest.approx((210 + 20) / 25.4 * 72, abs=0.01)
     markers_pdf = (tmp_path / "phantom-markers.pdf").read_bytes()
     assert len(re.findall(rb"/MediaBox", markers_pdf)) == len(phantom.markers)     # one page per marker
+
+
+def test_live_calibration_without_a_camera_says_so_on_one_line(tmp_path, capsys):
+    profile = tmp_path / "cam.yaml"
+    profile.write_text(WEBCAM.read_text())
+    rc = main(["calibrate", "webcam", "--webcam", str(profile), "--device", str(tmp_path / "video7"), "--seconds", "0.3"])
+    assert rc == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "video7: no such device" in err[0] and "nothing captured in 0.3 s" in err[0]
+    assert profile.read_text() == WEBCAM.read_text()

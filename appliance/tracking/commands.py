@@ -27,6 +27,8 @@ from .webcam_calibration import BoardDetector, BoardSpec, calibrate_webcam
 
 #: Live webcam calibration keeps at most one board view per this many seconds.
 LIVE_VIEW_SPACING_S = 0.5
+#: A live camera that delivers nothing for this long (s) ends a calibration with an error.
+FIRST_FRAME_TIMEOUT_S = 5.0
 
 
 def _read_image(path: str) -> np.ndarray:
@@ -66,15 +68,17 @@ def _live_frames(device: str, width: int, height: int, fps: float, seconds: floa
     cam = V4L2Camera(device, width, height, fps)
     cam.start()
     try:
-        seq, deadline, first = -1, time.monotonic() + seconds, time.monotonic() + 5.0
-        while time.monotonic() < deadline:
-            frame = cam.wait(seq, 0.5)
-            if frame is None:
-                if seq < 0 and time.monotonic() > first:
-                    raise FluorosimError(cam.message or f"camera {device}: no frames")
-                continue
-            seq = frame.seq
-            yield f"{device}#{frame.seq}", frame.image
+        wait_first_s = min(FIRST_FRAME_TIMEOUT_S, seconds)
+        seq, deadline, first = -1, time.monotonic() + seconds, time.monotonic() + wait_first_s
+        while time.monotonic() < deadline and (seq >= 0 or time.monotonic() < first):
+            frame = cam.wait(seq, 0.1)
+            if frame is not None:
+                seq = frame.seq
+                yield f"{device}#{frame.seq}", frame.image
+        if seq < 0:
+            why = cam.message.split(";")[0] if cam.message else f"camera {device}: no frames"
+            raise FluorosimError(f"{why}; nothing captured in {wait_first_s:g} s (check the device path, the cable "
+                                 "and that no other program holds the camera)")
     finally:
         cam.stop()
 
