@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from drivers.camera import RenderSettings
+from drivers.camera import RenderSettings, SceneRenderer, TexturedQuad
 
 from ..config.loading import load_profile
 from ..config.phantom import PhantomProfile
@@ -23,7 +23,8 @@ from .composite import CompositeCalibration
 from .markers import MarkerDetector
 from .scene import synthetic_camera
 from .sources import DEMO_TRAJECTORY
-from .trajectory import Trajectory, load_trajectory, pose_from_angles, random_poses
+from .trajectory import R_HOME, Trajectory, load_trajectory, pose_from_angles, random_poses
+from .webcam_calibration import BoardDetector, BoardSpec, calibrate_webcam
 from .tracker import Tracker
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
@@ -199,6 +200,33 @@ def bench_calibration(phantom, webcam, rng, frames: int) -> None:
           f"bundle adjustment {t_refine:.1f} s, corner RMS {rms:.3f} px")
 
 
+def bench_webcam_calibration(rng, views: int) -> None:
+    """Intrinsics measured from rendered ChArUco views against the ones they were rendered with."""
+    spec = BoardSpec()
+    K_true = np.array([[1010.0, 0.0, 652.0], [0.0, 1006.0, 371.0], [0.0, 0.0, 1.0]])
+    dist_true = np.array([-0.12, 0.09, 0.0, 0.0, 0.0])
+    textures = [spec.image(ppm).astype(np.float32) / 255.0 for ppm in (2.0, 4.0, 8.0)]
+    board = TexturedQuad(np.eye(4), spec.squares_x * spec.square_mm / 2, spec.squares_y * spec.square_mm / 2, textures)
+    renderer = SceneRenderer(K_true, dist_true, 1280, 720, None, [board], RenderSettings(background=40.0),
+                             seed=int(rng.integers(2**31)))
+    detector = BoardDetector(spec)
+    found = []
+    for _ in range(views):
+        R = (R_HOME @ rotation_about((1, 0, 0), np.radians(rng.uniform(-35, 35)))
+             @ rotation_about((0, 1, 0), np.radians(rng.uniform(-35, 35)))
+             @ rotation_about((0, 0, 1), np.radians(rng.uniform(-20, 20))))
+        # Spread over the whole image, corners included, as a careful calibration is done.
+        T = make_transform(R, [rng.uniform(-150, 150), rng.uniform(-90, 90), rng.uniform(330, 450)])
+        view = detector.detect(renderer.render(T))
+        if view:
+            found.append(view)
+    cal = calibrate_webcam(found, 1280, 720)
+    print(f"webcam calibration: {len(found)} ChArUco views ({spec.squares_x}x{spec.squares_y}, {spec.square_mm:g} mm) "
+          f"rendered with fx 1010, fy 1006, cx 652, cy 371, k1 -0.12, k2 0.09")
+    print(f"  measured fx {cal.K[0, 0]:.2f}, fy {cal.K[1, 1]:.2f}, cx {cal.K[0, 2]:.2f}, cy {cal.K[1, 2]:.2f}, "
+          f"k1 {cal.dist[0]:.4f}, k2 {cal.dist[1]:.4f}; RMS reprojection {cal.rms_px:.3f} px")
+
+
 def bench_speed(phantom, webcam, rng, frames: int) -> None:
     cv2.setNumThreads(1)
     segments = 6
@@ -243,6 +271,7 @@ def run_bench(args) -> int:
     bench_jitter(phantom, webcam, rng, 120)
     bench_lag(phantom, webcam, rng)
     bench_calibration(phantom, webcam, rng, args.calibration_frames)
+    bench_webcam_calibration(rng, 15)
     bench_speed(phantom, webcam, rng, 60)
     return 0
 
