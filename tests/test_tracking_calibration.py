@@ -232,3 +232,20 @@ def test_live_calibration_without_a_camera_says_so_on_one_line(tmp_path, capsys)
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "video7: no such device" in err[0] and "nothing captured in 0.3 s" in err[0]
     assert profile.read_text() == WEBCAM.read_text()
+
+
+def test_an_invalid_result_is_not_written(tmp_path):
+    from appliance.config.yamlfile import ProfileProblems
+    from appliance.tracking.profile_update import write_phantom_layout, write_webcam_intrinsics
+    cam = tmp_path / "cam.yaml"
+    cam.write_text(WEBCAM.read_text())
+    with pytest.raises(ProfileProblems, match="focal lengths"):
+        write_webcam_intrinsics(cam, np.array([[-900.0, 0, 640], [0, 900, 360], [0, 0, 1]]), np.zeros(5), 0.1, 1280, 720)
+    box = tmp_path / "box.yaml"
+    box.write_text(PHANTOM.read_text())
+    sheared = np.eye(4)
+    sheared[0, 1] = 0.2
+    with pytest.raises(ProfileProblems, match="not a rigid transform"):
+        write_phantom_layout(box, {3: sheared})
+    assert cam.read_text() == WEBCAM.read_text() and box.read_text() == PHANTOM.read_text()
+    assert not list(tmp_path.glob("*.bak")) and not list(tmp_path.glob(".*tmp"))
