@@ -217,3 +217,15 @@ def test_a_window_that_misses_markers_falls_back_to_the_whole_image(profiles):
     assert windowed.window_searches == 1 and windowed.full_searches == 2
     assert a.markers == b.markers
     np.testing.assert_allclose(a.T_webcam_from_phantom, b.T_webcam_from_phantom, atol=1e-6)
+
+
+def test_a_1080p_webcam_with_its_own_intrinsics(profiles):
+    phantom, _ = profiles
+    hd = WebcamProfile(width=1920, height=1080, K=[[1350.0, 0, 959.5], [0, 1350.0, 539.5], [0, 0, 1]],
+                       dist=[0.05, -0.02, 0, 0, 0])
+    for T in (pose_from_angles([0, 0, 350], 20, 5, 5), pose_from_angles([30, -20, 700], -80, 0, 10)):
+        image, truth = synthetic_camera(phantom, hd, Trajectory.still(T), seed=3).render_at(0.0)
+        assert image.shape == (1080, 1920, 3)
+        pose = Tracker(phantom, hd, smoothing=False).track(image, 0.0)
+        et, er = errors(pose.T_webcam_from_phantom, truth)
+        assert pose.ok and et < 0.5 and er < 0.2
