@@ -239,7 +239,7 @@ def test_a_stalled_source_is_reported_while_its_thread_hangs():
     hang = threading.Event()
 
     class Hanging(CameraSource):
-        stall_timeout_s = 0.2
+        stall_timeout_s = 1.0
 
         def _run(self):
             self._publish(np.zeros((4, 4), np.uint8), time.monotonic())
@@ -250,8 +250,11 @@ def test_a_stalled_source_is_reported_while_its_thread_hangs():
     cam.start()
     try:
         assert cam.wait(-1, 2.0) is not None and cam.state == "ok"
-        time.sleep(0.35)
+        deadline = time.monotonic() + 5
+        while cam.state == "ok" and time.monotonic() < deadline:
+            time.sleep(0.05)
         assert cam.state == "camera lost" and "no frame for" in cam.message
+        assert time.monotonic() - cam.latest().t_monotonic >= 1.0
     finally:
         hang.set()
         cam.stop()
