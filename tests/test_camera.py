@@ -274,3 +274,31 @@ def test_v4l2_frame_time_prefers_a_plausible_driver_stamp():
     assert V4L2Camera._capture_time(Cap(0.0), now) == now                           # no stamp
     assert V4L2Camera._capture_time(Cap(1_000_100.0), now) == now                   # from the future
     assert V4L2Camera._capture_time(Cap(5_000.0), now) == now                       # another clock
+
+
+def test_a_source_that_comes_back_is_picked_up_again(tmp_path):
+    folder = tmp_path / "later"
+    cam = FileCamera(folder, fps=100.0)
+    with cam:
+        deadline = time.monotonic() + 5
+        while cam.state != "camera lost" and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert cam.state == "camera lost"
+        folder.mkdir()
+        cv2.imwrite(str(folder / "a.png"), np.full((8, 8, 3), 77, np.uint8))
+        frame = cam.wait(-1, 5.0)
+        assert frame is not None and int(frame.image[0, 0, 0]) == 77 and cam.state == "ok"
+
+
+def test_v4l2_reevaluates_the_device_on_every_retry(tmp_path):
+    node = tmp_path / "video3"
+    cam = V4L2Camera(str(node), retry_interval_s=0.05)
+    with cam:
+        deadline = time.monotonic() + 5
+        while "no such device" not in cam.message and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert "no such device" in cam.message
+        node.write_bytes(b"\0" * 16)              # something appears there, but not a camera
+        while "cannot be opened" not in cam.message and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert cam.state == "camera lost" and "cannot be opened" in cam.message
