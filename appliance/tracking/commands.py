@@ -47,7 +47,8 @@ def run_track(args) -> int:
     for path in args.images:
         if not Path(path).is_file():
             raise FluorosimError(f"{path}: no such image file")
-    tracker = Tracker(phantom, webcam, method=args.method, smoothing=False)
+    # Each image on its own: no smoothing, and no search window carried over from the previous one.
+    tracker = Tracker(phantom, webcam, method=args.method, smoothing=False, window=False)
     for path in args.images:
         pose = tracker.track(_read_image(path), time.monotonic())
         T = pose.T_webcam_from_phantom
