@@ -18,7 +18,12 @@ from .errors import FluorosimError
 #: Modules whose `register(commands, benches)` adds subcommands, in the order `--help` lists them.
 COMMAND_MODULES = (
     "appliance.config.commands",
+    "appliance.display.commands",
+    "appliance.xray.commands",
+    "appliance.tracking.commands",
     "appliance.calibration.commands",
+    "appliance.records.commands",
+    "appliance.patient.commands",
 )
 
 
