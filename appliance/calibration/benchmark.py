@@ -76,7 +76,8 @@ def damaged_identification(phantom, fluoroscope, machine, image, T, rng, trials:
             tally["refused"] += 1
             continue
         err = np.linalg.norm(found.uv - truth[found.sphere_index], axis=1)
-        tally["right" if err.max() < 1.0 else "wrong"] += 1
+        # Wrong: a blob paired with a ball whose shadow it is not (farther than the fit would accept).
+        tally["right" if err.max() <= phantom.detection.final_gate_px else "wrong"] += 1
     return tally
 
 

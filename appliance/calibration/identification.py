@@ -249,11 +249,11 @@ def identify(blobs: Blobs, phantom: CalibrationPhantomProfile, K0: np.ndarray, d
         if viable and scores[i][0] < viable[0][1][0] - 2:
             break
         try:
-            _check_camera_explains(outcomes[i], phantom, K0, dist0, source)
+            checked = _check_camera_explains(outcomes[i], phantom, K0, dist0, source)
         except IdentificationFailed as e:
             refusal = refusal or e
             continue
-        viable.append((outcomes[i], scores[i]))
+        viable.append((checked, scores[i]))
     if not viable:
         raise refusal
     if len(viable) > 1:
@@ -282,28 +282,32 @@ def _without_overlaps(found: Identification, phantom: CalibrationPhantomProfile,
                           found.unmatched_blobs + int((~keep).sum()))
 
 
-def _check_camera_explains(found: Identification, phantom: CalibrationPhantomProfile, K0, dist0, source: str) -> None:
-    """Refuse a pairing no pinhole camera can produce.
+def _check_camera_explains(found: Identification, phantom: CalibrationPhantomProfile, K0, dist0,
+                           source: str) -> Identification:
+    """The pairing less any pair no camera agrees with; refuse a pairing no camera can produce.
 
     The pairing's balls are fitted alone with free focal lengths and k1 (the principal point
     and the rest held): a right pairing leaves residuals at the noise of the blob centres,
     whereas a wrong one, a mirror image for instance, leaves pixels, whatever the camera.
-    The median is used so one stray pair, which the joint fit removes later, does not
-    condemn the image.
+    Single pairs beyond `final_gate_px` (a spurious blob where a ball is hidden, a shadow
+    cut by another) are dropped one by one, worst first; the median decides the rest.
     """
     from .fit import View, fit_views
 
     view = View(source, phantom.centres()[found.sphere_index], found.uv, found.sphere_index, found.T_xray_from_phantom)
     fixed = frozenset({"cx", "cy", "k2", "p1", "p2", "k3"})
-    fit = fit_views([view], K0, dist0, final_gate_px=np.inf, min_spheres=0, fixed=fixed)
+    fit = fit_views([view], K0, dist0, final_gate_px=phantom.detection.final_gate_px, min_spheres=6, fixed=fixed)
     if not fit.views:
         raise IdentificationFailed(f"{source}: the identified balls cannot be fitted by any camera")
     residuals = np.hypot(*fit.views[0].residuals_px.T)
     limit = phantom.detection.max_identification_median_px
-    if np.median(residuals) > limit:
+    if fit.views[0].dropped > len(found.sphere_index) // 4 or np.median(residuals) > limit:
         raise IdentificationFailed(f"{source}: no camera explains the pairing of balls (median residual "
-                                   f"{np.median(residuals):.1f} px, limit {limit} px); is the image mirrored, "
-                                   "or a different phantom?")
+                                   f"{np.median(residuals):.1f} px, limit {limit} px, {fit.views[0].dropped} pairs "
+                                   "refused); is the image mirrored, or a different phantom?")
+    keep = np.isin(found.sphere_index, fit.views[0].sphere_index)
+    return Identification(found.sphere_index[keep], found.uv[keep], found.blob_index[keep], found.T_xray_from_phantom,
+                          found.unmatched_blobs + int((~keep).sum()))
 
 
 def _support(found: Identification, phantom: CalibrationPhantomProfile, K0, dist0, fov: FieldOfView | None) -> tuple[int, int]:

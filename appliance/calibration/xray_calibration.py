@@ -111,7 +111,8 @@ def calibrate(images: list[tuple[str, np.ndarray]], phantom: CalibrationPhantomP
             outcome.reason = (f"{name}: only {outcome.identified} of {len(phantom.spheres)} balls identified "
                               f"(need {acceptance.min_spheres_per_image}); center the phantom in the field")
             continue
-        views.append(View(name, phantom.centres()[found.sphere_index], found.uv, found.sphere_index, found.T_xray_from_phantom))
+        views.append(View(name, phantom.centres()[found.sphere_index], found.uv, found.sphere_index, found.T_xray_from_phantom,
+                          phantom.diameters()[found.sphere_index] / 2))
     if not views:
         return CalibrationResult(outcomes, None, None, ["no image could be used"], dict(timings))
     t0 = time.perf_counter()

@@ -42,7 +42,7 @@ class AttachedMarker(Section):
 
 
 class Materials(Section):
-    sphere_hu: int = Field(20000, ge=1000, le=32767, description="CT number given to the balls when the phantom is voxelised for the renderer (HU).")
+    sphere_hu: int = Field(30000, ge=1000, le=32767, description="CT number given to the balls when the phantom is voxelised for the renderer (HU); steel is denser than any CT scale, so near the int16 top.")
     plate_hu: int = Field(120, ge=-1000, le=3000, description="CT number of the plates, PMMA is about +120 (HU).")
 
 
