@@ -55,6 +55,24 @@ class Devices(Section):
     display: Display
 
 
+class Daemon(Section):
+    """How the supervisor keeps the appliance up; the defaults suit a real appliance."""
+
+    stall_timeout_s: float = Field(5.0, gt=0, le=120, description="A worker whose heartbeat is older than this counts as hung "
+                                   "and the watchdog is no longer pinged; keep it below the unit's WatchdogSec (s).")
+    restart_limit: int = Field(5, ge=0, le=100, description="Restarts of a crashed worker allowed within restart_window_s; "
+                               "beyond that the supervisor lets the watchdog restart the whole service.")
+    restart_window_s: float = Field(60.0, gt=0, description="Window over which worker restarts are counted (s).")
+    disk_min_free_mb: float = Field(500.0, ge=0, description="Below this much free space in data_dir the disk counts as nearly full (MiB).")
+    health_period_s: float = Field(1.0, gt=0, le=60, description="How often health checks run (s).")
+    status_period_s: float = Field(2.0, gt=0, le=60, description="How often a STATUS= line goes to systemd and the log (s).")
+    hold_refresh_hz: float = Field(5.0, gt=0, le=60, description="Overlay refresh rate while no new image is rendered (1/s).")
+    clock_rate: float = Field(1.0, gt=0, le=100, description="Simulated seconds per wall-clock second for the console, "
+                              "scripted input, synthetic camera and patient timeline; 1 on a real appliance (dimensionless).")
+    log_max_mb: float = Field(10.0, gt=0, description="Size at which the log file in data_dir/logs is rotated (MiB).")
+    log_backups: int = Field(5, ge=0, le=100, description="Rotated log files kept.")
+
+
 class ApplianceProfile(Section):
     fluoroscope: str = Field(description="Active fluoroscope profile (configs/fluoroscopes/*.yaml).")
     case: str = Field(description="Active case (configs/cases/*.yaml).")
@@ -63,3 +81,4 @@ class ApplianceProfile(Section):
     operator: str = Field("trainee", min_length=1, description="Default operator name recorded with each session.")
     devices: Devices
     data_dir: str = Field(description="Ledger, logs, saved images and caches live here; relative to this file unless absolute.")
+    daemon: Daemon = Field(default_factory=Daemon, description="Supervisor, watchdog and logging settings.")

@@ -1,0 +1,46 @@
+"""The active profiles, reloaded on SIGHUP, with the last good set kept when an edit is bad.
+
+A technician's typo must not take the appliance down: `reload()` validates the whole set
+again; if anything is wrong the appliance keeps running on what it had and `problem`
+says why (shown as a banner until a good reload clears it).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from ..config import ApplianceConfig, ProfileProblems, load_appliance
+from ..errors import FluorosimError
+
+log = logging.getLogger(__name__)
+
+
+class ProfileKeeper:
+    """Holds the last good `ApplianceConfig` loaded from `path`."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        # At start there is no last good set: a bad profile is the caller's one-line error.
+        self.current: ApplianceConfig = load_appliance(self.path)
+        self.problem: str | None = None
+        self.generation = 1
+
+    def reload(self) -> tuple[ApplianceConfig, bool]:
+        """Load the profiles again; (config in force, whether it changed to a new valid set)."""
+        try:
+            new = load_appliance(self.path)
+        except ProfileProblems as e:
+            self.problem = str(e.problems[0]) + (f" (+{len(e.problems) - 1} more)" if len(e.problems) > 1 else "")
+            for p in e.problems:
+                log.error("reload refused: %s", p)
+            return self.current, False
+        except FluorosimError as e:
+            self.problem = str(e)
+            log.error("reload refused: %s", e)
+            return self.current, False
+        self.problem = None
+        self.current = new
+        self.generation += 1
+        log.info("profiles reloaded from %s", self.path)
+        return new, True

@@ -1,0 +1,194 @@
+"""The daemon's building blocks: LatestValue hand-off, health checks, the log queue, profile reload."""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from appliance import __version__
+from appliance.daemon.handoff import LatestValue
+from appliance.daemon.health import CameraState, DiskSpace, InputDeviceState, Level, ProfileState, RendererDevice
+from appliance.daemon.logqueue import start_logging
+from appliance.daemon.reload import ProfileKeeper
+from appliance.daemon.worker import Worker
+from appliance.config import ProfileProblems
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
+# --- LatestValue ---------------------------------------------------------------------------
+
+def test_latest_value_gives_the_newest_and_counts_what_was_skipped():
+    slot: LatestValue[int] = LatestValue()
+    assert slot.get() == (None, 0)
+    assert slot.newer(0) is None
+    for i in range(1, 6):
+        slot.put(i * 10)
+    assert slot.get() == (50, 5)
+    assert slot.dropped == 4  # 10..40 were overwritten unread
+    assert slot.newer(5) is None
+    slot.put(60)
+    assert slot.newer(5) == (60, 6)
+    assert slot.dropped == 4
+
+
+def test_a_slow_reader_skips_stale_values_instead_of_falling_behind():
+    slot: LatestValue[tuple[int, float]] = LatestValue()
+    n, period = 200, 0.002
+    done = threading.Event()
+
+    def produce():
+        for i in range(1, n + 1):
+            slot.put((i, time.monotonic()))
+            time.sleep(period)
+        done.set()
+
+    seen, ages = [], []
+    t = threading.Thread(target=produce)
+    t.start()
+    seq = 0
+    while not (done.is_set() and slot.seq == seq):
+        got = slot.wait_newer(seq, 0.5)
+        if got is None:
+            continue
+        (i, stamped), seq = got
+        seen.append(i)
+        ages.append(time.monotonic() - stamped)
+        time.sleep(0.02)  # ten times slower than the producer
+    t.join()
+    assert seen == sorted(set(seen))  # always forward, never an old value twice
+    assert seen[-1] == n
+    assert len(seen) < n / 3
+    assert slot.dropped == n - len(seen)
+    # Each value read was the newest at the time: never more than a couple of producer periods old.
+    assert sorted(ages)[len(ages) // 2] < 0.01
+
+
+def test_wait_newer_times_out():
+    slot: LatestValue[int] = LatestValue()
+    t0 = time.monotonic()
+    assert slot.wait_newer(0, 0.1) is None
+    assert 0.09 <= time.monotonic() - t0 < 0.5
+
+
+# --- Worker heartbeat ------------------------------------------------------------------------
+
+def test_grace_covers_a_known_long_step():
+    clock = [100.0]
+    w = Worker("loader", lambda w: False, clock=lambda: clock[0])
+    w.beat()
+    clock[0] = 103.0
+    assert w.stall_s() == pytest.approx(3.0)
+    with w.grace(30.0):
+        clock[0] = 120.0
+        assert w.stall_s() == 0.0
+        clock[0] = 140.0
+        assert w.stall_s() == pytest.approx(7.0)  # the grace ran out at 133
+    assert w.stall_s() == 0.0  # leaving the block beats
+
+
+# --- Health checks ----------------------------------------------------------------------------
+
+def test_disk_space_against_statvfs(tmp_path):
+    st = os.statvfs(tmp_path)
+    free_mb = st.f_bavail * st.f_frsize / 2**20
+    ok = DiskSpace(tmp_path, min_free_mb=0).check()
+    assert ok.level == Level.OK
+    assert ok.context["free_mb"] == pytest.approx(free_mb, abs=64)
+    full = DiskSpace(tmp_path, min_free_mb=free_mb + 10_000).check()
+    assert full.level == Level.WARNING and full.banner.startswith("disk nearly full")
+    missing = DiskSpace(tmp_path / "gone", min_free_mb=0).check()
+    assert missing.level == Level.ERROR and "data folder" in missing.banner
+
+
+class _Device:
+    def __init__(self, state):
+        self.state = state
+
+
+def test_device_states_map_to_banners():
+    cam = _Device("ok")
+    check = CameraState(lambda: cam)
+    assert check.check().ok
+    cam.state = "camera lost"
+    assert check.check().banner.startswith("tracking lost")
+    cam.state = "starting"
+    assert check.check().level == Level.WARNING
+    assert CameraState(lambda: None).check().level == Level.WARNING
+
+    pedal = _Device("unplugged")
+    assert InputDeviceState("pedal", lambda: pedal).check().banner == "pedal unplugged - plug it back in"
+    pedal.state = "ok"
+    assert InputDeviceState("pedal", lambda: pedal).check().ok
+    assert InputDeviceState("keypad", lambda: _Device("none")).check().ok
+    assert RendererDevice(lambda: None).check().ok
+    assert "CPU" in RendererDevice(lambda: "clBuildProgram failed").check().banner
+    assert ProfileState(lambda: "x.yaml:3: a: bad").check().banner.endswith("x.yaml:3: a: bad")
+
+
+# --- Logging ----------------------------------------------------------------------------------
+
+def test_log_file_starts_with_the_version_header_and_gets_every_thread(tmp_path):
+    root = logging.getLogger()
+    before = list(root.handlers), root.level
+    logs = start_logging(tmp_path / "logs", stream=open(os.devnull, "w"))
+    try:
+        def talk(k):
+            for i in range(50):
+                logging.getLogger("test.worker").info("worker %d line %d", k, i)
+
+        threads = [threading.Thread(target=talk, args=(k,)) for k in range(4)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    finally:
+        logs.stop()
+        root.handlers[:] = before[0]
+        root.setLevel(before[1])
+    text = (tmp_path / "logs" / "fluorosim.log").read_text()
+    first = text.splitlines()[0]
+    assert first.startswith(f"# fluorosim {__version__} | Python ")
+    assert f"pid {os.getpid()}" in first
+    for k in range(4):
+        for i in (0, 49):
+            assert f"worker {k} line {i}" in text
+    assert logs.dropped == 0
+
+
+# --- Profile reload ---------------------------------------------------------------------------
+
+@pytest.fixture
+def configs(tmp_path):
+    shutil.copytree(CONFIGS, tmp_path / "configs")
+    return tmp_path / "configs"
+
+
+def test_bad_edit_keeps_the_last_good_profiles(configs):
+    keeper = ProfileKeeper(configs / "appliance.yaml")
+    good = keeper.current
+    fl = configs / "fluoroscopes" / "generic-ii-carm.yaml"
+    text = fl.read_text()
+    lines = text.splitlines()
+    line_no = next(i for i, l in enumerate(lines) if "source_to_image_mm:" in l) + 1
+    fl.write_text(text.replace("source_to_image_mm: 1000", "source_to_image_mm: -5"))
+    config, changed = keeper.reload()
+    assert not changed and config is good
+    assert f"generic-ii-carm.yaml:{line_no}: geometry.source_to_image_mm" in keeper.problem
+    fl.write_text(text.replace("name: Generic II C-arm", "name: Renamed C-arm"))
+    config, changed = keeper.reload()
+    assert changed and keeper.problem is None
+    assert config.fluoroscope.name == "Renamed C-arm" and keeper.generation == 2
+
+
+def test_a_bad_profile_at_start_is_one_clear_error(configs):
+    (configs / "appliance.yaml").write_text((configs / "appliance.yaml").read_text().replace("operator: trainee", "operater: x"))
+    with pytest.raises(ProfileProblems) as e:
+        ProfileKeeper(configs / "appliance.yaml")
+    assert "did you mean 'operator'" in str(e.value)
