@@ -192,3 +192,33 @@ def test_a_bad_profile_at_start_is_one_clear_error(configs):
     with pytest.raises(ProfileProblems) as e:
         ProfileKeeper(configs / "appliance.yaml")
     assert "did you mean 'operator'" in str(e.value)
+
+
+# --- Clock and frame statistics -----------------------------------------------------------------
+
+def test_sim_clock_runs_at_its_rate():
+    from appliance.daemon.clock import SimClock
+    wall = [50.0]
+    clock = SimClock(6.0, base=lambda: wall[0])
+    assert clock() == 50.0
+    wall[0] = 60.0
+    assert clock() == pytest.approx(50.0 + 60.0)
+    assert clock.wall_s(30.0) == pytest.approx(5.0)
+    with pytest.raises(ValueError):
+        SimClock(0)
+
+
+def test_frame_stats_against_hand_worked_numbers():
+    from appliance.daemon.frame_stats import FrameStats
+    stats = FrameStats(window_s=1.0)
+    # 101 frames 0.1 s apart (10 fps), latency k ms for frame k (k = 0..100).
+    for k in range(101):
+        stats.add(100.0 + 0.1 * k, k / 1000)
+    s = stats.summary()
+    assert s["frames"] == 101
+    assert s["fps"] == pytest.approx(10.0)
+    assert s["latency_median_ms"] == pytest.approx(50.0)
+    assert s["latency_p99_ms"] == pytest.approx(99.0)
+    # The last second holds frames at 109.0 .. 110.0: 11 frames over a 1 s window.
+    assert stats.fps(110.0) == pytest.approx(11.0)
+    assert stats.fps(200.0) == 0.0
