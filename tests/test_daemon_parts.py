@@ -222,3 +222,17 @@ def test_frame_stats_against_hand_worked_numbers():
     # The last second holds frames at 109.0 .. 110.0: 11 frames over a 1 s window.
     assert stats.fps(110.0) == pytest.approx(11.0)
     assert stats.fps(200.0) == 0.0
+
+
+def test_case_override_replaces_only_the_case(configs):
+    other = configs / "cases" / "other.yaml"
+    other.write_text((configs / "cases" / "child-torso-vcug.yaml").read_text().replace(
+        "title: Child torso - VCUG and breathing", "title: Another case"))
+    keeper = ProfileKeeper(configs / "appliance.yaml", case=other)
+    assert keeper.current.case.title == "Another case" and keeper.current.case_path == other
+    assert keeper.current.fluoroscope.name == "Generic II C-arm"
+    other.write_text(other.read_text().replace("period_s: 4.0", "period_s: -4.0"))
+    config, changed = keeper.reload()
+    assert not changed and "other.yaml" in keeper.problem and "breathing.period_s" in keeper.problem
+    with pytest.raises(ProfileProblems):
+        ProfileKeeper(configs / "appliance.yaml", case=configs / "cases" / "missing.yaml")

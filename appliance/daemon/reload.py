@@ -7,10 +7,11 @@ says why (shown as a banner until a good reload clears it).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 
-from ..config import ApplianceConfig, ProfileProblems, load_appliance
+from ..config import ApplianceConfig, CaseProfile, ProfileProblems, load_appliance, load_profile, validate_paths
 from ..errors import FluorosimError
 
 log = logging.getLogger(__name__)
@@ -19,17 +20,29 @@ log = logging.getLogger(__name__)
 class ProfileKeeper:
     """Holds the last good `ApplianceConfig` loaded from `path`."""
 
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, *, case: Path | None = None):
         self.path = Path(path)
+        self.case_override = Path(case) if case is not None else None
         # At start there is no last good set: a bad profile is the caller's one-line error.
-        self.current: ApplianceConfig = load_appliance(self.path)
+        self.current: ApplianceConfig = self._load()
         self.problem: str | None = None
         self.generation = 1
+
+    def _load(self) -> ApplianceConfig:
+        config = load_appliance(self.path)
+        if self.case_override is None:
+            return config
+        # `fluorosim demo --case X`: the appliance as profiled, on another case.
+        problems = validate_paths([self.case_override])
+        if problems:
+            raise ProfileProblems(problems)
+        return dataclasses.replace(config, case=load_profile(self.case_override, CaseProfile),
+                                   case_path=self.case_override)
 
     def reload(self) -> tuple[ApplianceConfig, bool]:
         """Load the profiles again; (config in force, whether it changed to a new valid set)."""
         try:
-            new = load_appliance(self.path)
+            new = self._load()
         except ProfileProblems as e:
             self.problem = str(e.problems[0]) + (f" (+{len(e.problems) - 1} more)" if len(e.problems) > 1 else "")
             for p in e.problems:
