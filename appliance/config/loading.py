@@ -105,7 +105,7 @@ def _message(err: dict, model: type[BaseModel]) -> str:
         return "unknown key"
     if msg.startswith("Value error, "):
         msg = msg[len("Value error, "):]
-    msg = msg.replace("Input should be", "must be").replace("List should have", "must have")
+    msg = msg.replace("Input should be", "must be").replace("List should have", "must have").replace(" after validation", "")
     if kind not in ("value_error", "assertion_error") and "input" in err and not isinstance(err["input"], (dict, list)):
         shown = repr(err["input"])
         msg += f" (got {shown[:60]})"
