@@ -18,6 +18,7 @@ from .errors import FluorosimError
 #: Modules whose `register(commands, benches)` adds subcommands, in the order `--help` lists them.
 COMMAND_MODULES = (
     "appliance.config.commands",
+    "appliance.daemon.commands",
 )
 
 

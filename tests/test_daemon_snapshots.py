@@ -55,17 +55,17 @@ class _Frame:
 
 
 def _state(**kw):
-    base = dict(zoom=1, collimation_mm=None, invert=False, breath_hold=False, alarm_sounding=False, fluoro_on=True)
+    base = dict(zoom=1, fov_mm=230.0, collimation_mm=(230.0, 230.0), invert=False, breath_hold=False, alarm_sounding=False, fluoro_on=True)
     base.update(kw)
     return SimpleNamespace(**base)
 
 
 def test_each_moment_is_taken_once_from_the_first_frame_that_shows_it(tmp_path):
-    snap = Snapshotter(tmp_path, key_moments(widest_fov_mm=230))
+    snap = Snapshotter(tmp_path, key_moments())
     frames = [
         _Frame(np.full((8, 8, 3), 10, np.uint8), _state()),
         _Frame(np.full((8, 8, 3), 20, np.uint8), _state()),
-        _Frame(np.full((8, 8, 3), 30, np.uint8), _state(zoom=3)),
+        _Frame(np.full((8, 8, 3), 30, np.uint8), _state(zoom=3, fov_mm=130.0, collimation_mm=(130.0, 130.0))),
         _Frame(np.full((8, 8, 3), 40, np.uint8), _state(collimation_mm=(120.0, 230.0))),
         _Frame(np.full((8, 8, 3), 50, np.uint8), _state(alarm_sounding=True)),
         _Frame(np.full((8, 8, 3), 60, np.uint8), _state(alarm_sounding=False, fluoro_on=False), live=False),

@@ -67,8 +67,11 @@ class Daemon(Section):
     health_period_s: float = Field(1.0, gt=0, le=60, description="How often health checks run (s).")
     status_period_s: float = Field(2.0, gt=0, le=60, description="How often a STATUS= line goes to systemd and the log (s).")
     hold_refresh_hz: float = Field(5.0, gt=0, le=60, description="Overlay refresh rate while no new image is rendered (1/s).")
-    clock_rate: float = Field(1.0, gt=0, le=100, description="Simulated seconds per wall-clock second for the console, "
-                              "scripted input, synthetic camera and patient timeline; 1 on a real appliance (dimensionless).")
+    render_matrix_px: int | None = Field(None, ge=64, le=8192, description="Render the X-ray image at this square matrix "
+                                         "instead of the detector's own, scaled up on screen; for a computer too slow "
+                                         "for the full matrix; omit to render at the detector's matrix (pixels).")
+    clock_rate: float = Field(1.0, gt=0, le=100, description="Simulated seconds per wall-clock second for the console and its "
+                              "scripted input (fluoroscopy time, dose, alarm); 1 on a real appliance (dimensionless).")
     log_max_mb: float = Field(10.0, gt=0, description="Size at which the log file in data_dir/logs is rotated (MiB).")
     log_backups: int = Field(5, ge=0, le=100, description="Rotated log files kept.")
 

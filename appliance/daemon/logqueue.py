@@ -80,13 +80,17 @@ class LogQueue:
             t.close()
 
 
-def start_logging(log_dir: Path | None, *, level: int = logging.INFO, stream=None,
+def start_logging(log_dir: Path | None, *, level: int = logging.INFO, stream=None, console_level: int = logging.NOTSET,
                   max_mb: float = 10.0, backups: int = 5) -> LogQueue:
-    """Send the root logger through a queue to stderr and (if `log_dir`) data_dir/logs/fluorosim.log."""
+    """Send the root logger through a queue to stderr and (if `log_dir`) data_dir/logs/fluorosim.log.
+
+    `console_level` raises the threshold for stderr only (the demo prints its own progress).
+    """
     targets: list[logging.Handler] = []
     formatter = logging.Formatter(LOG_FORMAT)
     console = logging.StreamHandler(stream if stream is not None else sys.stderr)
     console.setFormatter(formatter)
+    console.setLevel(console_level)
     targets.append(console)
     path = None
     if log_dir is not None:

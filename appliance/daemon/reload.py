@@ -20,9 +20,10 @@ log = logging.getLogger(__name__)
 class ProfileKeeper:
     """Holds the last good `ApplianceConfig` loaded from `path`."""
 
-    def __init__(self, path: Path, *, case: Path | None = None):
+    def __init__(self, path: Path, *, case: Path | None = None, data_dir: Path | None = None):
         self.path = Path(path)
         self.case_override = Path(case) if case is not None else None
+        self.data_dir_override = Path(data_dir) if data_dir is not None else None
         # At start there is no last good set: a bad profile is the caller's one-line error.
         self.current: ApplianceConfig = self._load()
         self.problem: str | None = None
@@ -30,6 +31,8 @@ class ProfileKeeper:
 
     def _load(self) -> ApplianceConfig:
         config = load_appliance(self.path)
+        if self.data_dir_override is not None:
+            config = dataclasses.replace(config, data_dir=self.data_dir_override)
         if self.case_override is None:
             return config
         # `fluorosim demo --case X`: the appliance as profiled, on another case.

@@ -55,20 +55,20 @@ def _pose_roll(f) -> float | None:
     return roll_deg(f.pose.pose.T_webcam_from_phantom)
 
 
-def _collimated(f, widest_mm: float) -> bool:
+def _collimated(f) -> bool:
     c = getattr(f.state, "collimation_mm", None)
     if c is None:
         return False
-    return bool(np.min(np.atleast_1d(np.asarray(c, dtype=float))) < widest_mm - 1e-6)
+    return bool(np.min(np.atleast_1d(np.asarray(c, dtype=float))) < f.state.fov_mm - 1e-6)
 
 
-def key_moments(widest_fov_mm: float) -> list[Moment]:
+def key_moments() -> list[Moment]:
     """The moments the demo shows, in the order they appear on the contact sheet."""
     moments = [Moment("first-live", "first live image", _live)]
     for z in (1, 2, 3, 4):
         moments.append(Moment(f"zoom-{z}", f"zoom {z}", lambda f, z=z: _live(f) and f.state.zoom == z))
     moments += [
-        Moment("collimated", "collimator closed in", lambda f: _live(f) and _collimated(f, widest_fov_mm)),
+        Moment("collimated", "collimator closed in", lambda f: _live(f) and _collimated(f)),
         Moment("inverted", "inverted", lambda f: _live(f) and bool(f.state.invert)),
         Moment("roll-plus-90", "roll +90 degrees", lambda f: _live(f) and (_pose_roll(f) or 0) > 75),
         Moment("roll-minus-90", "roll -90 degrees", lambda f: _live(f) and (_pose_roll(f) or 0) < -75),
