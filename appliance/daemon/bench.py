@@ -10,8 +10,6 @@ to the end of the run.
 from __future__ import annotations
 
 import logging
-import shutil
-import tempfile
 import time
 from pathlib import Path
 
@@ -32,17 +30,20 @@ WARMUP_MIN_S = 5.0
 def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None) -> int:
     from .pipeline import Appliance
 
-    data_dir = Path(out) if out else Path(tempfile.mkdtemp(prefix="fluorosim-bench-"))
+    keeper = ProfileKeeper(config_path, data_dir=Path(out) if out else None)
+    data_dir = keeper.current.data_dir
     logs = start_logging(data_dir / "logs", console_level=logging.WARNING)
     try:
-        keeper = ProfileKeeper(config_path, data_dir=data_dir)
         app = Appliance(keeper, Notifier())
         duration = minutes * 60.0
         warmup = max(WARMUP_MIN_S, WARMUP_FRACTION * duration)
         process = psutil.Process()
         rss: list[tuple[float, int]] = []
-        print(f"bench e2e: {config_path}, {duration:.0f} s run ({warmup:.0f} s warm-up), "
-              f"renderer on {app.parts.renderer_device}", flush=True)
+        cfg = keeper.current
+        matrix = cfg.appliance.daemon.render_matrix_px or cfg.fluoroscope.detector.columns
+        print(f"bench e2e: {config_path}, {duration:.0f} s measured after {warmup:.0f} s warm-up; renderer on "
+              f"{app.parts.renderer_device}, {matrix} px matrix; camera {cfg.appliance.devices.camera.source} at "
+              f"{cfg.appliance.devices.camera.fps:g} fps; data in {data_dir}", flush=True)
         t0 = time.monotonic()
         next_sample = [t0]
 
@@ -62,7 +63,7 @@ def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None)
         fps = n / span if span > 0 else float("nan")
         after = [r for t, r in rss if t >= warmup]
         growth = (after[-1] - after[0]) / after[0] * 100 if len(after) >= 2 else float("nan")
-        print(f"frames on screen:       {n} live in {span:.0f} s after warm-up ({app.stats.frames} in all)")
+        print(f"frames on screen:       {n} live in {span:.0f} s ({app.stats.frames} with the warm-up)")
         print(f"frames per second:      {fps:.1f}")
         if n:
             print(f"motion-to-photon:       median {np.median(lat[steady]) * 1000:.0f} ms, "
@@ -75,5 +76,3 @@ def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None)
         return 0
     finally:
         logs.stop()
-        if out is None:
-            shutil.rmtree(data_dir, ignore_errors=True)

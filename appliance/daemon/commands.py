@@ -71,5 +71,5 @@ def register(commands, benches) -> None:
     b.add_argument("--config", default=_default("appliance-bench.yaml"), metavar="PATH",
                    help="appliance profile to run (default: configs/appliance-bench.yaml)")
     b.add_argument("--minutes", type=float, default=0.5, help="how long to run (min; default 0.5; 10 for the memory figure)")
-    b.add_argument("--out", metavar="DIR", help="data_dir for the run (default: a temporary folder, removed after)")
+    b.add_argument("--out", metavar="DIR", help="data_dir for the run (default: the profile's, var/bench)")
     b.set_defaults(run=run_bench_e2e)

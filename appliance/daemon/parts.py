@@ -70,6 +70,11 @@ def open_camera(cfg: ApplianceConfig):
     return open_source(cfg)
 
 
+def open_tracker(cfg: ApplianceConfig):
+    from ..tracking.sources import tracker_for
+    return tracker_for(cfg)
+
+
 def make_view(cfg: ApplianceConfig, state) -> View:
     fov = state.fov_mm
     c = state.collimation_mm
@@ -154,8 +159,6 @@ def open_parts(cfg: ApplianceConfig, console_clock: Callable[[], float]) -> Part
     The display comes first and shows that the appliance is starting; the console and its
     inputs come last, after the renderer is warm, so a scripted session starts on time.
     """
-    from ..tracking.tracker import Tracker
-
     d = cfg.appliance.devices.display
     display_path = str(data_path(cfg, d.path)) if d.target == "file" else None
     try:
@@ -180,7 +183,7 @@ def open_parts(cfg: ApplianceConfig, console_clock: Callable[[], float]) -> Part
         keypad, pedal = open_inputs(cfg, now)
         return Parts(
             camera=camera,
-            tracker=Tracker(cfg.phantom, cfg.webcam),
+            tracker=open_tracker(cfg),
             renderer=renderer,
             timeline=timeline,
             console=Console(cfg.fluoroscope, cfg.keymap, t0=now),

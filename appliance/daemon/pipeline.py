@@ -31,6 +31,7 @@ import numpy as np
 from ..config import ApplianceConfig
 from ..errors import FluorosimError
 from ..records.ledger import Ledger
+from ..records.rdsr import equipment_of, patient_of
 from ..records.saved_images import save_image
 from .clock import SimClock
 from .frame_stats import FrameStats
@@ -349,7 +350,7 @@ class Appliance:
             fl = cfg.fluoroscope
             self.session_id = self.ledger.start_session(
                 cfg.appliance.operator, cfg.case.title, fl.name, time.time(), t_monotonic=self.clock(),
-                equipment={"manufacturer": fl.manufacturer, "model": fl.model})
+                equipment=equipment_of(fl), patient=patient_of(cfg.case))
             log.info("session %s started: operator %s, case %s, fluoroscope %s",
                      self.session_id, cfg.appliance.operator, cfg.case.title, fl.name)
 
@@ -381,7 +382,7 @@ class Appliance:
         # The fluoroscope as rendered: the DICOM pixel spacing is that of the saved matrix.
         paths = save_image(image, state, rendered_fluoroscope(cfg), cfg.data_dir / "images", t_wall=time.time(),
                            session_id=self.session_id or 0, operator=cfg.appliance.operator,
-                           case_title=cfg.case.title)
+                           case_title=cfg.case.title, patient=patient_of(cfg.case))
         self.saved.append(paths)
         self._saved_flash_until = time.monotonic() + SAVED_FLASH_S
         log.info("saved %s and %s", *paths)

@@ -23,6 +23,9 @@ from .worker import Worker
 
 log = logging.getLogger(__name__)
 
+#: The STATUS= line goes to the log at least this often, and whenever a banner comes or goes (s).
+STATUS_LOG_PERIOD_S = 60.0
+
 
 class Supervisor:
     def __init__(self, workers: Sequence[Worker], notifier: Notifier | None = None, *,
@@ -54,6 +57,8 @@ class Supervisor:
         self._next_ping = 0.0
         self._next_health = 0.0
         self._next_status = 0.0
+        self._next_status_log = 0.0
+        self._logged_banners: list[str] | None = None
 
     # --- checks --------------------------------------------------------------------------
     def check_workers(self, now: float) -> list[str]:
@@ -137,7 +142,12 @@ class Supervisor:
         if now >= self._next_status:
             line = self.status_line()
             self.notifier.status(line)
-            log.info("status: %s", line)
+            # The log gets the line when what is wrong changes, and once a minute besides.
+            banners = self.banners()
+            if banners != self._logged_banners or now >= self._next_status_log:
+                log.info("status: %s", line)
+                self._logged_banners = banners
+                self._next_status_log = now + STATUS_LOG_PERIOD_S
             self._next_status = now + self.status_period_s
 
     def install_signal_handlers(self) -> dict:
