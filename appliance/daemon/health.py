@@ -140,6 +140,22 @@ class ProfileState:
         return Health(Level.WARNING, f"profile not reloaded, running on the last good one: {problem}", {"problem": problem})
 
 
+class RecordsState:
+    """Whether the ledger and saved images are being written (a full or read-only disk stops them)."""
+
+    name = "records"
+
+    def __init__(self, problem: Callable[[], str | None]):
+        self._problem = problem
+
+    def check(self) -> Health:
+        problem = self._problem()
+        if not problem:
+            return OK
+        return Health(Level.ERROR, f"records not written, kept in memory until they can be: {problem}",
+                      {"problem": problem})
+
+
 def run_check(check: HealthCheck) -> Health:
     """`check.check()`, with a failing check reported as an error rather than raised."""
     try:

@@ -36,7 +36,7 @@ from ..records.saved_images import save_image
 from .clock import SimClock
 from .frame_stats import FrameStats
 from .handoff import LatestValue
-from .health import CameraState, DiskSpace, InputDeviceState, ProfileState, RendererDevice, TrackingState
+from .health import CameraState, DiskSpace, InputDeviceState, ProfileState, RecordsState, RendererDevice, TrackingState
 from .notify import Notifier
 from .parts import Parts, is_cpu, make_overlay, make_view, open_parts, patient_phases, rendered_fluoroscope
 from .reload import ProfileKeeper
@@ -55,6 +55,8 @@ SAVED_FLASH_S = 1.0
 INPUT_PERIOD_S = 0.005
 #: How often the phase worker looks up the patient's phase (s).
 PHASE_PERIOD_S = 0.02
+#: How long the records worker waits before writing again after the disk refused (s).
+RECORDS_RETRY_S = 1.0
 #: How long start-up waits for the camera's first frame before supervising anyway (s).
 CAMERA_START_S = 3.0
 
@@ -122,6 +124,8 @@ class Appliance:
         self._new_fluoroscope: LatestValue[Any] = LatestValue("fluoroscope")
         self._fluoroscope_seq = 0
         self.renderer_fault: str | None = None
+        self.records_problem: str | None = None
+        self._unwritten: list[tuple[Any, Any]] = []
         self.saved: list[tuple[Path, Path]] = []
         self.session_id: int | None = None
         self.case_t0 = time.monotonic()
@@ -157,6 +161,7 @@ class Appliance:
                 InputDeviceState("pedal", lambda: self.parts.pedal),
                 RendererDevice(lambda: self.renderer_fault),
                 ProfileState(lambda: self.keeper.problem),
+                RecordsState(lambda: self.records_problem),
             ])
 
     # --- running -----------------------------------------------------------------------------
@@ -355,6 +360,11 @@ class Appliance:
                      self.session_id, cfg.appliance.operator, cfg.case.title, fl.name)
 
     def _records_step(self, w: Worker) -> bool:
+        if self._unwritten:
+            # The disk refused the last batch: try again a little later, keeping everything.
+            if w.sleep(RECORDS_RETRY_S):
+                return False
+            return self._record([])
         try:
             batch = [self.events.get(timeout=0.05)]
         except queue.Empty:
@@ -364,14 +374,30 @@ class Appliance:
                 batch.append(self.events.get_nowait())
             except queue.Empty:
                 break
-        self._record(batch)
-        return True
+        return self._record(batch)
 
-    def _record(self, batch: list[tuple[Any, Any]]) -> None:
-        self.ledger.record([ce for ce, _ in batch])
+    def _record(self, batch: list[tuple[Any, Any]]) -> bool:
+        """Write events (and their saved images); on a disk error keep them for the next try."""
+        batch = self._unwritten + batch
+        try:
+            self.ledger.record([ce for ce, _ in batch])
+        except FluorosimError as e:
+            if not self._unwritten:
+                log.error("ledger write failed, %d event(s) kept in memory: %s", len(batch), e)
+            self._unwritten = batch
+            self.records_problem = str(e)
+            return False
+        self._unwritten = []
+        self.records_problem = None
         for ce, state in batch:
             if ce.kind == "save" and state is not None:
-                self._save_image(state)
+                try:
+                    self._save_image(state)
+                except FluorosimError as e:
+                    # The save itself is in the ledger; only the picture is missing.
+                    log.error("image not saved: %s", e)
+                    self.records_problem = str(e)
+        return True
 
     def _save_image(self, state) -> None:
         image, _ = self.shown.get()
@@ -395,9 +421,17 @@ class Appliance:
                 batch.append(self.events.get_nowait())
             except queue.Empty:
                 break
-        if batch:
+        if batch or self._unwritten:
             self._record(batch)
         if not w.stopping:
             return  # crashed: the supervisor restarts this worker and the session goes on
-        self.ledger.end_session(time.time())
+        if self._unwritten:
+            log.error("%d console event(s) could not be written at shutdown: %s", len(self._unwritten),
+                      self.records_problem)
+        try:
+            self.ledger.end_session(time.time())
+        except FluorosimError as e:
+            # The next start's crash recovery closes the session at its last written event.
+            log.error("session %s not closed: %s", self.session_id, e)
+            return
         log.info("session %s ended; ledger flushed", self.session_id)
