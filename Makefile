@@ -7,8 +7,10 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 # Debian packages: libsystemd-dev and pkg-config build systemd-python; dicom3tools gives
-# dciodvfy, which checks exported dose reports; systemd gives systemd-analyze for unit checks.
-APT_PACKAGES := libsystemd-dev pkg-config dicom3tools systemd python3-venv
+# dciodvfy, which checks exported dose reports; systemd gives systemd-analyze for unit checks;
+# gcc and linux-libc-dev let a test check the framebuffer structs against <linux/fb.h>;
+# alsa-utils gives aplay, which sounds the fluoroscopy-time alarm.
+APT_PACKAGES := libsystemd-dev pkg-config dicom3tools systemd python3-venv gcc linux-libc-dev alsa-utils
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 .PHONY: demo test setup system-packages bench clean

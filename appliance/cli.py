@@ -18,6 +18,11 @@ from .errors import FluorosimError
 #: Modules whose `register(commands, benches)` adds subcommands, in the order `--help` lists them.
 COMMAND_MODULES = (
     "appliance.config.commands",
+    "appliance.display.commands",
+    "appliance.xray.commands",
+    "appliance.tracking.commands",
+    "appliance.records.commands",
+    "appliance.patient.commands",
     "appliance.daemon.commands",
 )
 

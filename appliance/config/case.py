@@ -24,6 +24,9 @@ class Materials(Section):
     bone_min_hu: float = Field(300.0, description="Voxels at or above this are bone; between the two, soft tissue (HU).")
     contrast_min_hu: float | None = Field(
         None, description="Voxels at or above this are iodinated contrast rather than bone (HU); omit for cases without contrast.")
+    bone_density_at_1000_hu_g_per_cm3: float = Field(
+        1.6, gt=1, le=3, description="Bone density at 1000 HU (g/cm^3); bone density is linear in HU from the soft-tissue "
+                                     "value (1 + HU/1000) at bone_min_hu to this.")
 
 
 class Contrast(Section):
@@ -33,6 +36,15 @@ class Contrast(Section):
 
 class Breathing(Section):
     period_s: float = Field(gt=0, le=30, description="One breath (s); the phases span one cycle.")
+
+
+class Patient(Section):
+    """The virtual patient's demographics, as dose reports (IHE REM) require them."""
+
+    sex: Literal["M", "F", "O"] = Field("O", description="M, F or O (other/unknown), as DICOM Patient's Sex.")
+    age_years: int = Field(30, ge=0, le=130, description="Age at the time of the case (years).")
+    weight_kg: float = Field(70.0, gt=0, le=500, description="Body mass (kg).")
+    height_m: float = Field(1.70, gt=0, le=3, description="Body height (m).")
 
 
 class CaseProfile(Section):
@@ -46,6 +58,7 @@ class CaseProfile(Section):
     materials: Materials = Field(default_factory=Materials)
     contrast: Contrast | None = None
     breathing: Breathing | None = None
+    patient: Patient = Field(default_factory=Patient, description="Demographics recorded in dose reports.")
 
     def problems(self):
         if (self.builtin is None) == (self.phases is None):
@@ -59,6 +72,8 @@ class CaseProfile(Section):
         m = self.materials
         if not m.air_max_hu < m.bone_min_hu:
             yield ("materials", "bone_min_hu"), "must be greater than materials.air_max_hu"
+        if not m.bone_min_hu < 1000:
+            yield ("materials", "bone_min_hu"), "must be below 1000 HU (bone density is given at 1000 HU)"
         if m.contrast_min_hu is not None and not m.contrast_min_hu > m.bone_min_hu:
             yield ("materials", "contrast_min_hu"), "must be greater than materials.bone_min_hu"
         if m.contrast_min_hu is not None and self.contrast is None:

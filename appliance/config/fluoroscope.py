@@ -21,6 +21,7 @@ class Detector(Section):
     columns: int = Field(gt=0, le=8192, description="Image width (pixels).")
     rows: int = Field(gt=0, le=8192, description="Image height (pixels).")
     pixel_pitch_mm: float = Field(gt=0, le=5, description="Pixel size at the detector (input phosphor) plane at the widest field of view (mm).")
+    vignetting: float = Field(0.0, ge=0, lt=1, description="Image intensifier brightness lost at the edge of the circular field relative to its centre (fraction, falls off as radius squared); 0 for flat panels.")
 
 
 class Geometry(Section):
@@ -143,6 +144,9 @@ class FluoroscopeProfile(Section):
             if set(z.air_kerma_rate_mgy_per_min) != modes:
                 yield (("zoom_levels", i, "air_kerma_rate_mgy_per_min"),
                        f"must give a rate for each of tube.modes {sorted(modes)}, got {sorted(z.air_kerma_rate_mgy_per_min)}")
+        if self.dose.reference_point_from_isocentre_mm >= self.geometry.source_to_isocentre_mm:
+            yield (("dose", "reference_point_from_isocentre_mm"),
+                   "must be less than geometry.source_to_isocentre_mm: the reference point lies between source and isocentre")
         if self.collimator.min_opening_mm >= fovs[0]:
             yield ("collimator", "min_opening_mm"), "must be smaller than the widest field of view"
 

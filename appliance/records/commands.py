@@ -1,0 +1,114 @@
+"""`fluorosim logs verify` and `fluorosim logs export`, and the ledger benchmark."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from ..config import ApplianceProfile, load_profile, resolve
+from ..errors import FluorosimError
+from . import export as export_module
+from .ledger import open_readonly, verify
+
+DEFAULT_CONFIG = "configs/appliance.yaml"
+
+
+def ledger_path(args) -> Path:
+    """--ledger PATH, else <data_dir>/ledger.sqlite of the appliance profile."""
+    if args.ledger:
+        return Path(args.ledger)
+    config = Path(args.config)
+    if not config.is_file():
+        raise FluorosimError(f"{config}: no appliance profile there; give --config PATH or --ledger PATH")
+    appliance = load_profile(config, ApplianceProfile)
+    return resolve(config, appliance.data_dir) / "ledger.sqlite"
+
+
+def run_verify(args) -> int:
+    path = ledger_path(args)
+    conn = open_readonly(path)
+    try:
+        report = verify(conn)
+    finally:
+        conn.close()
+    if report.ok:
+        print(f"{path}: {report.message}")
+        return 0
+    where = f"first broken link at event {report.first_bad_id}: " if report.first_bad_id is not None else ""
+    print(f"{path}: NOT INTACT: {where}{report.message}", file=sys.stderr)
+    return 1
+
+
+def run_export(args) -> int:
+    since = export_module.parse_when(args.since) if args.since else None
+    until = export_module.parse_when(args.until, end=True) if args.until else None
+    if since is not None and until is not None and until <= since:
+        raise FluorosimError(f"--until {args.until} is not after --since {args.since}")
+    path = ledger_path(args)
+    conn = open_readonly(path)
+    try:
+        written, notes = export_module.export(conn, since, until, args.format, Path(args.out))
+    finally:
+        conn.close()
+    for note in notes:
+        print(f"note: {note}", file=sys.stderr)
+    for p in written:
+        print(p)
+    if not written:
+        print("no sessions in that period; nothing written", file=sys.stderr)
+    return 0
+
+
+def run_list(args) -> int:
+    since = export_module.parse_when(args.since) if args.since else None
+    until = export_module.parse_when(args.until, end=True) if args.until else None
+    path = ledger_path(args)
+    conn = open_readonly(path)
+    try:
+        sessions = export_module.sessions_between(conn, since, until)
+    finally:
+        conn.close()
+    print(f"{'id':>6}  {'started (UTC)':<24} {'operator':<16} {'fluoro min':>10} {'kerma mGy':>10} {'DAP Gy cm2':>11} "
+          f"{'runs':>5} {'alarms':>6}  end")
+    for s in sessions:
+        print(f"{s['id']:>6}  {export_module.iso(s['started_wall']):<24} {s['operator'][:16]:<16} "
+              f"{s['fluoro_time_s'] / 60:>10.1f} {s['air_kerma_mgy']:>10.2f} {s['dap_gy_cm2']:>11.3f} "
+              f"{s['runs']:>5} {s['alarms']:>6}  {s['end_reason'] or 'open'}")
+    return 0
+
+
+def _ledger_options(p) -> None:
+    p.add_argument("--config", default=DEFAULT_CONFIG, metavar="PATH",
+                   help=f"appliance profile whose data_dir holds ledger.sqlite (default {DEFAULT_CONFIG})")
+    p.add_argument("--ledger", metavar="PATH", help="the ledger file itself, instead of --config")
+
+
+def register(commands, benches) -> None:
+    from ..cli import command_group
+    from .bench import register_bench
+
+    logs = command_group(commands, "logs", "read, verify and export the dose and session ledger")
+    ls = logs.add_parser("list", help="list sessions with their fluoroscopy time and dose",
+                         description="One line per session that started in [--since, --until]: fluoroscopy time "
+                                     "(minutes), reference air kerma (mGy), dose-area product (Gy cm2), runs, alarms.")
+    _ledger_options(ls)
+    ls.add_argument("--since", metavar="DATE", help="first day (or date-time) to include")
+    ls.add_argument("--until", metavar="DATE", help="last day (or date-time, exclusive) to include")
+    ls.set_defaults(run=run_list)
+    v = logs.add_parser("verify", help="check the ledger's hash chain",
+                        description="Walk the ledger's hash chain and the sessions' totals. Exit 0 when intact; "
+                                    "1 with the first broken link when an event was changed or removed.")
+    _ledger_options(v)
+    v.set_defaults(run=run_verify)
+    e = logs.add_parser("export", help="export sessions and events as CSV, JSON or DICOM dose reports",
+                        description="Export the sessions that started in [--since, --until] (dates as YYYY-MM-DD, local "
+                                    "time; a date as --until includes that whole day) as CSV (sessions.csv, events.csv), "
+                                    "JSON (ledger.json) or one DICOM X-Ray Radiation Dose SR per ended session. "
+                                    "Never overwrites: an --out folder that already holds those files is refused.")
+    _ledger_options(e)
+    e.add_argument("--since", metavar="DATE", help="first day (or date-time) to include; default: the beginning")
+    e.add_argument("--until", metavar="DATE", help="last day to include (a date-time is exclusive); default: no limit")
+    e.add_argument("--format", choices=export_module.FORMATS, required=True)
+    e.add_argument("--out", required=True, metavar="DIR", help="folder to write into (created if missing)")
+    e.set_defaults(run=run_export)
+    register_bench(benches)

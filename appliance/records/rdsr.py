@@ -1,0 +1,380 @@
+"""DICOM X-Ray Radiation Dose SR (TID 10001) of one ledger session, as dose registries import it.
+
+Structure (PS3.16): the root "X-Ray Radiation Dose Report" container names the procedure
+(Projection X-Ray), the acquisition device type (Fluoroscopy-Guided Projection Radiography
+System, which importers such as OpenREM use to file the report as fluoroscopy), the device
+observer, the scope of accumulation (the study); one "Accumulated X-Ray Dose Data" container
+(TID 10002 with TID 10004 and TID 10007 rows); one "Irradiation Event X-Ray Data" container
+(TID 10003 with its X-ray source rows) per fluoroscopy run; and the source of the
+dose information. Code meanings are the standard's, verbatim: importers match them as text.
+
+Units in the report: Gy.m2 for dose-area products, Gy for reference-point doses, s, kV, mA,
+ms, mm, m2. The ledger records mGy and Gy cm^2; they are converted here.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import io
+import json
+import uuid
+
+from pydicom.dataset import Dataset, FileMetaDataset
+from pydicom.sequence import Sequence
+from pydicom.uid import ExplicitVRLittleEndian, PYDICOM_IMPLEMENTATION_UID
+
+from .. import __version__
+from ..config.case import Patient
+
+XRAY_RADIATION_DOSE_SR = "1.2.840.10008.5.1.4.1.1.88.67"
+
+# (value, scheme, meaning) exactly as PS3.16 spells them.
+REPORT = ("113701", "DCM", "X-Ray Radiation Dose Report")
+PROCEDURE_REPORTED = ("121058", "DCM", "Procedure reported")
+PROJECTION_XRAY = ("113704", "DCM", "Projection X-Ray")
+HAS_INTENT = ("363703001", "SCT", "Has Intent")
+DIAGNOSTIC_INTENT = ("261004008", "SCT", "Diagnostic Intent")
+ACQUISITION_DEVICE_TYPE = ("122142", "DCM", "Acquisition Device Type")
+FLUORO_GUIDED_SYSTEM = ("113957", "DCM", "Fluoroscopy-Guided Projection Radiography System")
+OBSERVER_TYPE = ("121005", "DCM", "Observer Type")
+DEVICE = ("121007", "DCM", "Device")
+DEVICE_OBSERVER_UID = ("121012", "DCM", "Device Observer UID")
+DEVICE_OBSERVER_NAME = ("121013", "DCM", "Device Observer Name")
+DEVICE_OBSERVER_MANUFACTURER = ("121014", "DCM", "Device Observer Manufacturer")
+DEVICE_OBSERVER_MODEL = ("121015", "DCM", "Device Observer Model Name")
+DEVICE_OBSERVER_SERIAL = ("121016", "DCM", "Device Observer Serial Number")
+SCOPE_OF_ACCUMULATION = ("113705", "DCM", "Scope of Accumulation")
+STUDY = ("113014", "DCM", "Study")
+STUDY_INSTANCE_UID = ("110180", "DCM", "Study Instance UID")
+DETECTOR_DATA_AVAILABLE = ("113945", "DCM", "X-Ray Detector Data Available")
+SOURCE_DATA_AVAILABLE = ("113943", "DCM", "X-Ray Source Data Available")
+MECHANICAL_DATA_AVAILABLE = ("113944", "DCM", "X-Ray Mechanical Data Available")
+YES = ("373066001", "SCT", "Yes")
+NO = ("373067005", "SCT", "No")
+ACCUMULATED = ("113702", "DCM", "Accumulated X-Ray Dose Data")
+ACQUISITION_PLANE = ("113764", "DCM", "Acquisition Plane")
+SINGLE_PLANE = ("113622", "DCM", "Single Plane")
+FLUORO_DAP_TOTAL = ("113726", "DCM", "Fluoro Dose Area Product Total")
+FLUORO_DOSE_RP_TOTAL = ("113728", "DCM", "Fluoro Dose (RP) Total")
+TOTAL_FLUORO_TIME = ("113730", "DCM", "Total Fluoro Time")
+ACQUISITION_DAP_TOTAL = ("113727", "DCM", "Acquisition Dose Area Product Total")
+ACQUISITION_DOSE_RP_TOTAL = ("113729", "DCM", "Acquisition Dose (RP) Total")
+TOTAL_ACQUISITION_TIME = ("113855", "DCM", "Total Acquisition Time")
+DAP_TOTAL = ("113722", "DCM", "Dose Area Product Total")
+DOSE_RP_TOTAL = ("113725", "DCM", "Dose (RP) Total")
+RADIOGRAPHIC_FRAMES = ("113731", "DCM", "Total Number of Radiographic Frames")
+DISTANCE_SOURCE_TO_RP = ("113737", "DCM", "Distance Source to Reference Point")
+REFERENCE_POINT_DEFINITION = ("113780", "DCM", "Reference Point Definition")
+RP_15CM_FROM_ISOCENTER = ("113860", "DCM", "15cm from Isocenter toward Source")
+IRRADIATION_EVENT = ("113706", "DCM", "Irradiation Event X-Ray Data")
+IRRADIATION_EVENT_UID = ("113769", "DCM", "Irradiation Event UID")
+DATETIME_STARTED = ("111526", "DCM", "DateTime Started")
+IRRADIATION_EVENT_TYPE = ("113721", "DCM", "Irradiation Event Type")
+FLUOROSCOPY = ("44491008", "SCT", "Fluoroscopy")
+ACQUISITION_PROTOCOL = ("125203", "DCM", "Acquisition Protocol")
+DAP = ("122130", "DCM", "Dose Area Product")
+DOSE_RP = ("113738", "DCM", "Dose (RP)")
+FLUORO_MODE = ("113732", "DCM", "Fluoro Mode")
+PULSED = ("113631", "DCM", "Pulsed")
+CONTINUOUS = ("113630", "DCM", "Continuous")
+PULSE_RATE = ("113791", "DCM", "Pulse Rate")
+NUMBER_OF_PULSES = ("113768", "DCM", "Number of Pulses")
+IRRADIATION_DURATION = ("113742", "DCM", "Irradiation Duration")
+KVP = ("113733", "DCM", "KVP")
+TUBE_CURRENT = ("113734", "DCM", "X-Ray Tube Current")
+PULSE_WIDTH = ("113793", "DCM", "Pulse Width")
+FOCAL_SPOT_SIZE = ("113766", "DCM", "Focal Spot Size")
+COLLIMATED_FIELD_AREA = ("113790", "DCM", "Collimated Field Area")
+COMMENT = ("121106", "DCM", "Comment")
+# Local codes (a "99" scheme, as PS3.16 8.2 allows): a training session has no real diagnosis
+# or requested procedure, but IHE REM requires both to be coded.
+LOCAL_SCHEME = "99FLUOROSIM"
+TRAINING_PROCEDURE = ("TRAINING", LOCAL_SCHEME, "Simulated fluoroscopy training session")
+MPPS_SOP_CLASS = "1.2.840.10008.3.1.2.3.3"
+SOURCE_OF_DOSE_INFORMATION = ("113854", "DCM", "Source of Dose Information")
+AUTOMATED_DATA_COLLECTION = ("113856", "DCM", "Automated Data Collection")
+
+# UCUM units, meanings as the templates give them.
+U_GY_M2 = ("Gy.m2", "UCUM", "Gy.m2")
+U_GY = ("Gy", "UCUM", "Gy")
+U_S = ("s", "UCUM", "s")
+U_KV = ("kV", "UCUM", "kV")
+U_MA = ("mA", "UCUM", "mA")
+U_MS = ("ms", "UCUM", "ms")
+U_MM = ("mm", "UCUM", "mm")
+U_M2 = ("m2", "UCUM", "m2")
+U_PULSE_RATE = ("{pulse}/s", "UCUM", "pulse/s")
+U_PULSES = ("{pulses}", "UCUM", "pulses")
+U_NONE = ("1", "UCUM", "no units")
+
+
+def code(c: tuple[str, str, str]) -> Dataset:
+    ds = Dataset()
+    ds.CodeValue, ds.CodingSchemeDesignator, ds.CodeMeaning = c
+    return ds
+
+
+def _item(relationship: str | None, value_type: str, concept: tuple) -> Dataset:
+    ds = Dataset()
+    if relationship:
+        ds.RelationshipType = relationship
+    ds.ValueType = value_type
+    ds.ConceptNameCodeSequence = Sequence([code(concept)])
+    return ds
+
+
+def container(relationship: str | None, concept: tuple, children: list[Dataset], template: str | None = None) -> Dataset:
+    ds = _item(relationship, "CONTAINER", concept)
+    ds.ContinuityOfContent = "SEPARATE"
+    if template:
+        t = Dataset()
+        t.MappingResource = "DCMR"
+        t.TemplateIdentifier = template
+        ds.ContentTemplateSequence = Sequence([t])
+    ds.ContentSequence = Sequence(children)
+    return ds
+
+
+def code_item(relationship: str, concept: tuple, value: tuple, children: list[Dataset] | None = None) -> Dataset:
+    ds = _item(relationship, "CODE", concept)
+    ds.ConceptCodeSequence = Sequence([code(value)])
+    if children:
+        ds.ContentSequence = Sequence(children)
+    return ds
+
+
+def num_item(relationship: str, concept: tuple, value: float, unit: tuple) -> Dataset:
+    ds = _item(relationship, "NUM", concept)
+    measured = Dataset()
+    measured.NumericValue = _ds_number(value)
+    measured.FloatingPointValue = float(value)
+    measured.MeasurementUnitsCodeSequence = Sequence([code(unit)])
+    ds.MeasuredValueSequence = Sequence([measured])
+    return ds
+
+
+def text_item(relationship: str, concept: tuple, text: str) -> Dataset:
+    ds = _item(relationship, "TEXT", concept)
+    ds.TextValue = text
+    return ds
+
+
+def uid_item(relationship: str, concept: tuple, uid: str, children: list[Dataset] | None = None) -> Dataset:
+    ds = _item(relationship, "UIDREF", concept)
+    ds.UID = uid
+    if children:
+        ds.ContentSequence = Sequence(children)
+    return ds
+
+
+def datetime_item(relationship: str, concept: tuple, when: dt.datetime) -> Dataset:
+    ds = _item(relationship, "DATETIME", concept)
+    ds.DateTime = dicom_datetime(when)
+    return ds
+
+
+def _ds_number(value: float) -> str:
+    """A Decimal String of at most 16 characters that keeps as many digits as fit."""
+    for digits in range(12, 0, -1):
+        text = f"{value:.{digits}g}"
+        if len(text) <= 16:
+            return text
+    return "0"
+
+
+def utc(t_wall: float) -> dt.datetime:
+    return dt.datetime.fromtimestamp(t_wall, tz=dt.timezone.utc)
+
+
+def dicom_datetime(when: dt.datetime) -> str:
+    return when.strftime("%Y%m%d%H%M%S.%f") + "+0000"
+
+
+#: Name-based UUIDs (RFC 4122 version 5) in this namespace give the 2.25 UIDs of PS3.5 B.2.
+_UID_NAMESPACE = uuid.UUID("6f1b9d3e-4a57-5c1e-9f0b-3c6d2a8e7b41")
+
+
+def _uid(*parts) -> str:
+    """A UID derived from ledger content: re-exporting a session gives the same UIDs."""
+    return "2.25." + str(uuid.uuid5(_UID_NAMESPACE, "\x1f".join(str(p) for p in parts)).int)
+
+
+def _observer(equipment: dict, fluoroscope: str) -> list[Dataset]:
+    manufacturer = equipment.get("manufacturer") or "fluorosim"
+    model = equipment.get("model") or fluoroscope
+    serial = equipment.get("serial") or fluoroscope
+    return [
+        code_item("HAS OBS CONTEXT", OBSERVER_TYPE, DEVICE),
+        uid_item("HAS OBS CONTEXT", DEVICE_OBSERVER_UID, _uid("device", manufacturer, model, serial)),
+        text_item("HAS OBS CONTEXT", DEVICE_OBSERVER_NAME, fluoroscope[:64] or "fluorosim"),
+        text_item("HAS OBS CONTEXT", DEVICE_OBSERVER_MANUFACTURER, manufacturer[:64]),
+        text_item("HAS OBS CONTEXT", DEVICE_OBSERVER_MODEL, model[:64]),
+        text_item("HAS OBS CONTEXT", DEVICE_OBSERVER_SERIAL, serial[:64]),
+    ]
+
+
+def _irradiation_event(run: dict, event_hash: str) -> Dataset:
+    pulsed = run.get("pulse_rate_per_s") is not None
+    kerma_gy = run["air_kerma_mgy"] / 1000.0
+    children = [
+        code_item("HAS CONCEPT MOD", ACQUISITION_PLANE, SINGLE_PLANE),
+        uid_item("CONTAINS", IRRADIATION_EVENT_UID, _uid("irradiation event", event_hash)),
+        datetime_item("CONTAINS", DATETIME_STARTED, utc(run["start_wall"])),
+        code_item("CONTAINS", IRRADIATION_EVENT_TYPE, FLUOROSCOPY),
+    ]
+    if run.get("mode"):
+        children.append(text_item("CONTAINS", ACQUISITION_PROTOCOL, f"{run['mode']}, zoom {run.get('zoom')}"))
+    children += [
+        num_item("CONTAINS", DAP, run["dap_gy_cm2"] / 1e4, U_GY_M2),
+        num_item("CONTAINS", DOSE_RP, kerma_gy, U_GY),
+        code_item("CONTAINS", REFERENCE_POINT_DEFINITION, RP_15CM_FROM_ISOCENTER),
+        code_item("CONTAINS", FLUORO_MODE, PULSED if pulsed else CONTINUOUS),
+    ]
+    if pulsed:
+        children += [num_item("CONTAINS", PULSE_RATE, run["pulse_rate_per_s"], U_PULSE_RATE),
+                     num_item("CONTAINS", NUMBER_OF_PULSES, run.get("pulses", 0), U_PULSES)]
+    children.append(num_item("CONTAINS", IRRADIATION_DURATION, run["duration_s"], U_S))
+    if run.get("kvp") is not None:
+        children.append(num_item("CONTAINS", KVP, run["kvp"], U_KV))
+    if run.get("ma") is not None:
+        children.append(num_item("CONTAINS", TUBE_CURRENT, run["ma"], U_MA))
+    if pulsed and run.get("pulse_width_ms") is not None:
+        children.append(num_item("CONTAINS", PULSE_WIDTH, run["pulse_width_ms"], U_MS))
+    if run.get("focal_spot_mm") is not None:
+        children.append(num_item("CONTAINS", FOCAL_SPOT_SIZE, run["focal_spot_mm"], U_MM))
+    if run.get("field_area_cm2") is not None:
+        children.append(num_item("CONTAINS", COLLIMATED_FIELD_AREA, run["field_area_cm2"] / 1e4, U_M2))
+    if run.get("reason") == "recovered":
+        children.append(text_item("CONTAINS", COMMENT, "Run cut off by a power loss or crash; "
+                                                       "values cover the exposure recorded before it."))
+    return container("CONTAINS", IRRADIATION_EVENT, children, "10003")
+
+
+def session_report(session: dict, events: list[dict]) -> Dataset:
+    """The RDSR dataset of one ended session; `session` and `events` are ledger rows."""
+    start = next(e for e in events if e["kind"] == "session_start")
+    start_detail = json.loads(start["detail"])
+    equipment = start_detail.get("equipment") or {}
+    runs = [(json.loads(e["detail"]), e["hash"]) for e in events if e["kind"] == "fluoro_off"]
+    fluoroscope = session["fluoroscope"]
+    study_uid = _uid("study", start["hash"])
+    started, ended = utc(session["started_wall"]), utc(session["ended_wall"] or session["started_wall"])
+    dap_gy_m2 = session["dap_gy_cm2"] / 1e4
+    kerma_gy = session["air_kerma_mgy"] / 1000.0
+    source_to_rp = next((r["source_to_reference_mm"] for r, _ in runs if r.get("source_to_reference_mm")), None)
+
+    accumulated = [
+        code_item("HAS CONCEPT MOD", ACQUISITION_PLANE, SINGLE_PLANE),
+        # TID 10004: fluoroscopy and acquisition totals (a simulator acquires no radiographs).
+        num_item("CONTAINS", FLUORO_DAP_TOTAL, dap_gy_m2, U_GY_M2),
+        num_item("CONTAINS", FLUORO_DOSE_RP_TOTAL, kerma_gy, U_GY),
+        num_item("CONTAINS", TOTAL_FLUORO_TIME, session["fluoro_time_s"], U_S),
+        num_item("CONTAINS", ACQUISITION_DAP_TOTAL, 0.0, U_GY_M2),
+        num_item("CONTAINS", ACQUISITION_DOSE_RP_TOTAL, 0.0, U_GY),
+        num_item("CONTAINS", TOTAL_ACQUISITION_TIME, 0.0, U_S),
+        # TID 10007: the totals over everything.
+        num_item("CONTAINS", DAP_TOTAL, dap_gy_m2, U_GY_M2),
+        num_item("CONTAINS", DOSE_RP_TOTAL, kerma_gy, U_GY),
+        num_item("CONTAINS", RADIOGRAPHIC_FRAMES, 0, U_NONE),
+    ]
+    if source_to_rp is not None:
+        accumulated.append(num_item("CONTAINS", DISTANCE_SOURCE_TO_RP, source_to_rp, U_MM))
+    accumulated.append(code_item("CONTAINS", REFERENCE_POINT_DEFINITION, RP_15CM_FROM_ISOCENTER))
+
+    content = [
+        code_item("HAS CONCEPT MOD", PROCEDURE_REPORTED, PROJECTION_XRAY,
+                  [code_item("HAS CONCEPT MOD", HAS_INTENT, DIAGNOSTIC_INTENT)]),
+        code_item("CONTAINS", ACQUISITION_DEVICE_TYPE, FLUORO_GUIDED_SYSTEM),
+        *_observer(equipment, fluoroscope),
+        code_item("HAS OBS CONTEXT", SCOPE_OF_ACCUMULATION, STUDY,
+                  [uid_item("HAS PROPERTIES", STUDY_INSTANCE_UID, study_uid)]),
+        code_item("CONTAINS", DETECTOR_DATA_AVAILABLE, NO),
+        code_item("CONTAINS", SOURCE_DATA_AVAILABLE, YES),
+        # Positioner angles and table positions (TID 10003C) are not modelled; the fixed source
+        # to reference point distance is given once with the totals (TID 10007).
+        code_item("CONTAINS", MECHANICAL_DATA_AVAILABLE, NO),
+        container("CONTAINS", ACCUMULATED, accumulated, "10002"),
+        *[_irradiation_event(run, h) for run, h in runs],
+        text_item("CONTAINS", COMMENT, f"Simulated fluoroscopy (fluorosim training session {session['id']}, "
+                                       f"case '{session['case_title']}'); no patient was exposed."),
+        code_item("CONTAINS", SOURCE_OF_DOSE_INFORMATION, AUTOMATED_DATA_COLLECTION),
+    ]
+
+    ds = Dataset()
+    ds.SpecificCharacterSet = "ISO_IR 192"
+    scheme = Dataset()
+    scheme.CodingSchemeDesignator = LOCAL_SCHEME
+    scheme.CodingSchemeName = "fluorosim local codes"
+    scheme.CodingSchemeResponsibleOrganization = "fluorosim"
+    ds.CodingSchemeIdentificationSequence = Sequence([scheme])
+    ds.SOPClassUID = XRAY_RADIATION_DOSE_SR
+    ds.SOPInstanceUID = _uid("rdsr", start["hash"], session["id"])
+    ds.StudyDate, ds.StudyTime = started.strftime("%Y%m%d"), started.strftime("%H%M%S")
+    ds.ContentDate, ds.ContentTime = ended.strftime("%Y%m%d"), ended.strftime("%H%M%S")
+    ds.TimezoneOffsetFromUTC = "+0000"
+    ds.AccessionNumber = ""
+    ds.Modality = "SR"
+    ds.Manufacturer = equipment.get("manufacturer") or "fluorosim"
+    ds.ReferringPhysicianName = ""
+    ds.StudyDescription = "Fluoroscopy training (simulated)"
+    ds.SeriesDescription = "Radiation Dose Information"
+    ds.ManufacturerModelName = equipment.get("model") or fluoroscope
+    ds.DeviceSerialNumber = equipment.get("serial") or fluoroscope
+    ds.SoftwareVersions = f"fluorosim {__version__}"
+    ds.InstitutionName = equipment.get("institution") or "fluorosim training appliance"
+    patient = Patient(**{k: v for k, v in (start_detail.get("patient") or {}).items() if k in Patient.model_fields})
+    ds.PatientName = "SIMULATED^TRAINING"
+    ds.PatientID = f"SIM-{session['id']}"
+    ds.PatientBirthDate = ""
+    ds.PatientSex = patient.sex
+    ds.PatientAge = f"{patient.age_years:03d}Y"
+    ds.PatientWeight = _ds_number(patient.weight_kg)
+    ds.PatientSize = _ds_number(patient.height_m)
+    case_title = session["case_title"]
+    ds.AdmittingDiagnosesDescription = f"Training case: {case_title}"[:64]
+    ds.AdmittingDiagnosesCodeSequence = Sequence([code((f"CASE-{_uid('case', case_title)[-10:]}", LOCAL_SCHEME,
+                                                        case_title[:64] or "training case"))])
+    ds.StudyInstanceUID = study_uid
+    ds.SeriesInstanceUID = _uid("series", start["hash"])
+    ds.StudyID = str(session["id"])[:16]
+    ds.SeriesNumber = 999
+    ds.InstanceNumber = 1
+    pps = Dataset()
+    pps.ReferencedSOPClassUID = MPPS_SOP_CLASS
+    pps.ReferencedSOPInstanceUID = _uid("performed procedure step", start["hash"])
+    ds.ReferencedPerformedProcedureStepSequence = Sequence([pps])
+    ds.PerformedProcedureCodeSequence = Sequence([code(TRAINING_PROCEDURE)])
+    ds.CompletionFlag = "COMPLETE"
+    ds.VerificationFlag = "UNVERIFIED"
+    ds.ValueType = "CONTAINER"
+    ds.ConceptNameCodeSequence = Sequence([code(REPORT)])
+    ds.ContinuityOfContent = "SEPARATE"
+    template = Dataset()
+    template.MappingResource = "DCMR"
+    template.TemplateIdentifier = "10001"
+    ds.ContentTemplateSequence = Sequence([template])
+    ds.ContentSequence = Sequence(content)
+    return ds
+
+
+def encode(ds: Dataset) -> bytes:
+    """The dataset as a DICOM Part 10 file."""
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID = ds.SOPClassUID
+    meta.MediaStorageSOPInstanceUID = ds.SOPInstanceUID
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    meta.ImplementationClassUID = PYDICOM_IMPLEMENTATION_UID
+    ds.file_meta = meta
+    buffer = io.BytesIO()
+    ds.save_as(buffer, enforce_file_format=True)
+    return buffer.getvalue()
+
+
+def patient_of(case) -> dict:
+    """What a session records about its virtual patient (CaseProfile -> dict) for the reports."""
+    return case.patient.model_dump()
+
+
+def equipment_of(fluoroscope) -> dict:
+    """What a session records about its machine (FluoroscopeProfile -> dict) for the reports."""
+    return {"manufacturer": fluoroscope.manufacturer, "model": fluoroscope.model, "serial": fluoroscope.name}

@@ -1,0 +1,146 @@
+"""The phantom's pose from one webcam image: composite-marker tracking.
+
+Two ways to the pose, both from the calibrated layout (`T_phantom_from_marker` of each marker):
+
+- "marker" (the seed paper, section 2.2.2): of the visible markers, the one viewed most
+  head-on (smallest ray-to-normal angle) gives T_webcam_from_marker, composed with its
+  calibrated transform.
+- "joint": one PnP over every corner of every visible marker, started from the best
+  single-marker candidate and refined by Levenberg-Marquardt; markers that disagree with
+  the others (a misread id, a marker knocked off its place) are dropped first.
+
+"auto" is "joint": `fluorosim bench tracking` measures it several times more accurate
+(see the figures it prints), with "marker" kept for comparison and as the paper's method.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from ..config.phantom import PhantomProfile
+from ..config.webcam import WebcamProfile
+from ..errors import FluorosimError
+from ..geometry import invert, make_transform
+from .markers import MarkerDetector, MarkerPose, marker_corners, marker_pose
+from .smoothing import PoseFilter, SmoothingSettings
+
+METHODS = ("auto", "joint", "marker")
+
+#: A joint pose whose corners reproject worse than this (RMS, pixels) is refused: the layout or
+#: the intrinsics do not match what the camera sees.
+MAX_RMS_PX = 3.0
+#: A marker whose own corners reproject worse than this under the joint pose (RMS, pixels) is an outlier.
+OUTLIER_PX = 4.0
+#: Markers seen more obliquely than this (ray-to-normal angle, degrees) have corners off by up to
+#: pixels (the printed square is a few pixels tall); they are used only when nothing better is seen.
+GRAZING_DEG = 75.0
+
+
+@dataclass
+class Pose:
+    ok: bool
+    T_webcam_from_phantom: np.ndarray | None     # mm
+    markers: list[int]                           # phantom markers seen in the image
+    method: str                                  # "joint", "marker", or "" when not found
+    t_monotonic: float                           # capture time of the image (s)
+    rms_px: float | None = None                  # corner reprojection RMS of the pose (pixels)
+    used: list[int] = field(default_factory=list)   # markers the pose was computed from
+
+
+class Tracker:
+    """Pose of the phantom in the webcam frame, one image at a time."""
+
+    def __init__(self, phantom: PhantomProfile, webcam: WebcamProfile, method: str = "auto",
+                 smoothing: bool = True, smoothing_settings: SmoothingSettings | None = None) -> None:
+        if method not in METHODS:
+            raise FluorosimError(f"tracking method {method!r} is not one of {', '.join(METHODS)}")
+        self.method = "joint" if method == "auto" else method
+        self.K, self.dist = webcam.camera_matrix(), webcam.distortion()
+        self.size_mm = phantom.marker_size_mm
+        self.layout = {m.id: m.T() for m in phantom.markers}
+        self.detector = MarkerDetector(phantom.aruco_dictionary, self.K, self.dist)
+        self.filter = PoseFilter(smoothing_settings) if smoothing else None
+        corners = marker_corners(self.size_mm)
+        self._obj = {i: corners @ T[:3, :3].T + T[:3, 3] for i, T in self.layout.items()}
+
+    def track(self, image: np.ndarray, t_monotonic: float | None = None) -> Pose:
+        t = time.monotonic() if t_monotonic is None else t_monotonic
+        detected = {i: c for i, c in self.detector.detect(image).items() if i in self.layout}
+        pose = self.pose_from_corners(detected, t)
+        if pose.ok and self.filter is not None:
+            pose.T_webcam_from_phantom = self.filter(pose.T_webcam_from_phantom, t)
+        return pose
+
+    def pose_from_corners(self, detected: dict[int, np.ndarray], t: float) -> Pose:
+        """The unsmoothed pose from detected corners {marker id: (4, 2) pixels}."""
+        seen = sorted(detected)
+        polish = self.method == "marker"        # the joint refinement polishes its own start
+        singles = [p for i in seen
+                   if (p := marker_pose(i, detected[i], self.size_mm, self.K, self.dist, polish)) is not None]
+        if not singles:
+            return Pose(False, None, seen, "", t)
+        clear = [p for p in singles if p.angle_deg <= GRAZING_DEG]
+        if clear:
+            singles = clear
+            detected = {p.marker_id: detected[p.marker_id] for p in clear}
+        if self.method == "marker":
+            best = min(singles, key=lambda p: p.angle_deg)
+            T = best.T_webcam_from_marker @ invert(self.layout[best.marker_id])
+            return Pose(True, T, seen, "marker", t, self._rms(T, {best.marker_id: detected[best.marker_id]}), [best.marker_id])
+        return self._joint(singles, detected, seen, t)
+
+    def _rms(self, T: np.ndarray, detected: dict[int, np.ndarray]) -> float:
+        err = self._residuals(T, detected)
+        return float(np.sqrt(np.mean(np.concatenate(list(err.values())) ** 2)))
+
+    def _residuals(self, T: np.ndarray, detected: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+        """Per marker, the distances (pixels) between detected corners and the corners projected through T."""
+        ids = list(detected)
+        obj = np.concatenate([self._obj[i] for i in ids])
+        rvec = cv2.Rodrigues(T[:3, :3])[0]
+        img, _ = cv2.projectPoints(obj, rvec, T[:3, 3], self.K, self.dist)
+        d = np.linalg.norm(img.reshape(-1, 2) - np.concatenate([detected[i] for i in ids]), axis=1)
+        return {i: d[4 * k:4 * k + 4] for k, i in enumerate(ids)}
+
+    def _joint(self, singles: list[MarkerPose], detected: dict[int, np.ndarray], seen: list[int], t: float) -> Pose:
+        # Each marker's two IPPE solutions are candidates for the whole phantom; the one that best
+        # explains every corner settles each small marker's flip ambiguity.
+        candidates = []
+        for p in singles:
+            for T_wm in (p.T_webcam_from_marker, p.alternative):
+                if T_wm is not None:
+                    candidates.append(T_wm @ invert(self.layout[p.marker_id]))
+
+        def score(T):
+            err = self._residuals(T, detected)
+            # The median marker error, so that one misplaced marker cannot veto a good candidate.
+            return float(np.median([np.sqrt(np.mean(e ** 2)) for e in err.values()]))
+
+        T0 = min(candidates, key=score)
+        err = self._residuals(T0, detected)
+        inliers = {i: detected[i] for i, e in err.items() if np.sqrt(np.mean(e ** 2)) < OUTLIER_PX * 3}
+        if not inliers:
+            return Pose(False, None, seen, "", t)
+        T = self._refine(T0, inliers)
+        err = self._residuals(T, inliers)
+        keep = {i: inliers[i] for i, e in err.items() if np.sqrt(np.mean(e ** 2)) < OUTLIER_PX}
+        if keep and len(keep) < len(inliers):
+            T = self._refine(T, keep)
+        if not keep:
+            return Pose(False, None, seen, "", t)
+        rms = self._rms(T, keep)
+        if rms > MAX_RMS_PX:
+            return Pose(False, None, seen, "", t, rms)
+        return Pose(True, T, seen, "joint", t, rms, sorted(keep))
+
+    def _refine(self, T0: np.ndarray, detected: dict[int, np.ndarray]) -> np.ndarray:
+        ids = list(detected)
+        obj = np.concatenate([self._obj[i] for i in ids])
+        img = np.concatenate([detected[i] for i in ids])
+        rvec, tvec = cv2.Rodrigues(T0[:3, :3])[0], T0[:3, 3].reshape(3, 1).copy()
+        rvec, tvec = cv2.solvePnPRefineLM(obj, img, self.K, self.dist, rvec, tvec)
+        return make_transform(cv2.Rodrigues(rvec)[0], tvec.reshape(3))

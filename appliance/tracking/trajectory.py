@@ -1,0 +1,132 @@
+"""Scripted paths of the phantom as the webcam sees it: JSONL keyframes, interpolated with slerp.
+
+One keyframe per line (blank lines and lines starting with # are skipped):
+
+    {"t": 2.0, "position_mm": [0, 0, 550], "roll_deg": 45, "tilt_deg": 0, "yaw_deg": 10}
+
+`position_mm` is the phantom origin in the webcam frame; the angles turn the phantom from
+the home pose, where the webcam looks straight down at the box's top face with phantom x
+along image columns: roll about phantom x (the box's long axis, patient rolled), tilt
+about phantom y, yaw about the viewing direction. A keyframe may instead give
+`T_webcam_from_phantom` (4x4, mm). Between keyframes the rotation is slerped and the
+position interpolated linearly; the path loops after the last keyframe.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from ..errors import FluorosimError
+from ..geometry import make_transform, rigid_problem, rotation_about
+
+#: Home orientation: the webcam looks down at the top face (phantom z toward the camera).
+R_HOME = np.diag([1.0, -1.0, -1.0])
+
+
+def pose_from_angles(position_mm, roll_deg: float = 0.0, tilt_deg: float = 0.0, yaw_deg: float = 0.0) -> np.ndarray:
+    """T_webcam_from_phantom for the phantom at `position_mm`, turned from the home pose (degrees)."""
+    R = (rotation_about((0, 0, 1), np.radians(yaw_deg)) @ R_HOME
+         @ rotation_about((0, 1, 0), np.radians(tilt_deg)) @ rotation_about((1, 0, 0), np.radians(roll_deg)))
+    return make_transform(R, position_mm)
+
+
+@dataclass
+class Trajectory:
+    """T_webcam_from_phantom as a function of time (s), looping over its keyframes."""
+
+    times: np.ndarray
+    positions: np.ndarray
+    rotations: Rotation
+    loop: bool = True
+
+    @classmethod
+    def from_poses(cls, times, poses, loop: bool = True) -> "Trajectory":
+        poses = np.asarray(poses, dtype=np.float64)
+        return cls(np.asarray(times, dtype=np.float64), poses[:, :3, 3].copy(),
+                   Rotation.from_matrix(poses[:, :3, :3]), loop)
+
+    @classmethod
+    def still(cls, T: np.ndarray) -> "Trajectory":
+        return cls.from_poses([0.0], [T])
+
+    @property
+    def duration(self) -> float:
+        return float(self.times[-1] - self.times[0])
+
+    def __call__(self, t: float) -> np.ndarray:
+        if len(self.times) == 1:
+            return make_transform(self.rotations.as_matrix()[0], self.positions[0])
+        t0 = self.times[0]
+        if self.loop and self.duration > 0:
+            t = t0 + (t - t0) % self.duration
+        t = float(np.clip(t, t0, self.times[-1]))
+        i = int(np.clip(np.searchsorted(self.times, t, side="right") - 1, 0, len(self.times) - 2))
+        span = self.times[i + 1] - self.times[i]
+        a = 0.0 if span <= 0 else (t - self.times[i]) / span
+        R = Slerp([0.0, 1.0], self.rotations[i:i + 2])([a]).as_matrix()[0]
+        p = (1 - a) * self.positions[i] + a * self.positions[i + 1]
+        return make_transform(R, p)
+
+
+def load_trajectory(path: str | Path) -> Trajectory:
+    """Read a JSONL keyframe file, or raise FluorosimError naming the file and line."""
+    path = Path(path)
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        raise FluorosimError(f"{path}: trajectory file does not exist; check devices.camera.trajectory") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise FluorosimError(f"{path}: cannot read the trajectory ({e}); it must be UTF-8 JSONL") from None
+    times, poses = [], []
+    for n, line in enumerate(lines, start=1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        where = f"{path}:{n}"
+        try:
+            k = json.loads(line)
+        except json.JSONDecodeError as e:
+            raise FluorosimError(f"{where}: not valid JSON ({e.msg}); write one keyframe object per line") from None
+        if not isinstance(k, dict) or not isinstance(k.get("t"), (int, float)):
+            raise FluorosimError(f'{where}: a keyframe needs a number "t" (s), e.g. {{"t": 0, "position_mm": [0, 0, 550]}}')
+        unknown = set(k) - {"t", "position_mm", "roll_deg", "tilt_deg", "yaw_deg", "T_webcam_from_phantom"}
+        if unknown:
+            raise FluorosimError(f"{where}: unknown key(s) {', '.join(sorted(unknown))}; allowed: t, position_mm, "
+                                 "roll_deg, tilt_deg, yaw_deg, T_webcam_from_phantom")
+        try:
+            if "T_webcam_from_phantom" in k:
+                T = np.asarray(k["T_webcam_from_phantom"], dtype=np.float64)
+                problem = rigid_problem(T)
+                if problem:
+                    raise ValueError(f"T_webcam_from_phantom {problem}")
+            else:
+                pos = np.asarray(k.get("position_mm"), dtype=np.float64)
+                if pos.shape != (3,):
+                    raise ValueError("position_mm must be three numbers (mm)")
+                T = pose_from_angles(pos, float(k.get("roll_deg", 0)), float(k.get("tilt_deg", 0)), float(k.get("yaw_deg", 0)))
+        except (TypeError, ValueError) as e:
+            raise FluorosimError(f"{where}: {e}") from None
+        if T[2, 3] <= 0:
+            raise FluorosimError(f"{where}: the phantom must be in front of the webcam (z > 0 mm)")
+        if times and k["t"] <= times[-1]:
+            raise FluorosimError(f"{where}: t = {k['t']} s does not increase (previous keyframe t = {times[-1]} s)")
+        times.append(float(k["t"]))
+        poses.append(T)
+    if not poses:
+        raise FluorosimError(f"{path}: holds no keyframes")
+    return Trajectory.from_poses(times, poses)
+
+
+def random_poses(rng: np.random.Generator, n: int, distance_mm=(400.0, 700.0), roll_deg=(-90.0, 90.0),
+                 tilt_deg=(-20.0, 20.0), yaw_deg=(-30.0, 30.0), offset_mm: float = 40.0) -> list[np.ndarray]:
+    """`n` poses of the phantom in the range a trainee uses (uniform in each range)."""
+    out = []
+    for _ in range(n):
+        z = rng.uniform(*distance_mm)
+        out.append(pose_from_angles([rng.uniform(-offset_mm, offset_mm), rng.uniform(-offset_mm, offset_mm), z],
+                                    rng.uniform(*roll_deg), rng.uniform(*tilt_deg), rng.uniform(*yaw_deg)))
+    return out

@@ -1,0 +1,202 @@
+"""provisioning/install.sh: the tree it installs, checked file by file; dry runs; idempotence."""
+
+from __future__ import annotations
+
+import os
+import pwd
+import shutil
+import stat
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from appliance.config import ApplianceProfile, load_profile, validate_paths
+
+REPO = Path(__file__).resolve().parents[1]
+INSTALL = REPO / "provisioning" / "install.sh"
+PROFILE_KINDS = ("fluoroscopes", "cases", "phantoms", "keymaps", "webcams")
+
+
+def run_install(*args, user: str | None = None) -> subprocess.CompletedProcess:
+    argv = ["bash", str(INSTALL), *args]
+    if user:
+        entry = pwd.getpwnam(user)
+        argv = ["setpriv", f"--reuid={entry.pw_uid}", f"--regid={entry.pw_gid}", "--clear-groups", *argv]
+    result = subprocess.run(argv, capture_output=True, text=True, timeout=120, cwd="/")
+    if user and "Permission denied" in result.stderr:
+        pytest.skip(f"user {user} cannot read this checkout, so the script cannot be run as that user")
+    return result
+
+
+def snapshot(root: Path) -> dict[str, tuple]:
+    """Every path under root: (kind, mode, content or link target)."""
+    tree = {}
+    for dirpath, dirnames, filenames in os.walk(root):
+        for name in dirnames + filenames:
+            p = Path(dirpath) / name
+            st = p.lstat()
+            rel = str(p.relative_to(root))
+            if stat.S_ISLNK(st.st_mode):
+                tree[rel] = ("link", os.readlink(p))
+            elif stat.S_ISDIR(st.st_mode):
+                tree[rel] = ("dir", stat.S_IMODE(st.st_mode))
+            else:
+                tree[rel] = ("file", stat.S_IMODE(st.st_mode), p.read_bytes())
+    return tree
+
+
+@pytest.fixture(scope="module")
+def installed(tmp_path_factory):
+    root = tmp_path_factory.mktemp("image") / "root"
+    result = run_install("--root", str(root))
+    assert result.returncode == 0, result.stderr
+    return root, result.stdout
+
+
+def test_units_rules_and_user_definition_are_installed(installed):
+    root, _ = installed
+    for shipped, dest in (("systemd/fluorosim.service", "etc/systemd/system/fluorosim.service"),
+                          ("systemd/99-fluorosim.rules", "etc/udev/rules.d/99-fluorosim.rules"),
+                          ("provisioning/sysusers-fluorosim.conf", "usr/lib/sysusers.d/fluorosim.conf"),
+                          ("provisioning/modules-fluorosim.conf", "etc/modules-load.d/fluorosim.conf"),
+                          ("provisioning/journald-fluorosim.conf", "etc/systemd/journald.conf.d/fluorosim.conf"),
+                          ("provisioning/grub-fluorosim.cfg", "etc/default/grub.d/fluorosim.cfg")):
+        target = root / dest
+        assert target.read_bytes() == (REPO / shipped).read_bytes(), dest
+        assert stat.S_IMODE(target.stat().st_mode) == 0o644, dest
+
+
+def test_profiles_in_etc_name_the_real_devices_and_validate(installed):
+    root, _ = installed
+    etc = root / "etc/fluorosim"
+    for kind in PROFILE_KINDS:
+        shipped = sorted(p.name for p in (REPO / "configs" / kind).iterdir() if p.is_file())
+        assert shipped and sorted(p.name for p in (etc / kind).iterdir()) == shipped, kind
+        for name in shipped:
+            assert (etc / kind / name).read_bytes() == (REPO / "configs" / kind / name).read_bytes()
+    appliance = etc / "appliance.yaml"
+    assert validate_paths([appliance]) == [], "the installed profile and every profile it names are valid"
+    profile = load_profile(appliance, ApplianceProfile)
+    assert profile.devices.camera.source == "/dev/fluorosim/camera"
+    assert profile.devices.keypad.source == "/dev/fluorosim/keypad"
+    assert profile.devices.pedal.source == "/dev/fluorosim/pedal"
+    assert profile.devices.display.target == "/dev/fb0"
+    assert profile.data_dir == "/var/lib/fluorosim"
+
+
+def test_code_state_journal_and_boot_settings(installed):
+    root, _ = installed
+    src = root / "opt/fluorosim/src"
+    for rel in ("pyproject.toml", "appliance/cli.py", "drivers/framebuffer.py", "appliance/display/compositor.py"):
+        assert (src / rel).read_bytes() == (REPO / rel).read_bytes(), rel
+    assert not list(src.rglob("__pycache__")) and not (src / "tests").exists()
+    for d in ("var/lib/fluorosim", "var/log/fluorosim", "var/cache/fluorosim"):
+        assert stat.S_IMODE((root / d).stat().st_mode) == 0o750, d
+    assert (root / "var/log/journal").is_dir()
+    assert "Storage=persistent" in (root / "etc/systemd/journald.conf.d/fluorosim.conf").read_text()
+    system = root / "etc/systemd/system"
+    # What `systemctl enable`, `set-default multi-user.target` and `mask getty@tty1` write.
+    assert os.readlink(system / "multi-user.target.wants/fluorosim.service") == "/etc/systemd/system/fluorosim.service"
+    assert os.readlink(system / "default.target").endswith("/systemd/system/multi-user.target")
+    assert os.readlink(system / "getty@tty1.service") == "/dev/null"
+    assert os.readlink(system / "autovt@tty1.service") == "/dev/null"
+    assert "quiet" in (root / "etc/default/grub.d/fluorosim.cfg").read_text()
+
+
+def test_system_changes_are_listed_as_skipped_under_root(installed):
+    _, out = installed
+    skipped = [line for line in out.splitlines() if line.startswith("skipped (--root):")]
+    for word in ("system packages", "systemd-sysusers", "virtualenv", "chown", "systemctl daemon-reload", "update-grub",
+                 "systemctl restart fluorosim.service", "systemd-journald"):
+        assert any(word in line for line in skipped), word
+
+
+def test_the_installed_unit_verifies_in_the_installed_tree(installed, tmp_path):
+    analyze = shutil.which("systemd-analyze")
+    if analyze is None:
+        pytest.skip("systemd-analyze is not installed (Debian package: systemd)")
+    root = tmp_path / "root"
+    shutil.copytree(installed[0], root, symlinks=True)
+    system_units = next(p for p in (Path("/usr/lib/systemd/system"), Path("/lib/systemd/system")) if p.is_dir())
+    shutil.copytree(system_units, root / "usr/lib/systemd/system", symlinks=True, dirs_exist_ok=True)
+    exe = root / "opt/fluorosim/venv/bin/fluorosim"   # the virtualenv pip would have made
+    exe.parent.mkdir(parents=True)
+    exe.write_text("#!/bin/sh\n")
+    exe.chmod(0o755)
+    result = subprocess.run([analyze, "verify", f"--root={root}", "fluorosim.service"], capture_output=True, text=True)
+    assert result.returncode == 0 and result.stderr.strip() == "", result.stderr
+
+
+def test_sysusers_definition_creates_the_user_with_its_groups(installed, tmp_path):
+    sysusers = shutil.which("systemd-sysusers")
+    if sysusers is None:
+        pytest.skip("systemd-sysusers is not installed (Debian package: systemd)")
+    root = tmp_path / "root"
+    (root / "etc").mkdir(parents=True)
+    result = subprocess.run([sysusers, f"--root={root}", str(installed[0] / "usr/lib/sysusers.d/fluorosim.conf")],
+                            capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    passwd = {line.split(":")[0]: line.split(":") for line in (root / "etc/passwd").read_text().splitlines()}
+    assert passwd["fluorosim"][5] == "/var/lib/fluorosim" and passwd["fluorosim"][6].endswith("nologin")
+    groups = {line.split(":")[0]: line.split(":")[3].split(",") for line in (root / "etc/group").read_text().splitlines()}
+    for group in ("video", "input", "dialout", "audio"):
+        assert "fluorosim" in groups[group], group
+    assert "fluorosim" not in groups.get("sudo", []) and "fluorosim" not in groups.get("root", [])
+
+
+def test_second_run_changes_nothing_and_keeps_local_profile_edits(tmp_path):
+    root = tmp_path / "root"
+    assert run_install("--root", str(root)).returncode == 0
+    edited = root / "etc/fluorosim/appliance.yaml"
+    edited.write_text(edited.read_text().replace("operator: trainee", "operator: dr-smith"))
+    (root / "etc/fluorosim/fluoroscopes/generic-ii-carm.yaml").write_text("# calibrated on site\n")
+    (root / "etc/systemd/system/fluorosim.service").write_text("stale\n")
+    before = snapshot(root)
+    second = run_install("--root", str(root))
+    assert second.returncode == 0, second.stderr
+    after = snapshot(root)
+    assert "operator: dr-smith" in edited.read_text()
+    assert (root / "etc/fluorosim/fluoroscopes/generic-ii-carm.yaml").read_text() == "# calibrated on site\n"
+    assert (root / "etc/systemd/system/fluorosim.service").read_bytes() == (REPO / "systemd/fluorosim.service").read_bytes()
+    changed = {k for k in set(before) | set(after) if before.get(k) != after.get(k)}
+    assert changed == {"etc/systemd/system/fluorosim.service"}
+    third = run_install("--root", str(root))
+    assert third.returncode == 0 and snapshot(root) == after
+
+
+def test_dry_run_lists_every_step_and_writes_nothing(tmp_path):
+    root = tmp_path / "root"
+    result = run_install("--dry-run", "--root", str(root))
+    assert result.returncode == 0, result.stderr
+    assert not root.exists()
+    lines = result.stdout.splitlines()
+    assert sum(line.startswith("would: ") for line in lines) >= 8
+    assert any(line.startswith("skipped (--root): install system packages") for line in lines)
+
+
+def test_dry_run_on_this_machine_lists_the_system_steps(tmp_path):
+    # As an unprivileged user, so that a dry run that did something would fail instead of changing this machine.
+    if shutil.which("setpriv") is None or os.geteuid() != 0:
+        pytest.skip("needs root and setpriv (util-linux) to run the dry run as user nobody")
+    result = run_install("--dry-run", user="nobody")
+    assert result.returncode == 0, result.stderr
+    out = result.stdout
+    for step in ("install system packages", "systemd-sysusers", "virtualenv", "/etc/systemd/system/fluorosim.service",
+                 "udev rules", "journal", "enable fluorosim.service", "no getty on tty1", "update-grub",
+                 "systemctl restart fluorosim.service"):
+        assert step in out, step
+    assert "skipped" not in out and "==>" not in out
+
+
+def test_refuses_to_change_the_system_unless_root():
+    if shutil.which("setpriv") is None or os.geteuid() != 0:
+        pytest.skip("needs root and setpriv (util-linux) to run as user nobody")
+    result = run_install(user="nobody")
+    assert result.returncode == 2 and "run as root" in result.stderr
+
+
+def test_bad_arguments_print_usage():
+    for args in (["--root"], ["--frobnicate"]):
+        result = run_install(*args)
+        assert result.returncode == 2 and "usage:" in result.stderr, args

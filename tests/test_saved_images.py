@@ -1,0 +1,80 @@
+"""Saved images: PNG and DICOM RF with the geometry and exposure of the moment."""
+
+import shutil
+import subprocess
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pydicom
+import pytest
+
+from appliance.config import FluoroscopeProfile, KeymapProfile, load_profile
+from appliance.console.state import Console
+from appliance.errors import FluorosimError
+from appliance.records.saved_images import save_image
+from drivers.input_event import InputEvent
+
+REPO = Path(__file__).resolve().parents[1]
+II = load_profile(REPO / "configs/fluoroscopes/generic-ii-carm.yaml", FluoroscopeProfile)
+KEYMAP = load_profile(REPO / "configs/keymaps/usb-numeric-keypad.yaml", KeymapProfile)
+
+
+def console_after_pulsed_run():
+    c = Console(II, KEYMAP, t0=0.0)
+    for t, key in ((0.0, "KEY_KP5"), (0.1, "KEY_KP2"), (0.2, "KEY_KP9"), (0.3, "KEY_KP9"), (0.4, "KEY_KP6")):
+        c.handle(InputEvent(t, "keypad", key, True))
+    c.handle(InputEvent(1.0, "pedal", "pedal", True))
+    c.handle(InputEvent(7.0, "pedal", "pedal", False))
+    c.handle(InputEvent(8.0, "keypad", "KEY_KPPLUS", True))
+    return c.snapshot()
+
+
+def test_png_and_dicom_carry_pixels_geometry_and_exposure(tmp_path):
+    state = console_after_pulsed_run()
+    assert state.zoom == 2 and state.collimation_mm == (150.0, 160.0) and state.held
+    rng = np.random.default_rng(0)
+    image = rng.integers(0, 256, size=(400, 500), dtype=np.uint8)
+    png, dcm = save_image(image, state, II, tmp_path, t_wall=1_700_000_000.0, session_id=12, operator="Trainee",
+                          case_title="Child torso", patient={"sex": "O", "age_years": 6, "weight_kg": 21, "height_m": 1.16})
+    assert png.name == "image-000012-0001.png" and dcm.name == "image-000012-0001.dcm"
+    assert np.array_equal(cv2.imread(str(png), cv2.IMREAD_UNCHANGED), image)
+    ds = pydicom.dcmread(dcm)
+    assert np.array_equal(ds.pixel_array, image)
+    assert ds.Modality == "RF" and ds.PixelIntensityRelationship == "DISP"
+    assert float(ds.KVP) == 75.0 and ds.XRayTubeCurrent == 2 and ds.RadiationMode == "PULSED"
+    assert float(ds.AveragePulseWidth) == 10.0 and ds.ExposureTime == 10
+    assert float(ds.DistanceSourceToDetector) == 1000.0 and float(ds.DistanceSourceToPatient) == 620.0
+    # Zoom 2 is a 170 mm field over the image's 500 columns.
+    pitch = 170.0 / 500
+    assert [float(v) for v in ds.ImagerPixelSpacing] == pytest.approx([pitch, pitch])
+    assert ds.FieldOfViewShape == "ROUND" and ds.FieldOfViewDimensions == 170
+    # Blades 150 mm x 160 mm, centred.
+    assert ds.CollimatorLeftVerticalEdge == round((500 - 150 / pitch) / 2)
+    assert ds.CollimatorRightVerticalEdge == round((500 + 150 / pitch) / 2)
+    assert ds.CollimatorUpperHorizontalEdge == round((400 - 160 / pitch) / 2)
+    assert float(ds.ImageAndFluoroscopyAreaDoseProduct) == pytest.approx(state.dap_gy_cm2 * 10, rel=1e-9)
+    assert ds.PatientAge == "006Y" and ds.PatientSex == "O"
+    if shutil.which("dciodvfy"):
+        result = subprocess.run(["dciodvfy", str(dcm)], capture_output=True, text=True)
+        errors = [l for l in (result.stdout + result.stderr).splitlines() if l.startswith("Error")]
+        assert not errors, result.stderr
+
+
+def test_float_and_16_bit_images(tmp_path):
+    state = console_after_pulsed_run()
+    ramp = np.linspace(0.0, 1.0, 256)[None, :].repeat(4, axis=0)
+    png, dcm = save_image(ramp, state, II, tmp_path, t_wall=1.7e9)
+    assert np.array_equal(pydicom.dcmread(dcm).pixel_array[0], np.arange(256, dtype=np.uint8))
+    deep = (np.arange(64 * 64, dtype=np.uint16) * 16).reshape(64, 64)
+    png, dcm = save_image(deep, state, II, tmp_path / "deep", t_wall=1.7e9)
+    assert pydicom.dcmread(dcm).BitsStored == 16 and np.array_equal(pydicom.dcmread(dcm).pixel_array, deep)
+    assert np.array_equal(cv2.imread(str(png), cv2.IMREAD_UNCHANGED), deep)
+
+
+def test_never_overwrites(tmp_path):
+    state = console_after_pulsed_run()
+    save_image(np.zeros((8, 8), np.uint8), state, II, tmp_path, t_wall=1.7e9)
+    with pytest.raises(FluorosimError, match="refusing to overwrite"):
+        save_image(np.ones((8, 8), np.uint8), state, II, tmp_path, t_wall=1.7e9)
+    assert cv2.imread(str(tmp_path / "image-000000-0001.png"), cv2.IMREAD_UNCHANGED).max() == 0

@@ -1,0 +1,97 @@
+"""`fluorosim render`: the command-line contract, run as a separate process."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from appliance.config.fluoroscope import FluoroscopeProfile
+from appliance.config.loading import load_profile
+from appliance.geometry import make_transform, rotation_about
+from appliance.xray.analytic import box_chords, box_volume, pixel_rays_ct
+
+ROOT = Path(__file__).resolve().parents[1]
+PROFILE = ROOT / "configs" / "fluoroscopes" / "generic-flat-detector.yaml"
+
+
+def fluorosim(*args, cwd):
+    return subprocess.run([sys.executable, "-m", "appliance", *map(str, args)], cwd=cwd, capture_output=True,
+                          text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=120)
+
+
+def small_profile(d):
+    """The flat-panel room read out at 256 x 256 (pitch and intrinsics scaled), to keep the test quick."""
+    text = PROFILE.read_text()
+    for old, new in (("columns: 1024", "columns: 256"), ("rows: 1024", "rows: 256"),
+                     ("pixel_pitch_mm: 0.296", "pixel_pitch_mm: 1.184"), ("fx: 3716.216", "fx: 929.054"),
+                     ("fy: 3716.216", "fy: 929.054"), ("cx: 511.5", "cx: 127.5"), ("cy: 511.5", "cy: 127.5")):
+        assert old in text
+        text = text.replace(old, new)
+    (d / "flat256.yaml").write_text(text)
+    return d / "flat256.yaml"
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    d = tmp_path_factory.mktemp("render")
+    small_profile(d)
+    vol, lo, hi = box_volume((20, 24, 24), (5.0, 5.0, 5.0), (4, 6, 3), (19, 17, 16), hu=0)
+    img = sitk.GetImageFromArray(vol.hu)
+    img.SetSpacing((5.0, 5.0, 5.0))
+    img.SetOrigin(tuple(vol.T_ct_from_voxel[:3, 3]))
+    sitk.WriteImage(img, str(d / "box.nii.gz"))
+    T = make_transform(rotation_about([0.2, 1.0, 0.0], 0.4), [3.0, -2.0, 750.0])
+    (d / "pose.yaml").write_text("T_xray_from_ct:\n" + "".join(f"  - [{', '.join(f'{x:.12g}' for x in row)}]\n" for row in T))
+    return d, lo, hi, T
+
+
+def test_line_integral_npy_matches_closed_form(case):
+    d, lo, hi, T = case
+    r = fluorosim("render", "--volume", "box.nii.gz", "--fluoroscope", "flat256.yaml", "--pose", "pose.yaml",
+                  "--quantity", "line-integral", "--output", "li.npy", cwd=d)
+    assert r.returncode == 0, r.stderr
+    mu = float(r.stdout.split("mu_water = ")[1].split()[0])
+    img = np.load(d / "li.npy")
+    f = load_profile(d / "flat256.yaml", FluoroscopeProfile)
+    assert img.shape == (f.detector.rows, f.detector.columns) and img.dtype == np.float32
+    s, dirs = pixel_rays_ct(f.intrinsics.K(), T, f.detector.rows, f.detector.columns)
+    truth = box_chords(s, dirs, lo, hi) * mu
+    sel = truth > 10 * mu
+    rel = np.abs(img[sel] - truth[sel]) / truth[sel]
+    assert sel.sum() > 500 and rel.max() < 0.005 and rel.mean() < 0.001
+
+
+def test_display_png_and_zoom(case):
+    d, _, _, _ = case
+    r = fluorosim("render", "--volume", "box.nii.gz", "--fluoroscope", "flat256.yaml", "--pose", "pose.yaml",
+                  "--quantity", "display", "--output", "d.png", "--zoom", "2", "--seed", "1", cwd=d)
+    assert r.returncode == 0, r.stderr
+    import cv2
+    img = cv2.imread(str(d / "d.png"), cv2.IMREAD_UNCHANGED)
+    assert img.shape == (256, 256) and img.dtype == np.uint8 and img.max() > 0
+
+
+@pytest.mark.parametrize("change, expect", [
+    ({"pose": "bad_pose.yaml"}, "not a rigid transform"),
+    ({"volume": "missing.nii"}, "no such file"),
+    ({"volume": "junk.mha"}, "cannot read"),
+    ({"output": "nowhere/out.npy"}, "does not exist"),
+    ({"fluoroscope": "bad_profile.yaml"}, "bad_profile.yaml"),
+])
+def test_bad_input_exits_2_with_one_line(case, change, expect):
+    d, _, _, T = case
+    (d / "bad_pose.yaml").write_text("T_xray_from_ct:\n" + "".join(f"  - [{', '.join(str(2 * x) for x in row)}]\n" for row in T))
+    (d / "junk.mha").write_text("ObjectType = Image\nNDims = 3\n")
+    (d / "bad_profile.yaml").write_text((d / "flat256.yaml").read_text().replace("kvp: 70", "kvp: 7000"))
+    args = {"volume": "box.nii.gz", "fluoroscope": "flat256.yaml", "pose": "pose.yaml", "output": "o.npy"}
+    args.update(change)
+    r = fluorosim("render", "--volume", args["volume"], "--fluoroscope", args["fluoroscope"], "--pose", args["pose"],
+                  "--quantity", "line-integral", "--output", args["output"], cwd=d)
+    assert r.returncode == 2
+    assert expect in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "Traceback" not in r.stderr

@@ -1,0 +1,199 @@
+"""The renderer's physics and detector model, each checked against an independent computation."""
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+import spekpy
+import xraylib
+
+from appliance.config.case import Materials
+from appliance.config.fluoroscope import FluoroscopeProfile
+from appliance.config.loading import load_profile
+from appliance.errors import FluorosimError
+from appliance.geometry import make_transform, rotation_about
+from appliance.xray.analytic import box_chords, box_volume, pixel_rays_ct
+from appliance.xray.renderer import Renderer, View, at_resolution, zoomed_K
+from pathlib import Path
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "fluoroscopes"
+
+
+def profile(name, size=128, **updates):
+    f = at_resolution(load_profile(CONFIGS / name, FluoroscopeProfile), size, size)
+    for section, values in updates.items():
+        f = f.model_copy(update={section: getattr(f, section).model_copy(update=values)})
+    return f
+
+
+@pytest.fixture(scope="module")
+def flat():
+    return Renderer(profile("generic-flat-detector.yaml"), Materials(), device="cpu")
+
+
+@pytest.fixture(scope="module")
+def slab(flat):
+    """A 40 mm water slab (0 HU) filling the beam: 64 x 64 x 16 voxels of 6 x 6 x 2.5 mm."""
+    vol, lo, hi = box_volume((16, 64, 64), (6.0, 6.0, 2.5), (0, 0, 0), (63, 63, 15))
+    return flat.prepare(vol), lo, hi
+
+
+POSE = make_transform(np.eye(3), [0.0, 0.0, 750.0])
+
+
+def slab_path_mm(renderer, lo, hi):
+    rows, cols = renderer.shape
+    s, d = pixel_rays_ct(zoomed_K(renderer.fluoroscope, 1), POSE, rows, cols)
+    return box_chords(s, d, lo, hi)
+
+
+def test_monochromatic_intensity_is_beer_lambert_at_the_effective_energy(flat, slab):
+    prepared, lo, hi = slab
+    ref = spekpy.Spek(kvp=70, th=12)
+    ref.filter("Al", 6.0)
+    e_eff = ref.get_eeff()
+    mu = xraylib.CS_Total_CP("Tissue, Soft (ICRP)", e_eff) * 1.0 / 10.0      # 1/mm at 1 g/cm^3
+    L = slab_path_mm(flat, lo, hi)
+    img = flat.render(prepared, POSE, View(quantity="intensity", noise=False, polychromatic=False))
+    c = slice(40, 88)                  # away from the slab's edges, where blur cannot reach
+    np.testing.assert_allclose(img[c, c], np.exp(-mu * L[c, c]), rtol=2e-3)
+
+
+def test_polychromatic_intensity_sums_the_spectrum(flat, slab):
+    prepared, lo, hi = slab
+    ref = spekpy.Spek(kvp=70, th=12)
+    ref.filter("Al", 6.0)
+    k, phi = ref.get_spectrum()
+    mu = np.array([xraylib.CS_Total_CP("Tissue, Soft (ICRP)", float(e)) for e in k]) / 10.0
+    L = slab_path_mm(flat, lo, hi)[64, 64]
+    expected = np.sum(phi * k * np.exp(-mu * L)) / np.sum(phi * k)      # fine 0.5 keV spectrum, energy-integrating
+    img = flat.render(prepared, POSE, View(quantity="intensity", noise=False))
+    assert img[64, 64] == pytest.approx(expected, rel=0.01)
+    mono = flat.render(prepared, POSE, View(quantity="intensity", noise=False, polychromatic=False))
+    assert img[64, 64] > mono[64, 64]       # beam hardening: the spectrum's soft end is filtered out first
+
+
+def test_display_is_window_level_of_minus_log(flat, slab):
+    prepared, _, _ = slab
+    I = flat.render(prepared, POSE, View(quantity="intensity", noise=False))
+    disp = flat.render(prepared, POSE, View(quantity="display", noise=False))
+    w, l = flat.fluoroscope.display.window, flat.fluoroscope.display.level
+    np.testing.assert_allclose(disp, np.clip((-np.log(I) - (l - w / 2)) / w, 0, 1), atol=1e-5)
+    inv = flat.render(prepared, POSE, View(quantity="display", noise=False, invert=True))
+    np.testing.assert_allclose(inv, 1 - disp, atol=1e-6)
+
+
+def test_quantum_noise_is_poisson_with_the_photon_count(flat, slab):
+    prepared, _, _ = slab
+    clean = flat.render(prepared, POSE, View(quantity="intensity", noise=False))
+    noisy = flat.render(prepared, POSE, View(quantity="intensity", noise=True, seed=3))
+    n0 = flat.photons_per_pixel(1)
+    # Independent photon count: spekpy fluence at 1 m, inverse square to the SID, mAs, pixel area.
+    ref = spekpy.Spek(kvp=70, th=12)
+    ref.filter("Al", 6.0)
+    f = flat.fluoroscope
+    expected_n0 = ref.get_flu() / 100 * (1000 / 1100) ** 2 * 3.0 * 0.008 * f.detector.pixel_pitch_mm ** 2
+    assert n0 == pytest.approx(expected_n0, rel=0.02)
+    c = slice(20, 108)
+    ratio = noisy[c, c] / clean[c, c]
+    assert ratio.mean() == pytest.approx(1.0, abs=0.01)
+    expected_sd = 1 / math.sqrt(n0 * float(clean[c, c].mean()))
+    assert ratio.std() == pytest.approx(expected_sd, rel=0.1)
+    again = flat.render(prepared, POSE, View(quantity="intensity", noise=True, seed=3))
+    np.testing.assert_array_equal(noisy, again)
+
+
+def test_zoom_scales_the_focal_length_not_the_image(flat):
+    vol, lo, hi = box_volume((16, 32, 32), (2.0, 2.0, 2.5), (10, 12, 4), (21, 19, 11))
+    prepared = flat.prepare(vol)
+    f = flat.fluoroscope
+    for zoom in (1, 3):
+        img = flat.render(prepared, POSE, View(quantity="line-integral", zoom=zoom))
+        scale = f.zoom_levels[0].fov_mm / f.zoom_levels[zoom - 1].fov_mm
+        K = np.array([[f.intrinsics.fx * scale, 0, f.intrinsics.cx], [0, f.intrinsics.fy * scale, f.intrinsics.cy], [0, 0, 1]])
+        s, d = pixel_rays_ct(K, POSE, *flat.shape)
+        truth = box_chords(s, d, lo, hi) * flat.mu_water_per_mm
+        assert img.shape == flat.shape
+        np.testing.assert_allclose(img, truth, atol=2e-4 * truth.max())
+        width = (img.max(axis=0) > 0).sum()
+        assert width == pytest.approx(24 * 1100 / 750 * scale / f.detector.pixel_pitch_mm, abs=2)
+
+
+def test_collimation_and_intensifier_field():
+    ii = Renderer(profile("generic-ii-carm.yaml"), Materials(), device="cpu")
+    vol, _, _ = box_volume((16, 64, 64), (6.0, 6.0, 2.5), (0, 0, 0), (63, 63, 15))
+    prepared = ii.prepare(vol)
+    T = make_transform(np.eye(3), [0.0, 0.0, 620.0])
+    open_ = ii.render(prepared, T, View(noise=False))
+    assert open_[0, 0] == 0 and open_[127, 127] == 0          # outside the intensifier's circle
+    assert open_[64, 64] > 0 and open_[64, 2] > 0             # inside it
+    pitch = ii.fluoroscope.detector.pixel_pitch_mm
+    col = ii.render(prepared, T, View(noise=False, collimation_mm=(60.0, 30.0)))
+    lit = col > 0
+    assert lit[64].sum() == pytest.approx(60.0 / pitch, abs=1.5)
+    assert lit[:, 64].sum() == pytest.approx(30.0 / pitch, abs=1.5)
+    # Collimated-out pixels are never cast: the material integrals there are zero.
+    lines = ii.material_integrals(prepared, T, View(collimation_mm=(60.0, 30.0)))
+    assert np.all(lines[~lit] == 0) and np.all(lines[lit].sum(-1) > 0)
+    # Vignetting: the open-field signal falls toward the edge of the circle.
+    air = ii.prepare(box_volume((4, 4, 4), (1.0, 1.0, 1.0), (0, 0, 0), (0, 0, 0), hu=-1000)[0])
+    I = ii.render(air, T, View(quantity="intensity", noise=False))
+    assert I[64, 64] == pytest.approx(1.0, abs=1e-4)
+    r = ii.fluoroscope.zoom_levels[0].fov_mm / pitch / 2
+    assert I[64, 64 + int(r * 0.7)] == pytest.approx(1 - ii.fluoroscope.detector.vignetting * (int(r * 0.7) + 0.5) ** 2 / r**2, abs=2e-3)
+
+
+def test_distortion_moves_objects_where_opencv_projects_them():
+    ii = Renderer(profile("generic-ii-carm.yaml"), Materials(), device="cpu")
+    f = ii.fluoroscope
+    # A dense 4 mm cube off-axis in an otherwise empty grid.
+    vol, lo, hi = box_volume((41, 41, 41), (1.0, 1.0, 1.0), (26, 26, 20), (29, 29, 23), hu=3000)
+    prepared = ii.prepare(vol)
+    offset = np.array([40.0, 35.0, 620.0])         # far enough off-axis for the pincushion to show
+    T = make_transform(np.eye(3), offset)
+    I = ii.render(prepared, T, View(quantity="intensity", noise=False))
+    air = ii.prepare(box_volume((4, 4, 4), (1.0, 1.0, 1.0), (0, 0, 0), (0, 0, 0), hu=-1000)[0])
+    I_open = ii.render(air, T, View(quantity="intensity", noise=False))    # circle and vignetting alone
+    w = np.where(I_open > 0, 1.0 - I / np.where(I_open > 0, I_open, 1.0), 0.0)
+    w[w < 0.02] = 0
+    v, u = np.indices(w.shape)
+    centroid = np.array([(u * w).sum(), (v * w).sum()]) / w.sum()
+    centre_ct = (lo + hi) / 2
+    K = f.intrinsics.K()
+    expected, _ = cv2.projectPoints(centre_ct.reshape(1, 3) + offset, np.zeros(3), np.zeros(3), K,
+                                    f.intrinsics.distortion.coefficients())
+    undistorted = K @ (centre_ct + offset)
+    undistorted = undistorted[:2] / undistorted[2]
+    assert np.linalg.norm(expected.ravel() - undistorted) > 1.0       # the distortion is visible here
+    assert np.linalg.norm(centroid - expected.ravel()) < 0.3
+
+
+def test_blend_interpolates_between_phases(flat):
+    a = flat.prepare(box_volume((16, 32, 32), (2.0, 2.0, 2.5), (4, 4, 2), (27, 27, 13), hu=0)[0])
+    b = flat.prepare(box_volume((16, 32, 32), (2.0, 2.0, 2.5), (4, 4, 2), (27, 27, 13), hu=-400)[0])
+    la = flat.material_integrals(a, POSE, View()).sum(-1)
+    lb = flat.material_integrals(b, POSE, View()).sum(-1)
+    lm = flat.material_integrals(a, POSE, View(), blend=(b, 0.25)).sum(-1)
+    # Density is linear in HU for soft tissue, so a quarter of the way is a quarter of the change.
+    np.testing.assert_allclose(lm, 0.75 * la + 0.25 * lb, atol=1e-4 * la.max())
+    assert la[64, 64] == pytest.approx(lb[64, 64] / 0.6, rel=1e-4)
+
+
+def test_bad_pose_and_quantity_are_one_line_errors(flat, slab):
+    prepared, _, _ = slab
+    bad = POSE.copy()
+    bad[0, 0] = 2.0
+    with pytest.raises(FluorosimError, match="T_xray_from_ct"):
+        flat.render(prepared, bad, View())
+    with pytest.raises(FluorosimError, match="quantity"):
+        flat.render(prepared, POSE, View(quantity="xray"))
+    with pytest.raises(FluorosimError, match="zoom"):
+        flat.render(prepared, POSE, View(zoom=5))
+
+
+def test_volume_outside_the_beam_renders_open_field(flat, slab):
+    prepared, _, _ = slab
+    away = make_transform(rotation_about([1, 0, 0], 0.3), [0.0, 0.0, -750.0])   # volume behind the source
+    I = flat.render(prepared, away, View(quantity="intensity", noise=False))
+    np.testing.assert_allclose(I, 1.0, atol=1e-6)
