@@ -124,6 +124,8 @@ def test_device_states_map_to_banners():
 
     pedal = _Device("unplugged")
     assert InputDeviceState("pedal", lambda: pedal).check().banner == "pedal unplugged - plug it back in"
+    pedal.problem = "/dev/fluorosim/pedal: pedal silent for more than 0.5 s; counted as released"
+    assert InputDeviceState("pedal", lambda: pedal).check().banner == f"pedal: {pedal.problem}"
     pedal.state = "ok"
     assert InputDeviceState("pedal", lambda: pedal).check().ok
     assert InputDeviceState("keypad", lambda: _Device("none")).check().ok

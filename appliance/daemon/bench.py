@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import psutil
 
+from .demo import shown
 from .logqueue import start_logging
 from .notify import Notifier
 from .reload import ProfileKeeper
@@ -43,7 +44,7 @@ def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None)
         matrix = cfg.appliance.daemon.render_matrix_px or cfg.fluoroscope.detector.columns
         print(f"bench e2e: {config_path}, {duration:.0f} s measured after {warmup:.0f} s warm-up; renderer on "
               f"{app.parts.renderer_device}, {matrix} px matrix; camera {cfg.appliance.devices.camera.source} at "
-              f"{cfg.appliance.devices.camera.fps:g} fps; data in {data_dir}", flush=True)
+              f"{cfg.appliance.devices.camera.fps:g} fps; data in {shown(data_dir)}", flush=True)
         t0 = time.monotonic()
         next_sample = [t0]
 
@@ -55,9 +56,9 @@ def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None)
             return now - t0 >= duration + warmup
 
         app.run(until=until)
-        shown = np.array(app.stats.shown_at) - t0
+        t_shown = np.array(app.stats.shown_at) - t0
         lat = np.array(app.stats.latencies_s)
-        steady = shown >= warmup
+        steady = t_shown >= warmup
         n = int(steady.sum())
         span = duration
         fps = n / span if span > 0 else float("nan")

@@ -105,7 +105,10 @@ def run_demo(config_path: Path, *, case: Path | None = None, seconds: float | No
         for old in snap_dir.glob("*.png"):
             old.unlink()
         snapper = Snapshotter(snap_dir, key_moments())
+        _say("[2/4] starting the appliance: phases onto the OpenCL device, kernels built, camera started")
+        t_open = time.monotonic()
         app = Appliance(keeper, Notifier(), on_shown=snapper)
+        _say(f"      ready in {time.monotonic() - t_open:.1f} s; rendering on {app.parts.renderer_device}")
         rate = app.clock.rate
         if seconds is None:
             script = cfg.resolve(devices.keypad.script) if devices.keypad.script else None
@@ -113,7 +116,7 @@ def run_demo(config_path: Path, *, case: Path | None = None, seconds: float | No
                 raise FluorosimError(f"{config_path}: devices.keypad.script is needed to know when the demo ends "
                                      "(or give --seconds)")
             seconds = script_length_s(script) / rate + TAIL_S
-        _say(f"[2/4] running the appliance for {seconds:.0f} s (clock x{rate:g}; "
+        _say(f"      running for {seconds:.0f} s (console clock x{rate:g}; "
              f"screen: {shown(cfg.data_dir / devices.display.path) if devices.display.path else devices.display.target})")
         t_run = time.monotonic()
         next_line = [t_run + PROGRESS_EVERY_S]

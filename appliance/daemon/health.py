@@ -107,7 +107,9 @@ class InputDeviceState:
         state = getattr(dev, "state", "none") if dev is not None else "none"
         if state in ("ok", "none"):
             return OK
-        return Health(Level.WARNING, f"{self.name} unplugged - plug it back in", {"state": state})
+        problem = getattr(dev, "problem", "")
+        banner = f"{self.name}: {problem}" if problem else f"{self.name} unplugged - plug it back in"
+        return Health(Level.WARNING, banner, {"state": state})
 
 
 class RendererDevice:
