@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import socket
+import sys
 import threading
 import time
 
@@ -113,3 +114,15 @@ def test_a_hung_worker_stops_watchdog_pings_within_watchdog_sec(listener, monkey
         release.set()
         runner.join(5)
     assert listener.wait_for("STOPPING=1") is not None
+
+
+def test_without_systemd_python_the_plain_socket_is_used(listener, monkeypatch):
+    # None in sys.modules makes `from systemd import daemon` raise ImportError, as on a
+    # machine where systemd-python is not installed.
+    monkeypatch.setitem(sys.modules, "systemd", None)
+    monkeypatch.setitem(sys.modules, "systemd.daemon", None)
+    n = Notifier()
+    assert n.backend == "socket"
+    assert n.ready("up")
+    assert listener.wait_for("READY=1") is not None
+    assert "STATUS=up" in [line for _, line in listener.lines()]
