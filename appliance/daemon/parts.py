@@ -45,14 +45,21 @@ def patient_phases(cfg: ApplianceConfig, progress: Callable[[str], None] | None 
     return [(ph.time_s, (lambda p=resolve(cfg.case_path, ph.volume): load_volume(p))) for ph in case.phases]
 
 
-def rendered_fluoroscope(cfg: ApplianceConfig):
-    """The fluoroscope as rendered: read out at `daemon.render_matrix_px` when the profile sets it."""
-    n = cfg.appliance.daemon.render_matrix_px
-    return cfg.fluoroscope if n is None else at_resolution(cfg.fluoroscope, n, n)
+def rendered_fluoroscope(cfg: ApplianceConfig, fallback: bool = False):
+    """The fluoroscope as rendered: read out at `daemon.render_matrix_px` when the profile sets it,
+    and at no more than `daemon.cpu_fallback_matrix_px` once rendering fell back to the CPU."""
+    d = cfg.appliance.daemon
+    n = d.render_matrix_px or cfg.fluoroscope.detector.columns
+    if fallback:
+        n = min(n, d.cpu_fallback_matrix_px)
+    if n == cfg.fluoroscope.detector.columns == cfg.fluoroscope.detector.rows:
+        return cfg.fluoroscope
+    return at_resolution(cfg.fluoroscope, n, n)
 
 
 def make_renderer(cfg: ApplianceConfig, device: str = "auto") -> Renderer:
-    return Renderer(rendered_fluoroscope(cfg), cfg.case.materials, contrast=cfg.case.contrast, device=device)
+    return Renderer(rendered_fluoroscope(cfg, fallback=device == "cpu"), cfg.case.materials,
+                    contrast=cfg.case.contrast, device=device)
 
 
 def device_label(renderer: Renderer) -> str:

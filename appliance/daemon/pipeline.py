@@ -189,7 +189,7 @@ class Appliance:
             return
         self.config = new
         if new.fluoroscope != old.fluoroscope:
-            self.parts.renderer.set_fluoroscope(rendered_fluoroscope(new))
+            self.parts.renderer.set_fluoroscope(rendered_fluoroscope(new, fallback=self.renderer_fault is not None))
             # The console belongs to the input worker's thread: it switches there.
             self._new_fluoroscope.put(new.fluoroscope)
             log.info("fluoroscope profile now %s", new.fluoroscope.name)
@@ -406,7 +406,7 @@ class Appliance:
             return
         cfg = self.config
         # The fluoroscope as rendered: the DICOM pixel spacing is that of the saved matrix.
-        paths = save_image(image, state, rendered_fluoroscope(cfg), cfg.data_dir / "images", t_wall=time.time(),
+        paths = save_image(image, state, self.parts.renderer.fluoroscope, cfg.data_dir / "images", t_wall=time.time(),
                            session_id=self.session_id or 0, operator=cfg.appliance.operator,
                            case_title=cfg.case.title, patient=patient_of(cfg.case))
         self.saved.append(paths)
