@@ -173,8 +173,8 @@ def open_parts(cfg: ApplianceConfig, console_clock: Callable[[], float]) -> Part
             Path(display_path).parent.mkdir(parents=True, exist_ok=True)
         display = open_display(d.target, path=display_path, width=d.width, height=d.height, bpp=d.bpp)
     except OSError as e:
-        raise FluorosimError(f"display {d.target}{' ' + display_path if display_path else ''}: {e}; "
-                             f"check devices.display in {cfg.path}") from None
+        # The driver's message names the device or file and what is wrong with it.
+        raise FluorosimError(f"display: {e}; check devices.display in {cfg.path}") from None
     compositor = Compositor(display.width, display.height,
                             circular_fov=cfg.fluoroscope.detector.kind == "image_intensifier")
     display.show(compositor.compose(None, Overlay(case=cfg.case.title, operator=cfg.appliance.operator,

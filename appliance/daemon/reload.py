@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 from pathlib import Path
 
 from ..config import ApplianceConfig, CaseProfile, ProfileProblems, load_appliance, load_profile, validate_paths
@@ -31,8 +32,9 @@ class ProfileKeeper:
 
     def _load(self) -> ApplianceConfig:
         config = load_appliance(self.path)
-        if self.data_dir_override is not None:
-            config = dataclasses.replace(config, data_dir=self.data_dir_override)
+        # configs/../var reads as var in every message and path shown.
+        data_dir = self.data_dir_override if self.data_dir_override is not None else config.data_dir
+        config = dataclasses.replace(config, data_dir=Path(os.path.normpath(data_dir)))
         if self.case_override is None:
             return config
         # `fluorosim demo --case X`: the appliance as profiled, on another case.
