@@ -50,7 +50,7 @@ def write_cylinder(path: Path, rod_offset_mm: float = 0.0) -> None:
 
 def make_appliance(tmp: Path, *, camera: str = "synthetic", script: list[str] | None = None,
                    clock_rate: float = 1.0, render_px: int = 64, display=(320, 256), stall_timeout_s: float = 5.0,
-                   base: str = "appliance-bench.yaml") -> Path:
+                   base: str = "appliance-bench.yaml", keypad: str | None = None, pedal: str | None = None) -> Path:
     """configs/ copied under `tmp` with a tiny case; returns the appliance profile's path."""
     configs = tmp / "configs"
     shutil.copytree(REPO / "configs", configs)
@@ -67,6 +67,10 @@ def make_appliance(tmp: Path, *, camera: str = "synthetic", script: list[str] | 
         data["devices"]["camera"]["source"] = camera
     if script is not None:
         data["devices"]["keypad"]["script"] = "scripts/test-session.jsonl"
+    if keypad is not None:
+        data["devices"]["keypad"] = {"source": keypad}
+    if pedal is not None:
+        data["devices"]["pedal"] = {"source": pedal, "silence_timeout_s": 0.5}
     d = data["daemon"]
     d["clock_rate"], d["render_matrix_px"], d["stall_timeout_s"] = clock_rate, render_px, stall_timeout_s
     path = configs / "appliance-test.yaml"

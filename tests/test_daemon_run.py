@@ -123,11 +123,44 @@ def test_run_is_ready_after_the_first_frame_survives_a_bad_reload_and_stops_on_s
     assert sessions[0]["air_kerma_mgy"] > 0
 
 
-def test_camera_that_disappears_and_returns(tmp_path):
+class PtyPedal:
+    """A foot pedal held down, on a pty reached through a symlink as udev's /dev/fluorosim/pedal:
+    it repeats its state (heartbeat and DOWN) every 0.1 s; unplugging closes its end.
+    (The state is repeated because opening the port discards what was sent before.)"""
+
+    def __init__(self, link: Path):
+        self.link = link
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.master = self.slave = -1
+
+    def plug(self) -> None:
+        self.master, self.slave = os.openpty()
+        self.link.unlink(missing_ok=True)
+        self.link.symlink_to(os.ttyname(self.slave))
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._beat, daemon=True)
+        self._thread.start()
+
+    def _beat(self) -> None:
+        while not self._stop.wait(0.1):
+            os.write(self.master, b"HB\nDOWN\n")
+
+    def unplug(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.link.unlink()
+        os.close(self.master)
+        os.close(self.slave)
+
+
+def test_camera_and_pedal_that_disappear_and_return(tmp_path):
     # A folder of webcam images of the box at a known pose, played in a loop.
     folder = tmp_path / "frames"
     folder.mkdir()
-    config = make_appliance(tmp_path, camera=str(folder), display=DISPLAY)
+    pedal = PtyPedal(tmp_path / "pedal")
+    pedal.plug()
+    config = make_appliance(tmp_path, camera=str(folder), display=DISPLAY, keypad="none", pedal=str(pedal.link))
     cfg = load_appliance(config)
     cam = synthetic_camera(cfg.phantom, cfg.webcam, lambda t: pose_from_angles([0.0, 0.0, 550.0]))
     for k in range(3):
@@ -138,12 +171,17 @@ def test_camera_that_disappears_and_returns(tmp_path):
     stop = threading.Event()
     runner = threading.Thread(target=app.run, kwargs={"until": stop.is_set, "signals": False})
     runner.start()
+
+    def banner(start: str) -> bool:
+        return any(b.startswith(start) for b in app.supervisor.banners())
+
     try:
+        # The pedal is down: live images.
         assert _wait(lambda: app.stats.frames >= 3, 30), app.supervisor.banners()
-        assert not any("camera" in b for b in app.supervisor.banners())
+        assert not banner("tracking lost") and not banner("pedal")
 
         folder.rename(tmp_path / "unplugged")
-        assert _wait(lambda: any(b.startswith("tracking lost: camera lost") for b in app.supervisor.banners()), 10)
+        assert _wait(lambda: banner("tracking lost: camera lost"), 10)
         frames = app.stats.frames
         time.sleep(0.3)
         held = _image_region(_screen(tmp_path / "data"))
@@ -155,10 +193,22 @@ def test_camera_that_disappears_and_returns(tmp_path):
         assert app.supervisor.worker_problems == []      # and the appliance is healthy
 
         (tmp_path / "unplugged").rename(folder)
-        assert _wait(lambda: not any("camera" in b for b in app.supervisor.banners())
-                     and app.stats.frames >= frames + 3, 15)
+        assert _wait(lambda: not banner("tracking lost") and app.stats.frames >= frames + 3, 15)
+
+        # Pulling the pedal's cable releases the pedal: fluoroscopy stops, the image is held.
+        pedal.unplug()
+        assert _wait(lambda: banner(f"pedal: {pedal.link}"), 10), app.supervisor.banners()
+        assert _wait(lambda: not app.console_state.get()[0].fluoro_on, 2)
+        frames = app.stats.frames
+        time.sleep(0.6)
+        assert app.stats.frames <= frames + 1
+        assert app.supervisor.worker_problems == []
+
+        # Plugged back in (the driver retries once a second) and pressed again: live once more.
+        pedal.plug()
+        assert _wait(lambda: not banner("pedal") and app.stats.frames >= frames + 3, 15), app.supervisor.banners()
     finally:
         stop.set()
         runner.join(10)
+        pedal.unplug()
     assert not runner.is_alive()
-
