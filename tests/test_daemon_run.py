@@ -71,8 +71,9 @@ def test_run_is_ready_after_the_first_frame_survives_a_bad_reload_and_stops_on_s
     try:
         t_ready = listener.wait_for("READY=1", 60)
         assert t_ready is not None, proc.stdout.read() if proc.poll() is not None else "no READY=1"
-        # READY=1 came after a frame was on screen: the framebuffer holds an X-ray image now.
-        assert _shows_the_water_cylinder(_image_region(_screen(data)))
+        # READY=1 came once the appliance's own screen was up (not the start-up screen it
+        # shows while preparing), and with the pedal held the X-ray image follows at once.
+        assert _wait(lambda: _shows_the_water_cylinder(_image_region(_screen(data))), 5)
 
         # Live frames with the pedal held, and watchdog pings at half of WatchdogSec.
         assert _wait(lambda: any(s.startswith("STATUS=") and not s.startswith("STATUS=0.0 fps")
