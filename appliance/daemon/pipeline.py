@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import queue
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -55,6 +56,10 @@ SAVED_FLASH_S = 1.0
 INPUT_PERIOD_S = 0.005
 #: How often the phase worker looks up the patient's phase (s).
 PHASE_PERIOD_S = 0.02
+#: SIGTERM to exit within 2 s: the workers get this long to stop (the ledger's flush among them),
+#: then the devices this long to close (s).
+SHUTDOWN_S = 1.2
+CLOSE_DEVICES_S = 0.4
 #: How long the records worker waits before writing again after the disk refused (s).
 RECORDS_RETRY_S = 1.0
 #: How long start-up waits for the camera's first frame before supervising anyway (s).
@@ -171,10 +176,16 @@ class Appliance:
         # A moment for the first camera frame, so the screen does not open on "camera starting".
         self.parts.camera.wait(timeout_s=CAMERA_START_S)
         try:
-            return self.supervisor.run(on_reload=self.reload, until=until, signals=signals)
+            return self.supervisor.run(on_reload=self.reload, until=until, shutdown_s=SHUTDOWN_S, signals=signals)
         finally:
-            self.parts.close()
             self.ledger.close()
+            # Devices and the phase loader may each take seconds to let go (a frame being
+            # grabbed, a phase being prepared); the 2 s promise of SIGTERM does not wait for them.
+            closer = threading.Thread(target=self.parts.close, name="fluorosim-close", daemon=True)
+            closer.start()
+            closer.join(CLOSE_DEVICES_S)
+            if closer.is_alive():
+                log.warning("devices still closing at exit")
 
     def status_text(self) -> str:
         fps = self.stats.fps(time.monotonic())
