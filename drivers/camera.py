@@ -19,7 +19,7 @@ import logging
 import os
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
@@ -27,6 +27,8 @@ import cv2
 import numpy as np
 
 log = logging.getLogger(__name__)
+# The service configures logging; a command-line tool reports `state` itself, on one line.
+log.addHandler(logging.NullHandler())
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
 
@@ -40,11 +42,18 @@ class CameraFrame:
 
 
 class CameraSource:
-    """A capture thread that keeps the newest frame; subclasses implement `_run`."""
+    """A capture thread that keeps the newest frame; subclasses implement `_run`.
+
+    `state` also turns to "camera lost" on its own when no frame has come for
+    `stall_timeout_s`, so a capture call that hangs inside the driver is reported even
+    while the capture thread cannot report anything.
+    """
+
+    stall_timeout_s: float | None = None
 
     def __init__(self) -> None:
-        self.state = "starting"
-        self.message = ""
+        self._state = "starting"
+        self._message = ""
         self.frames_captured = 0
         self._lock = threading.Lock()
         self._frame: CameraFrame | None = None
@@ -64,6 +73,27 @@ class CameraSource:
         if self._thread is not None:
             self._thread.join(timeout=5.0)
             self._thread = None
+
+    @property
+    def state(self) -> str:
+        if self._state == "ok" and self._stalled():
+            return "camera lost"
+        return self._state
+
+    @property
+    def message(self) -> str:
+        if self._state == "ok" and self._stalled():
+            return f"{self.name}: no frame for {time.monotonic() - self._frame.t_monotonic:.1f} s"
+        return self._message
+
+    @property
+    def name(self) -> str:
+        return type(self).__name__
+
+    def _stalled(self) -> bool:
+        frame = self._frame
+        return (self.stall_timeout_s is not None and frame is not None
+                and time.monotonic() - frame.t_monotonic > self.stall_timeout_s)
 
     def latest(self, after_seq: int = -1) -> CameraFrame | None:
         """The newest frame if its seq is greater than `after_seq`, else None; never blocks."""
@@ -97,10 +127,10 @@ class CameraSource:
         self.frames_captured += 1
 
     def _set_state(self, state: str, message: str = "") -> None:
-        if state != self.state or message != self.message:
+        if state != self._state or message != self._message:
             if state == "camera lost":
                 log.warning("%s", message)
-            self.state, self.message = state, message
+            self._state, self._message = state, message
 
     def _guarded_run(self) -> None:
         # The capture thread must never die silently: a bug is reported as a lost camera.
@@ -124,6 +154,10 @@ class V4L2Camera(CameraSource):
         self.stall_timeout_s, self.retry_interval_s = stall_timeout_s, retry_interval_s
         self.open_attempts = 0
 
+    @property
+    def name(self) -> str:
+        return f"camera {self.device}"
+
     def _open(self) -> cv2.VideoCapture | None:
         self.open_attempts += 1
         if not os.path.exists(self.device):
@@ -142,6 +176,17 @@ class V4L2Camera(CameraSource):
         cap.set(cv2.CAP_PROP_FPS, self.fps)
         cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # the newest frame, not a queue of old ones
         return cap
+
+    @staticmethod
+    def _capture_time(cap: cv2.VideoCapture, now: float) -> float:
+        """When the frame was captured (s, time.monotonic's clock).
+
+        OpenCV's V4L2 back end reports the driver's buffer time stamp, which UVC drivers take
+        from CLOCK_MONOTONIC when the frame arrives, so it excludes the time the frame waited
+        in the queue; anything implausible falls back to the time grab() returned.
+        """
+        stamp = cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
+        return stamp if 0.0 <= now - stamp < 0.5 else now
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -165,7 +210,7 @@ class V4L2Camera(CameraSource):
                     if not ok or image is None:
                         continue
                     last_frame = now
-                    self._publish(image, now)
+                    self._publish(image, self._capture_time(cap, now))
                     self._set_state("ok")
             finally:
                 cap.release()
@@ -255,6 +300,7 @@ class RenderSettings:
     box_grey: float = 150.0             # grey level of the box's bare surface under full light
     background: float = 70.0            # grey level of the table and room behind the box
     margin_cells: float = 1.0           # white paper margin around each marker (marker cells)
+    jpeg_quality: int | None = None     # MJPG webcams: compress each frame at this JPEG quality (1-100), None: raw
 
 
 @dataclass
@@ -265,12 +311,6 @@ class TexturedQuad:
     half_w_mm: float
     half_h_mm: float
     textures: list[np.ndarray]          # the same print at several resolutions, finest last
-
-
-@dataclass
-class _Scene:
-    box_mm: tuple
-    quads: list[TexturedQuad] = field(default_factory=list)
 
 
 def marker_textures(dictionary: str, marker_id: int, margin_cells: float = 1.0,
@@ -406,9 +446,16 @@ class SceneRenderer:
             img = cv2.remap(img, self._maps[0], self._maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         if self.s.noise_sigma > 0:
             noise = np.empty(img.shape, np.float32)
+            # OpenCV's generator is four times faster than numpy's here; seeding it from this
+            # renderer's own generator keeps a seeded camera's frames reproducible.
+            cv2.setRNGSeed(int(self.rng.integers(2**31)))
             cv2.randn(noise, 0.0, self.s.noise_sigma)
             img = img + noise
-        return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+        out = np.clip(img + 0.5, 0, 255).astype(np.uint8)
+        if self.s.jpeg_quality is not None:
+            ok, data = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(self.s.jpeg_quality)])
+            out = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
+        return out
 
 
 def box_marker_quads(marker_ids: Sequence[int], T_box_from_marker: Sequence[np.ndarray], marker_size_mm: float,

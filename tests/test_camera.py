@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
 
@@ -232,3 +233,72 @@ def test_box_marker_quads_include_the_white_margin():
     q = box_marker_quads([3], [np.eye(4)], 60.0, DICT)[0]
     # DICT_4X4: 6 cells across the black square, plus one white cell on each side.
     assert q.half_w_mm == pytest.approx(30.0 * 8 / 6)
+
+
+def test_a_stalled_source_is_reported_while_its_thread_hangs():
+    hang = threading.Event()
+
+    class Hanging(CameraSource):
+        stall_timeout_s = 1.0
+
+        def _run(self):
+            self._publish(np.zeros((4, 4), np.uint8), time.monotonic())
+            self._set_state("ok")
+            hang.wait(10)            # stuck inside a driver call: the thread cannot report anything
+
+    cam = Hanging()
+    cam.start()
+    try:
+        assert cam.wait(-1, 2.0) is not None and cam.state == "ok"
+        deadline = time.monotonic() + 5
+        while cam.state == "ok" and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert cam.state == "camera lost" and "no frame for" in cam.message
+        assert time.monotonic() - cam.latest().t_monotonic >= 1.0
+    finally:
+        hang.set()
+        cam.stop()
+
+
+def test_v4l2_frame_time_prefers_a_plausible_driver_stamp():
+    class Cap:
+        def __init__(self, ms):
+            self.ms = ms
+
+        def get(self, prop):
+            assert prop == cv2.CAP_PROP_POS_MSEC
+            return self.ms
+
+    now = 1000.0
+    assert V4L2Camera._capture_time(Cap(999_960.0), now) == pytest.approx(999.96)   # 40 ms in the queue
+    assert V4L2Camera._capture_time(Cap(0.0), now) == now                           # no stamp
+    assert V4L2Camera._capture_time(Cap(1_000_100.0), now) == now                   # from the future
+    assert V4L2Camera._capture_time(Cap(5_000.0), now) == now                       # another clock
+
+
+def test_a_source_that_comes_back_is_picked_up_again(tmp_path):
+    folder = tmp_path / "later"
+    cam = FileCamera(folder, fps=100.0)
+    with cam:
+        deadline = time.monotonic() + 5
+        while cam.state != "camera lost" and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert cam.state == "camera lost"
+        folder.mkdir()
+        cv2.imwrite(str(folder / "a.png"), np.full((8, 8, 3), 77, np.uint8))
+        frame = cam.wait(-1, 5.0)
+        assert frame is not None and int(frame.image[0, 0, 0]) == 77 and cam.state == "ok"
+
+
+def test_v4l2_reevaluates_the_device_on_every_retry(tmp_path):
+    node = tmp_path / "video3"
+    cam = V4L2Camera(str(node), retry_interval_s=0.05)
+    with cam:
+        deadline = time.monotonic() + 5
+        while "no such device" not in cam.message and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert "no such device" in cam.message
+        node.write_bytes(b"\0" * 16)              # something appears there, but not a camera
+        while "cannot be opened" not in cam.message and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert cam.state == "camera lost" and "cannot be opened" in cam.message

@@ -162,3 +162,70 @@ def test_track_command_bad_inputs_exit_2_with_one_line(tmp_path, capsys):
         assert main(bad) == 2
         err = capsys.readouterr().err
         assert len(err.strip().splitlines()) == 1 and name in err, err
+
+
+def test_a_poor_mjpg_webcam_frame_is_still_sub_millimetre(profiles):
+    from drivers.camera import RenderSettings
+    harsh = RenderSettings(noise_sigma=5.0, blur_sigma_px=1.2, jpeg_quality=70)
+    T = pose_from_angles([-30, 20, 650], -45, 10, -20)
+    image, truth = render(profiles, T, settings=harsh)
+    clean, _ = render(profiles, T)
+    assert np.abs(image.astype(int) - clean.astype(int)).mean() > 2      # the degradation is really there
+    pose = Tracker(*profiles, smoothing=False).track(image, 0.0)
+    et, er = errors(pose.T_webcam_from_phantom, truth)
+    assert pose.ok and et < 1.0 and er < 0.5
+
+
+def test_window_search_finds_the_same_corners(profiles):
+    phantom, webcam = profiles
+    image, _ = render(profiles, pose_from_angles([0, 0, 600], 20, 5, 10))
+    det = MarkerDetector(phantom.aruco_dictionary, webcam.camera_matrix(), webcam.distortion())
+    full = det.detect(image)
+    xy = np.concatenate(list(full.values()))
+    window = (int(xy[:, 0].min()) - 30, int(xy[:, 1].min()) - 30, int(xy[:, 0].max()) + 30, int(xy[:, 1].max()) + 30)
+    part = det.detect(image, window)
+    assert set(part) == set(full)
+    for i in full:
+        np.testing.assert_allclose(part[i], full[i], atol=1e-3)
+
+
+def test_following_a_path_searches_a_window_and_agrees_with_whole_images(profiles):
+    phantom, webcam = profiles
+    from appliance.tracking.trajectory import load_trajectory
+    path = load_trajectory(ROOT / "configs" / "trajectories" / "demo.jsonl")
+    cam = synthetic_camera(phantom, webcam, path, seed=5)
+    windowed = Tracker(phantom, webcam, smoothing=False)
+    whole = Tracker(phantom, webcam, smoothing=False, window=False)
+    for k in range(12):
+        t = 9.0 + k / 30.0                      # rolling toward 45 degrees, moving away
+        image, truth = cam.render_at(t)
+        a, b = windowed.track(image, t), whole.track(image, t)
+        assert a.ok and b.ok
+        assert np.abs(a.T_webcam_from_phantom - b.T_webcam_from_phantom).max() < 1e-3
+        assert errors(a.T_webcam_from_phantom, truth)[0] < 1.0
+    assert windowed.window_searches == 11 and windowed.full_searches == 1
+
+
+def test_a_window_that_misses_markers_falls_back_to_the_whole_image(profiles):
+    # Two unrelated views 0.1 s apart: the window around the first holds only part of the second.
+    phantom, webcam = profiles
+    first, _ = render(profiles, pose_from_angles([-120, -60, 450], 0, 0, 0))
+    second, truth = render(profiles, pose_from_angles([110, 70, 500], 30, 10, 0), seed=2)
+    windowed, whole = Tracker(phantom, webcam, smoothing=False), Tracker(phantom, webcam, smoothing=False, window=False)
+    assert windowed.track(first, 0.0).ok
+    a, b = windowed.track(second, 0.1), whole.track(second, 0.1)
+    assert windowed.window_searches == 1 and windowed.full_searches == 2
+    assert a.markers == b.markers
+    np.testing.assert_allclose(a.T_webcam_from_phantom, b.T_webcam_from_phantom, atol=1e-6)
+
+
+def test_a_1080p_webcam_with_its_own_intrinsics(profiles):
+    phantom, _ = profiles
+    hd = WebcamProfile(width=1920, height=1080, K=[[1350.0, 0, 959.5], [0, 1350.0, 539.5], [0, 0, 1]],
+                       dist=[0.05, -0.02, 0, 0, 0])
+    for T in (pose_from_angles([0, 0, 350], 20, 5, 5), pose_from_angles([30, -20, 700], -80, 0, 10)):
+        image, truth = synthetic_camera(phantom, hd, Trajectory.still(T), seed=3).render_at(0.0)
+        assert image.shape == (1080, 1920, 3)
+        pose = Tracker(phantom, hd, smoothing=False).track(image, 0.0)
+        et, er = errors(pose.T_webcam_from_phantom, truth)
+        assert pose.ok and et < 0.5 and er < 0.2

@@ -11,11 +11,11 @@ from PIL import Image
 
 from appliance.cli import main
 from appliance.config import PhantomProfile, WebcamProfile, load_profile
-from appliance.geometry import invert, make_transform, rotation_about, rotation_angle_deg
+from appliance.geometry import make_transform, rotation_about, rotation_angle_deg
 from appliance.tracking.composite import CompositeCalibration
 from appliance.tracking.markers import marker_corners
 from appliance.tracking.scene import synthetic_camera
-from appliance.tracking.trajectory import random_poses
+from appliance.tracking.trajectory import pose_from_angles, random_poses
 from appliance.tracking.webcam_calibration import BoardSpec
 from drivers.camera import RenderSettings, SceneRenderer, TexturedQuad
 
@@ -147,19 +147,22 @@ def test_calibrate_phantom_command_recovers_the_layout(profiles, tmp_path, capsy
     assert (tmp_path / "box.yaml.bak").read_text() == original
 
 
-def test_calibrate_phantom_refuses_when_markers_never_connect(profiles, tmp_path):
+def test_calibrate_phantom_refuses_when_markers_never_connect(profiles, tmp_path, capsys):
     phantom, webcam = profiles
+    # Views of the top face only: the side and end markers are never seen.
     frames = tmp_path / "frames"
     frames.mkdir()
-    cv2.imwrite(str(frames / "blank.png"), np.zeros((720, 1280, 3), np.uint8))
+    cam = synthetic_camera(phantom, webcam, lambda t: pose_from_angles([0, 0, 550], 0, 3 * t, 5 * t), seed=2)
+    for k in range(3):
+        cv2.imwrite(str(frames / f"{k}.bmp"), cam.render_at(float(k))[0])
     profile = tmp_path / "box.yaml"
     profile.write_text(PHANTOM.read_text())
     before = profile.read_bytes()
-    with pytest.raises(Exception) as e:
-        main_rc = main(["calibrate", "phantom", "--phantom", str(profile), "--webcam", str(WEBCAM),
-                        "--images", str(frames)])
-        assert main_rc == 2
-        raise AssertionError("exit 2")
+    rc = main(["calibrate", "phantom", "--phantom", str(profile), "--webcam", str(WEBCAM), "--images", str(frames)])
+    assert rc == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "markers seen 6/14" in err[-2]
+    assert "markers [6, 7, 8, 9, 10, 11, 12, 13] were never seen" in err[-1]
     assert profile.read_bytes() == before and not (tmp_path / "box.yaml.bak").exists()
 
 
@@ -212,5 +215,37 @@ def test_print_markers_at_exact_scale(tmp_path, profiles):
         assert got is not None and got.ravel().tolist() == [m.id]
     board = Image.open(tmp_path / "charuco-board.png")
     assert board.size == (7 * 300, 5 * 300)
-    pdf = (tmp_path / "phantom-markers.pdf").read_bytes()
-    assert pdf.startswith(b"%PDF") and pdf.count(b"/Type /Page\n") + pdf.count(b"/Type /Page ") + pdf.count(b"/Type/Page") >= 1
+    # The PDF pages print at the same scale: the board's page is 210 mm plus two 10 mm margins wide.
+    import re
+    pdf = (tmp_path / "charuco-board.pdf").read_bytes()
+    width_pt = float(re.search(rb"/MediaBox \[ 0 0 ([0-9.]+) ([0-9.]+) \]", pdf).group(1))
+    assert width_pt == pytest.approx((210 + 20) / 25.4 * 72, abs=0.01)
+    markers_pdf = (tmp_path / "phantom-markers.pdf").read_bytes()
+    assert len(re.findall(rb"/MediaBox", markers_pdf)) == len(phantom.markers)     # one page per marker
+
+
+def test_live_calibration_without_a_camera_says_so_on_one_line(tmp_path, capsys):
+    profile = tmp_path / "cam.yaml"
+    profile.write_text(WEBCAM.read_text())
+    rc = main(["calibrate", "webcam", "--webcam", str(profile), "--device", str(tmp_path / "video7"), "--seconds", "0.3"])
+    assert rc == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "video7: no such device" in err[0] and "nothing captured in 0.3 s" in err[0]
+    assert profile.read_text() == WEBCAM.read_text()
+
+
+def test_an_invalid_result_is_not_written(tmp_path):
+    from appliance.config.yamlfile import ProfileProblems
+    from appliance.tracking.profile_update import write_phantom_layout, write_webcam_intrinsics
+    cam = tmp_path / "cam.yaml"
+    cam.write_text(WEBCAM.read_text())
+    with pytest.raises(ProfileProblems, match="focal lengths"):
+        write_webcam_intrinsics(cam, np.array([[-900.0, 0, 640], [0, 900, 360], [0, 0, 1]]), np.zeros(5), 0.1, 1280, 720)
+    box = tmp_path / "box.yaml"
+    box.write_text(PHANTOM.read_text())
+    sheared = np.eye(4)
+    sheared[0, 1] = 0.2
+    with pytest.raises(ProfileProblems, match="not a rigid transform"):
+        write_phantom_layout(box, {3: sheared})
+    assert cam.read_text() == WEBCAM.read_text() and box.read_text() == PHANTOM.read_text()
+    assert not list(tmp_path.glob("*.bak")) and not list(tmp_path.glob(".*tmp"))

@@ -12,6 +12,7 @@ from appliance.config import PhantomProfile, load_appliance, load_profile
 from appliance.errors import FluorosimError
 from appliance.geometry import make_transform, rotation_about, rotation_angle_deg
 from appliance.tracking.smoothing import PoseFilter, SmoothingSettings
+from appliance.tracking.scene import synthetic_camera
 from appliance.tracking.sources import open_camera, tracker_for
 from appliance.tracking.tracker import Tracker
 from appliance.tracking.trajectory import R_HOME, Trajectory, load_trajectory, pose_from_angles
@@ -109,7 +110,7 @@ def _still(rng, n, sigma_mm, sigma_deg, fps=30.0):
 
 def test_filter_removes_standstill_jitter():
     rng = np.random.default_rng(0)
-    T, frames = _still(rng, 300, 0.3, 0.1)
+    T, frames = _still(rng, 300, 0.06, 0.02)      # about what the tracker shows at 700 mm, rolled
     f = PoseFilter()
     out = [f(Tm, t) for t, Tm in frames][60:]
     raw = [Tm for _, Tm in frames][60:]
@@ -169,3 +170,19 @@ def test_tracker_for_takes_the_profile_tracking_section(tmp_path):
         update={"method": "marker", "smoothing": False})})
     tr = tracker_for(dataclasses.replace(config, appliance=changed))
     assert tr.method == "marker" and tr.filter is None
+
+
+def test_a_capture_size_the_webcam_was_not_calibrated_at_is_refused():
+    config = load_appliance(ROOT / "configs" / "appliance.yaml")
+    changed = config.appliance.model_copy(update={"devices": config.appliance.devices.model_copy(
+        update={"camera": config.appliance.devices.camera.model_copy(update={"source": "/dev/video0", "width": 1920,
+                                                                             "height": 1080})})})
+    with pytest.raises(FluorosimError, match="1920x1080 but the webcam profile .* calibrated at 1280x720"):
+        open_camera(dataclasses.replace(config, appliance=changed))
+
+
+def test_a_seeded_synthetic_camera_is_reproducible():
+    config = load_appliance(ROOT / "configs" / "appliance.yaml")
+    make = lambda seed: synthetic_camera(config.phantom, config.webcam, load_trajectory(DEMO), seed=seed)
+    a, b, c = make(7).render_at(3.0)[0], make(7).render_at(3.0)[0], make(8).render_at(3.0)[0]
+    assert np.array_equal(a, b) and not np.array_equal(a, c)

@@ -1,7 +1,6 @@
 """Loading CT volumes from DICOM series, NIfTI, MHA and NRRD, keeping the physical frame."""
 
 import numpy as np
-import pydicom
 import pytest
 import SimpleITK as sitk
 from pydicom.dataset import FileDataset, FileMetaDataset
@@ -49,7 +48,7 @@ def test_float_volume_is_rounded_to_int16(tmp_path):
 
 
 def write_series(folder, arr, spacing=2.5, positions=None, slope=1.0, intercept=-1024.0, series_uid=None,
-                 rows_override=None):
+                 rows_override=None, tilt_mm_per_slice=0.0):
     """CT slices with pydicom: stored value = (HU - intercept) / slope, written in shuffled order."""
     folder.mkdir(exist_ok=True)
     series_uid = series_uid or generate_uid()
@@ -68,7 +67,7 @@ def write_series(folder, arr, spacing=2.5, positions=None, slope=1.0, intercept=
         ds.StudyInstanceUID = study
         ds.SeriesInstanceUID = series_uid
         ds.InstanceNumber = int(k) + 1
-        ds.ImagePositionPatient = [-50.0, -40.0, positions[k]]
+        ds.ImagePositionPatient = [-50.0, -40.0 + tilt_mm_per_slice * k, positions[k]]
         ds.ImageOrientationPatient = [1, 0, 0, 0, 1, 0]
         ds.PixelSpacing = [0.9, 0.8]            # row spacing (y), column spacing (x)
         ds.SliceThickness = spacing
@@ -146,8 +145,12 @@ def test_bad_inputs_give_one_line(tmp_path):
     sitk.WriteImage(sitk.GetImageFromArray(np.zeros((4, 4), np.int16)), str(tmp_path / "flat.mha"))
     with pytest.raises(FluorosimError, match="2D image"):
         load_volume(tmp_path / "flat.mha")
-    for e in [FluorosimError]:
-        try:
-            load_volume(tmp_path / "broken.nii.gz")
-        except e as err:
-            assert "\n" not in str(err)
+    with pytest.raises(FluorosimError) as err:
+        load_volume(tmp_path / "broken.nii.gz")
+    assert "\n" not in str(err.value)
+
+
+def test_dicom_gantry_tilt_is_refused(tmp_path):
+    write_series(tmp_path / "s", ramp_volume(), tilt_mm_per_slice=0.5)
+    with pytest.raises(FluorosimError, match="gantry tilt"):
+        load_volume(tmp_path / "s")

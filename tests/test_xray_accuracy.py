@@ -1,6 +1,5 @@
 """DRR accuracy against closed-form line integrals and the NumPy Siddon reference."""
 
-import numpy as np
 import pytest
 
 from appliance.config.case import Materials

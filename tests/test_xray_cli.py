@@ -95,3 +95,31 @@ def test_bad_input_exits_2_with_one_line(case, change, expect):
     assert expect in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "Traceback" not in r.stderr
+
+
+def test_phase_time_picks_the_phase_of_a_case(tmp_path):
+    from appliance.xray.commands import _volume_and_case
+    from appliance.errors import FluorosimError
+
+    for i, hu in enumerate((0, 500)):
+        vol, _, _ = box_volume((6, 6, 6), (2.0, 2.0, 2.0), (1, 1, 1), (4, 4, 4), hu=hu)
+        sitk.WriteImage(sitk.GetImageFromArray(vol.hu), str(tmp_path / f"phase{i}.mha"))
+    (tmp_path / "case.yaml").write_text(
+        "title: two phases\nphases:\n  - {volume: phase0.mha, time_s: 0.0}\n  - {volume: phase1.mha, time_s: 1.0}\n"
+        "materials: {bone_min_hu: 300}\n")
+    for t, hu in ((0.2, 0), (1.5, 500), (2.2, 0), (3.1, 500)):      # loops with a 2 s cycle
+        vol, materials, contrast = _volume_and_case(tmp_path / "case.yaml", t)
+        assert vol.hu.max() == hu, t
+        assert materials.bone_min_hu == 300 and contrast is None
+    with pytest.raises(FluorosimError, match="phase-time"):
+        _volume_and_case(tmp_path / "phase0.mha", 1.0)
+
+
+def test_render_and_bench_are_registered():
+    from appliance.cli import build_parser
+
+    args = build_parser().parse_args(["bench", "drr", "--skip", "speed,memory", "--frames", "3"])
+    assert args.frames == 3 and callable(args.run)
+    args = build_parser().parse_args(["render", "--volume", "v.nii", "--fluoroscope", "f.yaml", "--pose", "p.yaml",
+                                      "--quantity", "intensity", "--output", "o.npy", "--zoom", "4", "--phase-time", "1.5"])
+    assert (args.zoom, args.phase_time, args.quantity) == (4, 1.5, "intensity")

@@ -8,7 +8,7 @@ import pytest
 import spekpy
 import xraylib
 
-from appliance.config.case import Materials
+from appliance.config.case import Contrast, Materials
 from appliance.config.fluoroscope import FluoroscopeProfile
 from appliance.config.loading import load_profile
 from appliance.errors import FluorosimError
@@ -197,3 +197,62 @@ def test_volume_outside_the_beam_renders_open_field(flat, slab):
     away = make_transform(rotation_about([1, 0, 0], 0.3), [0.0, 0.0, -750.0])   # volume behind the source
     I = flat.render(prepared, away, View(quantity="intensity", noise=False))
     np.testing.assert_allclose(I, 1.0, atol=1e-6)
+
+
+def test_cpu_packet_kernel_matches_one_ray_per_work_item():
+    f = profile("generic-ii-carm.yaml", size=100)      # not a multiple of the 16-pixel packet
+    vol, _, _ = box_volume((30, 40, 36), (2.0, 1.5, 2.5), (5, 6, 4), (30, 33, 25), hu=500)
+    hu = vol.hu.copy()
+    hu[10:20, 10:30, 8:20] = 2600
+    vol = type(vol)(hu=hu, T_ct_from_voxel=vol.T_ct_from_voxel)
+    # (away from 45 degrees, where a packet may step along the other axis than a lone ray)
+    T = make_transform(rotation_about([0.5, 1.0, 0.2], 0.35), [3.0, -4.0, 620.0])
+    out, intensity = [], []
+    for packet in (True, False):
+        r = Renderer(f, Materials(contrast_min_hu=2500), Contrast(concentration_mg_per_ml=100), device="cpu", packet=packet)
+        prepared = r.prepare(vol)
+        out.append(r.material_integrals(prepared, T, View(collimation_mm=(150.0, 90.0))))
+        intensity.append(r.render(prepared, T, View(quantity="intensity", noise=False, collimation_mm=(150.0, 90.0))))
+    np.testing.assert_allclose(out[0], out[1], rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(intensity[0], intensity[1], rtol=1e-5, atol=1e-6)
+    assert intensity[0].min() < 0.5
+    assert out[0][..., 2].max() > 10 and out[0][..., 3].max() > 10        # bone and contrast both seen
+
+
+def test_low_counts_are_poisson():
+    from appliance.xray.renderer import quantum_noise
+    rng = np.random.default_rng(5)
+    image = np.full((200, 200), 0.002, dtype=np.float32)        # 2 photons expected of 1000
+    noisy = quantum_noise(image, 1000.0, rng) * 1000.0
+    np.testing.assert_allclose(noisy, np.rint(noisy))            # whole photons
+    assert noisy.mean() == pytest.approx(2.0, rel=0.03)
+    assert (noisy == 0).mean() == pytest.approx(math.exp(-2.0), abs=0.01)
+
+
+def test_profile_reload_takes_the_new_tube(flat, slab):
+    prepared, _, _ = slab
+    before = flat.mu_water_per_mm
+    f = flat.fluoroscope
+    try:
+        flat.set_fluoroscope(f.model_copy(update={"tube": f.tube.model_copy(update={"kvp": 110.0})}))
+        assert flat.spectrum.effective_kev > 45
+        assert flat.mu_water_per_mm < before
+        assert flat.mu_water_per_mm == pytest.approx(xraylib.CS_Total_CP("Water, Liquid", flat.spectrum.effective_kev) / 10)
+    finally:
+        flat.set_fluoroscope(f)
+    assert flat.mu_water_per_mm == before
+
+
+def test_portable_pair_loads_match_hardware_gathers():
+    import pyopencl as cl
+
+    r = Renderer(profile("generic-flat-detector.yaml", size=64), Materials(), device="cpu")
+    vol, _, _ = box_volume((20, 24, 24), (2.0, 2.0, 2.5), (3, 4, 2), (20, 18, 15), hu=400)
+    prepared = r.prepare(vol)
+    T = make_transform(rotation_about([1, 0.2, 0], 0.3), [0.0, 0.0, 750.0])
+    a = r.material_integrals(prepared, T, View())
+    program = cl.Program(r.ctx, r._source).build(options=["-DUNALIGNED_PAIRS", "-DNO_HW_GATHER"])
+    r._joseph = cl.Kernel(program, "joseph_packet")
+    b = r.material_integrals(prepared, T, View())
+    assert a.max() > 40
+    np.testing.assert_array_equal(a, b)

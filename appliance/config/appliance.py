@@ -83,10 +83,10 @@ class Tracking(Section):
         "auto", description="'joint': one PnP over every visible marker's corners (auto); 'marker': the single most "
                             "head-on marker (the seed paper's method).")
     smoothing: bool = Field(True, description="One Euro filter on the pose: removes standstill jitter.")
-    min_cutoff_hz: float = Field(0.3, gt=0, le=30, description="Smoothing cut-off at standstill (Hz); lower removes more jitter.")
-    beta_per_mm_s: float = Field(0.05, ge=0, le=10, description="Cut-off increase per mm/s of phantom speed (Hz per mm/s); "
+    min_cutoff_hz: float = Field(0.5, gt=0, le=30, description="Smoothing cut-off at standstill (Hz); lower removes more jitter.")
+    beta_per_mm_s: float = Field(0.2, ge=0, le=10, description="Cut-off increase per mm/s of phantom speed (Hz per mm/s); "
                                                                 "higher follows motion with less lag.")
-    beta_per_deg_s: float = Field(0.1, ge=0, le=10, description="Cut-off increase per deg/s of rotation speed (Hz per deg/s).")
+    beta_per_deg_s: float = Field(0.4, ge=0, le=10, description="Cut-off increase per deg/s of rotation speed (Hz per deg/s).")
     d_cutoff_hz: float = Field(1.0, gt=0, le=30, description="Cut-off of the speed estimate the filter adapts to (Hz).")
     reset_after_s: float = Field(0.5, gt=0, le=60, description="After losing the phantom this long the filter restarts "
                                                                "at the next pose instead of gliding to it (s).")

@@ -137,6 +137,11 @@ def load_dicom_series(folder: Path) -> Volume:
         i = int(np.argmin(gaps))
         raise FluorosimError(f"{headers[i + 1][0]}: same slice position as {headers[i][0].name} ({pos[i]:.2f} mm); "
                              "the folder holds duplicate slices or two series")
+    ipp = np.array([[float(x) for x in ds.ImagePositionPatient] for _, ds in headers])
+    sideways = ipp - ipp[0] - np.outer(pos - pos[0], normal)
+    if np.abs(sideways).max() > 0.01 * max(float(np.median(gaps)), 1e-3) + 1e-3:
+        raise FluorosimError(f"{folder}: slices are shifted sideways along the stack (gantry tilt, up to "
+                             f"{np.abs(sideways).max():.2f} mm); resample the series to an untilted grid first")
     step = float(np.median(gaps))
     bad = np.flatnonzero(np.abs(gaps - step) > SPACING_TOLERANCE * step)
     if bad.size:

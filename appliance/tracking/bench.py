@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from drivers.camera import RenderSettings
+from drivers.camera import RenderSettings, SceneRenderer, TexturedQuad
 
 from ..config.loading import load_profile
 from ..config.phantom import PhantomProfile
@@ -22,8 +22,9 @@ from ..geometry import make_transform, rotation_about, rotation_angle_deg
 from .composite import CompositeCalibration
 from .markers import MarkerDetector
 from .scene import synthetic_camera
-from .smoothing import PoseFilter
-from .trajectory import Trajectory, pose_from_angles, random_poses
+from .sources import DEMO_TRAJECTORY
+from .trajectory import R_HOME, Trajectory, load_trajectory, pose_from_angles, random_poses
+from .webcam_calibration import BoardDetector, BoardSpec, calibrate_webcam
 from .tracker import Tracker
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
@@ -46,13 +47,19 @@ def _moving(rng: np.random.Generator, T: np.ndarray, speed_mm_s: float, spin_deg
     return Trajectory.from_poses([-0.5, 0.5], poses, loop=False)
 
 
-def bench_accuracy(phantom, webcam, rng, frames: int) -> dict:
-    trackers = {m: Tracker(phantom, webcam, m, smoothing=False) for m in ("joint", "marker")}
+#: A worse webcam than the default synthetic one: more noise and blur, and MJPG compression.
+HARSH = RenderSettings(noise_sigma=5.0, blur_sigma_px=1.2, jpeg_quality=70, exposure_s=1.0 / 30.0)
+
+
+def bench_accuracy(phantom, webcam, rng, frames: int, settings: RenderSettings | None = None) -> dict:
+    settings = settings or RenderSettings()
+    # Unrelated frames: nothing to gain from searching where the markers were in the last one.
+    trackers = {m: Tracker(phantom, webcam, m, smoothing=False, window=False) for m in ("joint", "marker")}
     errs = {m: [] for m in trackers}
     found = {m: 0 for m in trackers}
     for T in random_poses(rng, frames):
         cam = synthetic_camera(phantom, webcam, _moving(rng, T, rng.uniform(0, 150), rng.uniform(0, 45)),
-                               seed=int(rng.integers(2**31)))
+                               seed=int(rng.integers(2**31)), settings=settings)
         image, truth = cam.render_at(0.0)
         for m, tr in trackers.items():
             pose = tr.track(image, 0.0)
@@ -60,7 +67,9 @@ def bench_accuracy(phantom, webcam, rng, frames: int) -> dict:
                 found[m] += 1
                 errs[m].append(_errors(pose.T_webcam_from_phantom, truth))
     print(f"accuracy: {frames} random 1280x720 frames, phantom 400-700 mm, roll +-90 deg, tilt +-20 deg, "
-          "moving 0-150 mm/s and 0-45 deg/s (motion blur over a 1/60 s exposure), noise sigma 2 grey levels")
+          f"moving 0-150 mm/s and 0-45 deg/s (motion blur over {settings.exposure_s * 1e3:.0f} ms), noise sigma "
+          f"{settings.noise_sigma:g} grey levels, blur sigma {settings.blur_sigma_px:g} px"
+          + (f", JPEG quality {settings.jpeg_quality}" if settings.jpeg_quality else ""))
     out = {}
     for m in trackers:
         e = np.array(errs[m]) if errs[m] else np.full((1, 2), np.nan)
@@ -71,9 +80,31 @@ def bench_accuracy(phantom, webcam, rng, frames: int) -> dict:
     return out
 
 
+def bench_intrinsics(phantom, webcam, rng, frames: int) -> None:
+    """How much a webcam calibration error costs: frames rendered with the true K, tracked with K off."""
+    print(f"sensitivity to the webcam calibration: {frames} still frames, tracked with fx and fy 0.5 % too large "
+          "and cx, cy 2 px off")
+    K = webcam.camera_matrix().copy()
+    K[0, 0] *= 1.005
+    K[1, 1] *= 1.005
+    K[0, 2] += 2.0
+    K[1, 2] -= 2.0
+    off = webcam.model_copy(update={"K": K.tolist()})
+    tracker = Tracker(phantom, off, "joint", smoothing=False, window=False)
+    et, er = [], []
+    for T in random_poses(rng, frames):
+        image, truth = synthetic_camera(phantom, webcam, Trajectory.still(T), seed=int(rng.integers(2**31))).render_at(0.0)
+        pose = tracker.track(image, 0.0)
+        if pose.ok:
+            e = _errors(pose.T_webcam_from_phantom, truth)
+            et.append(e[0])
+            er.append(e[1])
+    print(f"  joint : translation error median {np.median(et):.3f} mm, rotation error median {np.median(er):.3f} deg")
+
+
 def bench_roll(phantom, webcam, rng) -> None:
     print("roll sweep: roll about the box's long axis from -90 to +90 deg in 5 deg steps, tilt 0, at 400, 550, 700 mm")
-    tracker = Tracker(phantom, webcam, "joint", smoothing=False)
+    tracker = Tracker(phantom, webcam, "joint", smoothing=False, window=False)
     for z in (400.0, 550.0, 700.0):
         n, ok, worst_t, worst_r = 0, 0, 0.0, 0.0
         for roll in np.arange(-90.0, 90.1, 5.0):
@@ -92,9 +123,9 @@ def bench_roll(phantom, webcam, rng) -> None:
 def bench_jitter(phantom, webcam, rng, frames: int) -> None:
     print(f"standstill jitter: {frames} frames at 30 fps of a still phantom (new sensor noise each frame); "
           "RMS distance of the phantom origin from its mean")
-    for z, roll in ((550.0, 0.0), (700.0, 0.0), (700.0, 90.0)):
+    for z, roll, settings in ((550.0, 0.0, None), (700.0, 0.0, None), (700.0, 90.0, None), (700.0, 90.0, HARSH)):
         T = pose_from_angles([15.0, -10.0, z], roll, 8.0, 12.0)
-        cam = synthetic_camera(phantom, webcam, Trajectory.still(T), seed=int(rng.integers(2**31)))
+        cam = synthetic_camera(phantom, webcam, Trajectory.still(T), seed=int(rng.integers(2**31)), settings=settings)
         raw_t, smooth_t = [], []
         trackers = {"raw": Tracker(phantom, webcam, "joint", smoothing=False),
                     "smoothed": Tracker(phantom, webcam, "joint", smoothing=True)}
@@ -107,7 +138,8 @@ def bench_jitter(phantom, webcam, rng, frames: int) -> None:
         # The smoother starts from the first frame; judge it after a second of settling.
         raw, smooth = np.array(raw_t), np.array(smooth_t[30:])
         rms = lambda p: float(np.sqrt(np.mean(np.sum((p - p.mean(axis=0)) ** 2, axis=1))))
-        print(f"  {z:.0f} mm, roll {roll:.0f} deg: raw {rms(raw):.4f} mm RMS, smoothed {rms(smooth):.4f} mm RMS")
+        print(f"  {z:.0f} mm, roll {roll:.0f} deg{', poor MJPG webcam' if settings else ''}: raw {rms(raw):.4f} mm RMS, "
+              f"smoothed {rms(smooth):.4f} mm RMS")
 
 
 def bench_lag(phantom, webcam, rng) -> None:
@@ -168,26 +200,61 @@ def bench_calibration(phantom, webcam, rng, frames: int) -> None:
           f"bundle adjustment {t_refine:.1f} s, corner RMS {rms:.3f} px")
 
 
+def bench_webcam_calibration(rng, views: int) -> None:
+    """Intrinsics measured from rendered ChArUco views against the ones they were rendered with."""
+    spec = BoardSpec()
+    K_true = np.array([[1010.0, 0.0, 652.0], [0.0, 1006.0, 371.0], [0.0, 0.0, 1.0]])
+    dist_true = np.array([-0.12, 0.09, 0.0, 0.0, 0.0])
+    textures = [spec.image(ppm).astype(np.float32) / 255.0 for ppm in (2.0, 4.0, 8.0)]
+    board = TexturedQuad(np.eye(4), spec.squares_x * spec.square_mm / 2, spec.squares_y * spec.square_mm / 2, textures)
+    renderer = SceneRenderer(K_true, dist_true, 1280, 720, None, [board], RenderSettings(background=40.0),
+                             seed=int(rng.integers(2**31)))
+    detector = BoardDetector(spec)
+    found = []
+    for _ in range(views):
+        R = (R_HOME @ rotation_about((1, 0, 0), np.radians(rng.uniform(-35, 35)))
+             @ rotation_about((0, 1, 0), np.radians(rng.uniform(-35, 35)))
+             @ rotation_about((0, 0, 1), np.radians(rng.uniform(-20, 20))))
+        # Spread over the whole image, corners included, as a careful calibration is done.
+        T = make_transform(R, [rng.uniform(-150, 150), rng.uniform(-90, 90), rng.uniform(330, 450)])
+        view = detector.detect(renderer.render(T))
+        if view:
+            found.append(view)
+    cal = calibrate_webcam(found, 1280, 720)
+    print(f"webcam calibration: {len(found)} ChArUco views ({spec.squares_x}x{spec.squares_y}, {spec.square_mm:g} mm) "
+          f"rendered with fx 1010, fy 1006, cx 652, cy 371, k1 -0.12, k2 0.09")
+    print(f"  measured fx {cal.K[0, 0]:.2f}, fy {cal.K[1, 1]:.2f}, cx {cal.K[0, 2]:.2f}, cy {cal.K[1, 2]:.2f}, "
+          f"k1 {cal.dist[0]:.4f}, k2 {cal.dist[1]:.4f}; RMS reprojection {cal.rms_px:.3f} px")
+
+
 def bench_speed(phantom, webcam, rng, frames: int) -> None:
     cv2.setNumThreads(1)
-    print(f"speed: detection + pose per 1280x720 frame on one core (cv2.setNumThreads(1)), {frames} frames")
+    segments = 6
+    per = frames // segments
+    print(f"speed: detection + pose per 1280x720 frame on one core (cv2.setNumThreads(1)); {segments} stretches of "
+          f"{per} frames at 30 fps along the demo path")
+    path = load_trajectory(DEMO_TRAJECTORY)
+    cam = synthetic_camera(phantom, webcam, path, seed=int(rng.integers(2**31)))
     images, render = [], []
-    for T in random_poses(rng, frames):
-        cam = synthetic_camera(phantom, webcam, Trajectory.still(T), seed=int(rng.integers(2**31)))
-        t0 = time.perf_counter()
-        images.append(cam.render_at(0.0)[0])
-        render.append(time.perf_counter() - t0)
-    for method in ("joint", "marker"):
-        tr = Tracker(phantom, webcam, method, smoothing=True)
+    for s in range(segments):
+        for k in range(per):
+            t = s * path.duration / segments + k / 30.0
+            t0 = time.perf_counter()
+            images.append((t, cam.render_at(t)[0]))
+            render.append(time.perf_counter() - t0)
+    for method, window in (("joint", True), ("joint", False), ("marker", True)):
+        tr = Tracker(phantom, webcam, method, smoothing=True, window=window)
         ts, cpu = [], []
-        for k, image in enumerate(images):
+        for t, image in images:
             t0, c0 = time.perf_counter(), time.thread_time()
-            tr.track(image, k / 30.0)
+            tr.track(image, t)
             ts.append(time.perf_counter() - t0)
             cpu.append(time.thread_time() - c0)
         # CPU time of this thread is what one core spends; wall time also counts waiting for a shared core.
-        print(f"  {method:6s}: wall median {np.median(ts) * 1e3:.2f} ms (p95 {np.percentile(ts, 95) * 1e3:.2f} ms); "
-              f"CPU median {np.median(cpu) * 1e3:.2f} ms (p95 {np.percentile(cpu, 95) * 1e3:.2f} ms)")
+        where = (f"search window ({tr.window_searches} windowed, {tr.full_searches} whole-image searches)" if window
+                 else "whole image")
+        print(f"  {method:6s}, {where}: wall median {np.median(ts) * 1e3:.2f} ms (p95 {np.percentile(ts, 95) * 1e3:.2f}); "
+              f"CPU median {np.median(cpu) * 1e3:.2f} ms (p95 {np.percentile(cpu, 95) * 1e3:.2f})")
     print(f"  synthetic camera rendering: median {np.median(render) * 1e3:.2f} ms per frame")
 
 
@@ -198,10 +265,13 @@ def run_bench(args) -> int:
     print(f"phantom {args.phantom}, webcam {args.webcam} ({webcam.width}x{webcam.height}), seed {args.seed}; "
           f"synthetic frames: {RenderSettings()}")
     bench_accuracy(phantom, webcam, rng, args.frames)
+    bench_accuracy(phantom, webcam, rng, args.frames, HARSH)
+    bench_intrinsics(phantom, webcam, rng, args.frames // 2)
     bench_roll(phantom, webcam, rng)
     bench_jitter(phantom, webcam, rng, 120)
     bench_lag(phantom, webcam, rng)
     bench_calibration(phantom, webcam, rng, args.calibration_frames)
+    bench_webcam_calibration(rng, 15)
     bench_speed(phantom, webcam, rng, 60)
     return 0
 

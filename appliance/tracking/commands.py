@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -26,6 +25,12 @@ from .tracker import METHODS, Tracker
 from .webcam_calibration import BoardDetector, BoardSpec, calibrate_webcam
 
 
+#: Live webcam calibration keeps at most one board view per this many seconds.
+LIVE_VIEW_SPACING_S = 0.5
+#: A live camera that delivers nothing for this long (s) ends a calibration with an error.
+FIRST_FRAME_TIMEOUT_S = 5.0
+
+
 def _read_image(path: str) -> np.ndarray:
     p = Path(path)
     if not p.is_file():
@@ -42,7 +47,8 @@ def run_track(args) -> int:
     for path in args.images:
         if not Path(path).is_file():
             raise FluorosimError(f"{path}: no such image file")
-    tracker = Tracker(phantom, webcam, method=args.method, smoothing=False)
+    # Each image on its own: no smoothing, and no search window carried over from the previous one.
+    tracker = Tracker(phantom, webcam, method=args.method, smoothing=False, window=False)
     for path in args.images:
         pose = tracker.track(_read_image(path), time.monotonic())
         T = pose.T_webcam_from_phantom
@@ -63,15 +69,17 @@ def _live_frames(device: str, width: int, height: int, fps: float, seconds: floa
     cam = V4L2Camera(device, width, height, fps)
     cam.start()
     try:
-        seq, deadline, first = -1, time.monotonic() + seconds, time.monotonic() + 5.0
-        while time.monotonic() < deadline:
-            frame = cam.wait(seq, 0.5)
-            if frame is None:
-                if seq < 0 and time.monotonic() > first:
-                    raise FluorosimError(cam.message or f"camera {device}: no frames")
-                continue
-            seq = frame.seq
-            yield f"{device}#{frame.seq}", frame.image
+        wait_first_s = min(FIRST_FRAME_TIMEOUT_S, seconds)
+        seq, deadline, first = -1, time.monotonic() + seconds, time.monotonic() + wait_first_s
+        while time.monotonic() < deadline and (seq >= 0 or time.monotonic() < first):
+            frame = cam.wait(seq, 0.1)
+            if frame is not None:
+                seq = frame.seq
+                yield f"{device}#{frame.seq}", frame.image
+        if seq < 0:
+            why = cam.message.split(";")[0] if cam.message else f"camera {device}: no frames"
+            raise FluorosimError(f"{why}; nothing captured in {wait_first_s:g} s (check the device path, the cable "
+                                 "and that no other program holds the camera)")
     finally:
         cam.stop()
 
@@ -99,7 +107,7 @@ def _board(args) -> BoardSpec:
 def run_calibrate_webcam(args) -> int:
     load_profile(args.webcam, WebcamProfile)        # refuse to start on a profile we could not write back
     detector = BoardDetector(_board(args))
-    views, size, n = [], None, 0
+    views, size, n, last_kept = [], None, 0, 0.0
     for name, image in _frames(args):
         n += 1
         if image is None:
@@ -111,10 +119,15 @@ def run_calibrate_webcam(args) -> int:
         elif size != (w, h):
             raise FluorosimError(f"{name}: is {w}x{h} but earlier images are {size[0]}x{size[1]}; "
                                  "calibrate from one resolution")
+        if args.device and views and time.monotonic() - last_kept < LIVE_VIEW_SPACING_S:
+            continue                 # live: consecutive frames are nearly the same view
         found = detector.detect(image)
         print(f"{name}: {'board corners ' + str(len(found[0])) if found else 'board not found'}", file=sys.stderr)
         if found:
             views.append(found)
+            last_kept = time.monotonic()
+            if len(views) >= args.max_views:
+                break
     if size is None:
         raise FluorosimError("no frames to calibrate from")
     cal = calibrate_webcam(views, *size)
@@ -133,7 +146,7 @@ def run_calibrate_phantom(args) -> int:
     ids = [m.id for m in phantom.markers]
     cal = CompositeCalibration(ids, phantom.root_marker_id, phantom.marker(phantom.root_marker_id).T(),
                                phantom.marker_size_mm, K, dist)
-    n = 0
+    n, shown = 0, None
     for name, image in _frames(args):
         n += 1
         if image is None:
@@ -141,8 +154,11 @@ def run_calibrate_phantom(args) -> int:
             continue
         cal.add(detector.detect(image))
         missing = cal.missing()
-        print(f"frame {n}: markers seen {len(cal.seen)}/{len(ids)}, connected to the root: "
-              f"{'yes' if not missing else 'no (missing ' + ', '.join(map(str, missing)) + ')'}", file=sys.stderr)
+        progress = (len(cal.seen), tuple(missing))
+        if progress != shown or n % 30 == 0:       # a line when something changes, not 30 a second
+            print(f"frame {n}: markers seen {len(cal.seen)}/{len(ids)}, connected to the root: "
+                  f"{'yes' if not missing else 'no (missing ' + ', '.join(map(str, missing)) + ')'}", file=sys.stderr)
+            shown = progress
         if args.device and not missing and cal.frames_used >= args.min_frames:
             break
     missing = cal.missing()
@@ -262,6 +278,7 @@ def register(commands, benches) -> None:
     w.add_argument("--webcam", required=True, metavar="WEBCAM.yaml", help="webcam profile to update")
     _add_source_options(w)
     _add_board_options(w)
+    w.add_argument("--max-views", type=int, default=40, help="stop after this many board views (default %(default)s)")
     w.set_defaults(run=run_calibrate_webcam)
 
     ph = calibrate.add_parser("phantom", help="where each marker sits on the box (composite marker)",

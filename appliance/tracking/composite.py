@@ -31,9 +31,12 @@ from .markers import distort, marker_corners, marker_pose
 #: weighs as much as this many degrees of edge angle.
 HOP_COST_DEG = 10.0
 #: Markers seen more obliquely than this (ray-to-normal angle, degrees) are left out of the
-#: calibration: beyond about 70 degrees their corners are off by pixels, and a calibration can
-#: wait for better views, which tracking cannot.
-MAX_ANGLE_DEG = 65.0
+#: graph: beyond it their corners are off by pixels.
+GRAPH_MAX_ANGLE_DEG = 75.0
+#: The bundle adjustment is stricter: its observations stop at this angle (degrees); beyond
+#: about 70 degrees the corner errors stall it. A marker seen only more obliquely keeps its
+#: transform from the graph.
+ADJUST_MAX_ANGLE_DEG = 65.0
 #: A marker whose corners miss by more than this after adjustment (RMS, pixels) is an outlier in that frame.
 OUTLIER_PX = 1.0
 
@@ -64,14 +67,15 @@ class CompositeCalibration:
         poses = {}
         for i, c in detected.items():
             p = marker_pose(i, c, self.size_mm, self.K, self.dist)
-            if p is not None and p.angle_deg <= MAX_ANGLE_DEG:
+            if p is not None and p.angle_deg <= GRAPH_MAX_ANGLE_DEG:
                 poses[i] = p
         self.seen.update(poses)
         if len(poses) < 2:
             return
         self.frames_used += 1
-        if len(self.frames) < self.max_frames:
-            self.frames.append({i: detected[i] for i in poses})
+        clear = {i: detected[i] for i, p in poses.items() if p.angle_deg <= ADJUST_MAX_ANGLE_DEG}
+        if len(clear) >= 2 and len(self.frames) < self.max_frames:
+            self.frames.append(clear)
         ids = sorted(poses)
         for k, a in enumerate(ids):
             for b in ids[k + 1:]:
@@ -150,7 +154,7 @@ class CompositeCalibration:
             keep = [f for f, k in enumerate(kept) if len(k) >= 2]
             frames, poses = [kept[f] for f in keep], [poses[f] for f in keep]
         rms = float(np.sqrt(np.mean([e ** 2 for f in errors for e in f.values()])))
-        return {i: self.T_phantom_from_root @ T for i, T in layout.items()}, rms
+        return {i: self.T_phantom_from_root @ layout.get(i, start[i]) for i in start}, rms
 
     def _adjust(self, frames, start, poses0):
         """One bundle adjustment: (T_root_from_marker, T_webcam_from_root per frame, per frame {id: RMS px})."""

@@ -65,9 +65,17 @@ class MarkerDetector:
         self.K = None if K is None else np.asarray(K, dtype=np.float64)
         self.dist = np.zeros(5) if dist is None else np.asarray(dist, dtype=np.float64).reshape(-1)
 
-    def detect(self, image: np.ndarray) -> dict[int, np.ndarray]:
-        """{marker id: (4, 2) corner pixels} of every marker found; a repeated id is dropped as ambiguous."""
-        gray = to_gray(image)
+    def detect(self, image: np.ndarray, window: tuple[int, int, int, int] | None = None) -> dict[int, np.ndarray]:
+        """{marker id: (4, 2) corner pixels} of every marker found; a repeated id is dropped as ambiguous.
+
+        `window` = (x0, y0, x1, y1) searches only that part of the image (corners are still in
+        whole-image pixels).
+        """
+        x0, y0 = 0, 0
+        if window is not None:
+            x0, y0, x1, y1 = window
+            image = image[y0:y1, x0:x1]
+        gray = np.ascontiguousarray(to_gray(image))
         corners, ids, _ = self.detector.detectMarkers(gray)
         out: dict[int, np.ndarray] = {}
         if ids is None:
@@ -81,21 +89,21 @@ class MarkerDetector:
         for i in repeated:
             del out[i]
         if self.K is not None and out:
+            # In the window's own pixels the camera's principal point moves by the window's offset.
+            K = self.K.copy()
+            K[0, 2] -= x0
+            K[1, 2] -= y0
             ids = list(out)
-            for i, c in zip(ids, refine_markers_by_edges(gray, [out[i] for i in ids], self.cells, self.K, self.dist)):
+            for i, c in zip(ids, refine_markers_by_edges(gray, [out[i] for i in ids], self.cells, K, self.dist)):
                 out[i] = c
+        if x0 or y0:
+            out = {i: c + [x0, y0] for i, c in out.items()}
         return out
 
 
-def refine_corners_by_edges(gray: np.ndarray, corners: np.ndarray, cells: int, K: np.ndarray,
-                            dist: np.ndarray) -> np.ndarray:
-    """Corners (4, 2) of one marker refined by `refine_markers_by_edges` (pixels)."""
-    return refine_markers_by_edges(gray, [corners], cells, K, dist)[0]
-
-
-#: Profiles across each edge: samples every PROFILE_STEP_PX along the normal, at EDGE_SAMPLES
-#: places spread over the middle of the side (clear of the corners' rounding).
-PROFILE_STEP_PX = 0.25
+#: Profiles across each edge: PROFILE_SAMPLES samples spanning +-reach along the normal, at
+#: EDGE_SAMPLES places spread over the middle of the side (clear of the corners' rounding).
+PROFILE_SAMPLES = 25
 EDGE_SAMPLES = 16
 
 
@@ -119,7 +127,7 @@ def refine_markers_by_edges(gray: np.ndarray, markers: list[np.ndarray], cells: 
     side = np.linalg.norm(b - a, axis=2)                            # (M, 4)
     cell_px = side.min(axis=1) / cells
     reach = np.minimum(3.0, 0.4 * cell_px)                          # (M,)
-    n_off = 25
+    n_off = PROFILE_SAMPLES
     frac_off = np.linspace(-1.0, 1.0, n_off)                        # times reach
     d = (b - a) / np.maximum(side, 1e-9)[..., None]
     normal = np.stack([d[..., 1], -d[..., 0]], axis=2)
@@ -222,27 +230,31 @@ def marker_pose(marker_id: int, corners_px: np.ndarray, size_mm: float, K: np.nd
     the normal turned away from the camera is impossible and dropped.
     """
     obj, img = marker_corners(size_mm), corners_px.reshape(4, 1, 2).astype(np.float64)
-    seeds = []
+    seeds = []                  # (rvec, tvec, RMS error in pixels or None when unknown)
     try:
         n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
-        seeds += list(zip(rvecs, tvecs))
-        if n == 0 or not np.any(np.asarray(errs) <= IPPE_SUSPECT_PX):      # (NaN counts as bad)
+        # OpenCV reports the RMS per coordinate; per corner (as everywhere here) it is sqrt(2) larger.
+        errs = np.asarray(errs, dtype=np.float64).reshape(-1) * np.sqrt(2.0)
+        seeds += [(r, t, float(e)) for r, t, e in zip(rvecs, tvecs, errs)]
+        if n == 0 or not np.any(errs <= IPPE_SUSPECT_PX):      # (NaN counts as bad)
             ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_SQPNP)
             if ok:
-                seeds.append((rvec, tvec))
+                seeds.append((rvec, tvec, None))
     except cv2.error:
         return None
     found = []
-    for rvec, tvec in seeds:
+    for rvec, tvec, err in seeds:
         if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
             continue
         if polish:
             rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvec.copy(), tvec.copy())
+            err = None
         T = _transform(rvec, tvec)
         if not np.all(np.isfinite(T)) or T[2, 3] <= 0 or ray_to_normal_deg(T) >= 90.0:
             continue
-        proj, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
-        err = float(np.sqrt(np.mean(np.sum((proj.reshape(4, 2) - img.reshape(4, 2)) ** 2, axis=1))))
+        if err is None:
+            proj, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
+            err = float(np.sqrt(np.mean(np.sum((proj.reshape(4, 2) - img.reshape(4, 2)) ** 2, axis=1))))
         found.append((err, T))
     if not found:
         return None

@@ -7,6 +7,7 @@ from pathlib import Path
 from drivers.camera import CameraSource, FileCamera, V4L2Camera
 
 from ..config.loading import ApplianceConfig
+from ..errors import FluorosimError
 from .scene import synthetic_camera
 from .smoothing import SmoothingSettings
 from .tracker import Tracker
@@ -23,6 +24,11 @@ def open_camera(config: ApplianceConfig) -> CameraSource:
         path = config.resolve(cam.trajectory) if cam.trajectory else DEMO_TRAJECTORY
         return synthetic_camera(config.phantom, config.webcam, load_trajectory(path), fps=cam.fps)
     source = config.resolve(cam.source)
+    if (cam.width, cam.height) != (config.webcam.width, config.webcam.height):
+        # Intrinsics hold for the resolution they were measured at; another one would bias every pose.
+        raise FluorosimError(f"{config.path}: devices.camera asks for {cam.width}x{cam.height} but the webcam "
+                             f"profile {config.webcam_path} was calibrated at {config.webcam.width}x"
+                             f"{config.webcam.height}; capture at that size or run 'fluorosim calibrate webcam'")
     if cam.source.startswith("/dev/"):
         return V4L2Camera(cam.source, cam.width, cam.height, cam.fps, cam.fourcc)
     return FileCamera(source, fps=cam.fps)

@@ -3,9 +3,6 @@
 from __future__ import annotations
 
 import io
-import os
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
