@@ -10,7 +10,6 @@ logs, and prints a summary. Everything it writes goes under the profile's data_d
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import time
@@ -40,28 +39,6 @@ def shown(path: Path) -> str:
         return str(p.relative_to(Path.cwd().resolve()))
     except ValueError:
         return str(p)
-
-
-def script_length_s(path: Path) -> float:
-    """Simulated time of the last event in a scripted input timeline (JSONL, one event per line)."""
-    last = 0.0
-    try:
-        lines = path.read_text().splitlines()
-    except OSError as e:
-        raise FluorosimError(f"{path}: cannot read the input script ({e.strerror or e})") from None
-    for n, line in enumerate(lines, 1):
-        line = line.strip()
-        if not line or line.startswith("#"):
-            continue
-        try:
-            event = json.loads(line)
-        except json.JSONDecodeError as e:
-            raise FluorosimError(f"{path}:{n}: not a JSON object ({e.msg})") from None
-        for key in ("t", "t_s", "time_s"):
-            if isinstance(event, dict) and isinstance(event.get(key), (int, float)):
-                last = max(last, float(event[key]))
-                break
-    return last
 
 
 def build_patient(cfg, say=_say) -> int:
@@ -95,6 +72,9 @@ def run_demo(config_path: Path, *, case: Path | None = None, seconds: float | No
     devices = cfg.appliance.devices
     if devices.display.target != "file":
         raise FluorosimError(f"{config_path}: devices.display.target must be 'file' for the demo")
+    if seconds is None and devices.keypad.source != "scripted":
+        raise FluorosimError(f"{config_path}: devices.keypad.source must be 'scripted' for the demo to know when "
+                             "its session ends (or give --seconds)")
     cfg.data_dir.mkdir(parents=True, exist_ok=True)
     logs = start_logging(cfg.data_dir / "logs", console_level=logging.WARNING,
                          max_mb=cfg.appliance.daemon.log_max_mb, backups=cfg.appliance.daemon.log_backups)
@@ -111,11 +91,8 @@ def run_demo(config_path: Path, *, case: Path | None = None, seconds: float | No
         _say(f"      ready in {time.monotonic() - t_open:.1f} s; rendering on {app.parts.renderer_device}")
         rate = app.clock.rate
         if seconds is None:
-            script = cfg.resolve(devices.keypad.script) if devices.keypad.script else None
-            if script is None:
-                raise FluorosimError(f"{config_path}: devices.keypad.script is needed to know when the demo ends "
-                                     "(or give --seconds)")
-            seconds = script_length_s(script) / rate + TAIL_S
+            # The session lasts as long as its script (whose times are on the console's clock).
+            seconds = app.parts.keypad.duration_s / rate + TAIL_S
         _say(f"      running for {seconds:.0f} s (console clock x{rate:g}; "
              f"screen: {shown(cfg.data_dir / devices.display.path) if devices.display.path else devices.display.target})")
         t_run = time.monotonic()
