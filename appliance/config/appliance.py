@@ -55,6 +55,29 @@ class Devices(Section):
     display: Display
 
 
+class Daemon(Section):
+    """How the supervisor keeps the appliance up; the defaults suit a real appliance."""
+
+    stall_timeout_s: float = Field(5.0, gt=0, le=120, description="A worker whose heartbeat is older than this counts as hung "
+                                   "and the watchdog is no longer pinged; keep it below the unit's WatchdogSec (s).")
+    restart_limit: int = Field(5, ge=0, le=100, description="Restarts of a crashed worker allowed within restart_window_s; "
+                               "beyond that the supervisor lets the watchdog restart the whole service.")
+    restart_window_s: float = Field(60.0, gt=0, description="Window over which worker restarts are counted (s).")
+    disk_min_free_mb: float = Field(500.0, ge=0, description="Below this much free space in data_dir the disk counts as nearly full (MiB).")
+    health_period_s: float = Field(1.0, gt=0, le=60, description="How often health checks run (s).")
+    status_period_s: float = Field(2.0, gt=0, le=60, description="How often a STATUS= line goes to systemd and the log (s).")
+    hold_refresh_hz: float = Field(5.0, gt=0, le=60, description="Overlay refresh rate while no new image is rendered (1/s).")
+    render_matrix_px: int | None = Field(None, ge=64, le=8192, description="Render the X-ray image at this square matrix "
+                                         "instead of the detector's own, scaled up on screen; for a computer too slow "
+                                         "for the full matrix; omit to render at the detector's matrix (pixels).")
+    cpu_fallback_matrix_px: int = Field(256, ge=64, le=8192, description="Matrix rendered after the OpenCL device "
+                                        "failed and rendering fell back to the CPU, which is far slower (pixels).")
+    clock_rate: float = Field(1.0, gt=0, le=100, description="Simulated seconds per wall-clock second for the console and its "
+                              "scripted input (fluoroscopy time, dose, alarm); 1 on a real appliance (dimensionless).")
+    log_max_mb: float = Field(10.0, gt=0, description="Size at which the log file in data_dir/logs is rotated (MiB).")
+    log_backups: int = Field(5, ge=0, le=100, description="Rotated log files kept.")
+
+
 class Tracking(Section):
     method: Literal["auto", "joint", "marker"] = Field(
         "auto", description="'joint': one PnP over every visible marker's corners (auto); 'marker': the single most "
@@ -78,3 +101,4 @@ class ApplianceProfile(Section):
     devices: Devices
     tracking: Tracking = Field(default_factory=Tracking, description="How the phantom's pose is computed and smoothed.")
     data_dir: str = Field(description="Ledger, logs, saved images and caches live here; relative to this file unless absolute.")
+    daemon: Daemon = Field(default_factory=Daemon, description="Supervisor, watchdog and logging settings.")

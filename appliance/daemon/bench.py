@@ -1,0 +1,79 @@
+"""`fluorosim bench e2e`: the whole appliance measured end to end on this machine.
+
+The appliance runs as `fluorosim run` runs it, with the synthetic camera, fluoroscopy held
+on by the bench's input script, and the file framebuffer. Reported: live frames per
+second on screen, motion-to-photon latency (camera frame timestamp to framebuffer
+write; median and 99th percentile), and resident memory growth from the end of warm-up
+to the end of the run.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import psutil
+
+from .demo import shown
+from .logqueue import start_logging
+from .notify import Notifier
+from .reload import ProfileKeeper
+
+#: Frames and memory of the first part of a run are not counted: kernel compilation,
+#: patient loading and allocator warm-up are start-up costs, not steady state (fraction of the run).
+WARMUP_FRACTION = 0.2
+#: Warm-up lasts at least this long (s).
+WARMUP_MIN_S = 5.0
+
+
+def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None) -> int:
+    from .pipeline import Appliance
+
+    keeper = ProfileKeeper(config_path, data_dir=Path(out) if out else None)
+    data_dir = keeper.current.data_dir
+    logs = start_logging(data_dir / "logs", console_level=logging.WARNING)
+    try:
+        app = Appliance(keeper, Notifier())
+        duration = minutes * 60.0
+        warmup = max(WARMUP_MIN_S, WARMUP_FRACTION * duration)
+        process = psutil.Process()
+        rss: list[tuple[float, int]] = []
+        cfg = keeper.current
+        matrix = cfg.appliance.daemon.render_matrix_px or cfg.fluoroscope.detector.columns
+        print(f"bench e2e: {config_path}, {duration:.0f} s measured after {warmup:.0f} s warm-up; renderer on "
+              f"{app.parts.renderer_device}, {matrix} px matrix; camera {cfg.appliance.devices.camera.source} at "
+              f"{cfg.appliance.devices.camera.fps:g} fps; data in {shown(data_dir)}", flush=True)
+        t0 = time.monotonic()
+        next_sample = [t0]
+
+        def until() -> bool:
+            now = time.monotonic()
+            if now >= next_sample[0]:
+                rss.append((now - t0, process.memory_info().rss))
+                next_sample[0] += 1.0
+            return now - t0 >= duration + warmup
+
+        app.run(until=until)
+        t_shown = np.array(app.stats.shown_at) - t0
+        lat = np.array(app.stats.latencies_s)
+        steady = t_shown >= warmup
+        n = int(steady.sum())
+        span = duration
+        fps = n / span if span > 0 else float("nan")
+        after = [r for t, r in rss if t >= warmup]
+        growth = (after[-1] - after[0]) / after[0] * 100 if len(after) >= 2 else float("nan")
+        print(f"frames on screen:       {n} live in {span:.0f} s ({app.stats.frames} with the warm-up)")
+        print(f"frames per second:      {fps:.1f}")
+        if n:
+            print(f"motion-to-photon:       median {np.median(lat[steady]) * 1000:.0f} ms, "
+                  f"p99 {np.percentile(lat[steady], 99) * 1000:.0f} ms")
+        if after:
+            print(f"resident memory:        {after[0] / 2**20:.0f} MiB -> {after[-1] / 2**20:.0f} MiB "
+                  f"({growth:+.1f} % over {rss[-1][0] - warmup:.0f} s)")
+        dropped = app.poses.dropped
+        print(f"stale poses skipped:    {dropped} (the renderer always draws the newest)")
+        return 0
+    finally:
+        logs.stop()

@@ -1,0 +1,75 @@
+"""`fluorosim run`, `fluorosim demo` and `fluorosim bench e2e`."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from ..config.commands import default_config_dir
+
+
+def _default(name: str) -> str:
+    return str(default_config_dir() / name)
+
+
+def run_run(args) -> int:
+    # Imported here so `fluorosim --help` does not load OpenCL, OpenCV and the rest.
+    from .logqueue import start_logging
+    from .notify import Notifier
+    from .pipeline import Appliance
+    from .reload import ProfileKeeper
+
+    keeper = ProfileKeeper(Path(args.config))
+    daemon = keeper.current.appliance.daemon
+    logs = start_logging(keeper.current.data_dir / "logs", level=logging.DEBUG if args.verbose else logging.INFO,
+                         max_mb=daemon.log_max_mb, backups=daemon.log_backups)
+    try:
+        app = Appliance(keeper, Notifier())
+        return app.run()
+    finally:
+        logs.stop()
+
+
+def run_demo(args) -> int:
+    from .demo import run_demo as demo
+    return demo(Path(args.config), case=Path(args.case) if args.case else None, seconds=args.seconds)
+
+
+def run_bench_e2e(args) -> int:
+    from .bench import run_e2e
+    return run_e2e(Path(args.config), minutes=args.minutes, out=Path(args.out) if args.out else None)
+
+
+def register(commands, benches) -> None:
+    p = commands.add_parser("run", help="run the appliance (what the systemd service starts)",
+                            description="Run the appliance: camera, tracking, rendering, console and ledger under a "
+                                        "supervisor that speaks sd_notify. SIGHUP reloads the profiles (a bad edit "
+                                        "keeps the last good ones and says why on screen); SIGTERM ends the session "
+                                        "and exits within 2 s.")
+    p.add_argument("--config", default=_default("appliance.yaml"), metavar="PATH",
+                   help="appliance profile (default: configs/appliance.yaml)")
+    p.add_argument("--verbose", action="store_true", help="log debug messages too")
+    p.set_defaults(run=run_run)
+
+    d = commands.add_parser("demo", help="show the whole appliance working on the built-in patient",
+                            description="Run the real appliance with a synthetic camera moving the intensifier over "
+                                        "the box, a scripted keypad and pedal session under an accelerated clock, and "
+                                        "a file framebuffer; then write snapshots, a contact sheet and the dose logs "
+                                        "under the demo's data_dir and print a summary.")
+    d.add_argument("--case", metavar="PATH", help="case profile to use instead of the built-in patient "
+                                                 "(configs/cases/X.yaml, which may point at your own CT)")
+    d.add_argument("--config", default=_default("appliance-demo.yaml"), metavar="PATH",
+                   help="the demo's appliance profile (default: configs/appliance-demo.yaml)")
+    d.add_argument("--seconds", type=float, default=None, metavar="S",
+                   help="stop after this many wall-clock seconds (default: when the scripted session ends)")
+    d.set_defaults(run=run_demo)
+
+    b = benches.add_parser("e2e", help="frames per second on screen, motion-to-photon latency, memory growth",
+                           description="Run the appliance with the synthetic camera, fluoroscopy held on and the file "
+                                       "framebuffer; report frames per second on screen, camera-frame-to-framebuffer "
+                                       "latency (median, p99) and resident memory growth.")
+    b.add_argument("--config", default=_default("appliance-bench.yaml"), metavar="PATH",
+                   help="appliance profile to run (default: configs/appliance-bench.yaml)")
+    b.add_argument("--minutes", type=float, default=0.5, help="how long to run (min; default 0.5; 10 for the memory figure)")
+    b.add_argument("--out", metavar="DIR", help="data_dir for the run (default: the profile's, var/bench)")
+    b.set_defaults(run=run_bench_e2e)

@@ -1,0 +1,190 @@
+"""`fluorosim demo`: the real appliance on the built-in patient, with no hardware at all.
+
+The demo profile (configs/appliance-demo.yaml) names a synthetic camera moving the
+intensifier over the box on a scripted path (with the +-90 degree rolls), a scripted
+keypad and pedal session under an accelerated clock, and a file framebuffer. The demo
+builds or loads the patient, runs the same supervised daemon `fluorosim run` runs,
+snapshots key moments from the framebuffer, writes a contact sheet, exports the dose
+logs, and prints a summary. Everything it writes goes under the profile's data_dir.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from pathlib import Path
+
+from ..errors import FluorosimError
+from .logqueue import start_logging
+from .notify import Notifier
+from .reload import ProfileKeeper
+from .snapshots import Snapshotter, contact_sheet, key_moments, read_png, write_png
+
+#: Wall-clock seconds the demo keeps running after the script's last event, so the last
+#: images and the alarm reset reach the screen and the ledger.
+TAIL_S = 2.0
+#: Seconds between progress lines while the appliance runs.
+PROGRESS_EVERY_S = 5.0
+
+
+def _say(message: str) -> None:
+    print(message, flush=True)
+
+
+def shown(path: Path) -> str:
+    """A path as a person reads it: relative to the working directory when inside it."""
+    p = Path(path).resolve()
+    try:
+        return str(p.relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(p)
+
+
+def build_patient(cfg, say=_say) -> int:
+    """Build the built-in patient (first run; cached afterwards) or read a case's CT phases,
+    with progress lines; returns the number of phases."""
+    from .parts import patient_phases
+
+    t0 = time.monotonic()
+    if cfg.case.builtin:
+        say(f"[1/4] built-in patient '{cfg.case.builtin}' (cached under {shown(cfg.data_dir / 'cache')})")
+        phases = patient_phases(cfg, progress=lambda message: say(f"      {message}"))
+        volume = phases[0][1]()
+        nx, ny, nz = volume.shape_xyz
+        say(f"      {len(phases)} phases of {nx}x{ny}x{nz} voxels ready in {time.monotonic() - t0:.1f} s")
+        return len(phases)
+    say(f"[1/4] case '{cfg.case.title}' ({shown(cfg.case_path)}): reading its CT")
+    phases = patient_phases(cfg)
+    for i, (t_s, loader) in enumerate(phases, 1):
+        t1 = time.monotonic()
+        nx, ny, nz = loader().shape_xyz
+        say(f"      phase {i}/{len(phases)} at {t_s:g} s: {nx}x{ny}x{nz} voxels ({time.monotonic() - t1:.1f} s)")
+    say(f"      ready in {time.monotonic() - t0:.1f} s")
+    return len(phases)
+
+
+def run_demo(config_path: Path, *, case: Path | None = None, seconds: float | None = None) -> int:
+    from .pipeline import Appliance
+
+    keeper = ProfileKeeper(config_path, case=case)
+    cfg = keeper.current
+    devices = cfg.appliance.devices
+    if devices.display.target != "file":
+        raise FluorosimError(f"{config_path}: devices.display.target must be 'file' for the demo")
+    if seconds is None and devices.keypad.source != "scripted":
+        raise FluorosimError(f"{config_path}: devices.keypad.source must be 'scripted' for the demo to know when "
+                             "its session ends (or give --seconds)")
+    cfg.data_dir.mkdir(parents=True, exist_ok=True)
+    logs = start_logging(cfg.data_dir / "logs", console_level=logging.WARNING,
+                         max_mb=cfg.appliance.daemon.log_max_mb, backups=cfg.appliance.daemon.log_backups)
+    try:
+        build_patient(cfg)
+        snap_dir = cfg.data_dir / "snapshots"
+        snap_dir.mkdir(parents=True, exist_ok=True)
+        for old in snap_dir.glob("*.png"):
+            old.unlink()
+        snapper = Snapshotter(snap_dir, key_moments())
+        _say("[2/4] starting the appliance: phases onto the OpenCL device, kernels built, camera started")
+        t_open = time.monotonic()
+        app = Appliance(keeper, Notifier(), on_shown=snapper)
+        _say(f"      ready in {time.monotonic() - t_open:.1f} s; rendering on {app.parts.renderer_device}")
+        rate = app.clock.rate
+        if seconds is None:
+            # The session lasts as long as its script (whose times are on the console's clock).
+            seconds = app.parts.keypad.duration_s / rate + TAIL_S
+        _say(f"      running for {seconds:.0f} s (console clock x{rate:g}; "
+             f"screen: {shown(cfg.data_dir / devices.display.path) if devices.display.path else devices.display.target})")
+        t_run = time.monotonic()
+        next_line = [t_run + PROGRESS_EVERY_S]
+
+        def until() -> bool:
+            now = time.monotonic()
+            if now >= next_line[0]:
+                next_line[0] += PROGRESS_EVERY_S
+                _say("      " + progress_line(app, now - t_run))
+            return now - t_run >= seconds
+
+        app.run(until=until)
+        run_s = time.monotonic() - t_run
+
+        _say("[3/4] contact sheet and dose logs")
+        captions = snapper.captions()
+        shots = sorted(snapper.taken.items(), key=lambda kv: kv[1].name)
+        sheet_path = None
+        if shots:
+            sheet_path = write_png(snap_dir / "contact-sheet.png",
+                                   contact_sheet([(captions.get(n, n), read_png(p)) for n, p in shots]))
+        exports = export_logs(app, cfg.data_dir / "exports")
+
+        _say("[4/4] summary")
+        for line in summary_lines(app, run_s, shots, sheet_path, exports):
+            _say("      " + line)
+        return 0
+    finally:
+        logs.stop()
+
+
+def progress_line(app, elapsed_s: float) -> str:
+    state, _ = app.console_state.get()
+    stats = app.stats
+    fluoro = _mmss(state.fluoro_time_s) if state is not None else "--:--"
+    banners = app.supervisor.banners()
+    return (f"{elapsed_s:5.1f} s  fluoro {fluoro}  frames {stats.frames}  {stats.fps(time.monotonic()):4.1f} fps"
+            + (f"  [{'; '.join(banners)}]" if banners else ""))
+
+
+def _mmss(seconds: float) -> str:
+    m, s = divmod(int(round(seconds)), 60)
+    return f"{m:02d}:{s:02d}"
+
+
+def export_logs(app, out_dir: Path) -> dict[str, list[Path]]:
+    """This session's dose log as CSV, JSON and DICOM RDSR: what `fluorosim logs export` writes."""
+    from ..records import export
+    from ..records.ledger import open_readonly
+
+    conn = open_readonly(app.ledger.path)
+    try:
+        row = conn.execute("SELECT started_wall FROM sessions WHERE id = ?", (app.session_id,)).fetchone()
+        if row is None:
+            return {}
+        since = row[0]
+        until = math.nextafter(since, math.inf)  # exactly this session
+        folder = out_dir / f"session-{app.session_id:06d}"
+        paths = {}
+        for fmt in export.FORMATS:
+            written, notes = export.export(conn, since, until, fmt, folder)
+            for note in notes:
+                logging.getLogger(__name__).warning("export %s: %s", fmt, note)
+            paths[fmt] = written
+        return paths
+    finally:
+        conn.close()
+
+
+def summary_lines(app, run_s: float, shots, sheet_path, exports) -> list[str]:
+    s = app.stats.summary()
+    state, _ = app.console_state.get()
+    lines = [
+        f"frames on screen:   {int(s['frames'])} live in {run_s:.1f} s",
+        f"frame rate:         {s['fps']:.1f} fps",
+        f"latency:            median {s['latency_median_ms']:.0f} ms, p99 {s['latency_p99_ms']:.0f} ms "
+        "(camera frame to framebuffer write)",
+    ]
+    if state is not None:
+        lines += [
+            f"fluoroscopy time:   {_mmss(state.fluoro_time_s)} (simulated)",
+            f"reference air kerma: {state.air_kerma_mgy:.2f} mGy",
+            f"DAP:                {state.dap_gy_cm2:.3f} Gy.cm2",
+        ]
+    lines.append(f"snapshots:          {len(shots)}")
+    lines += [f"  {shown(p)}" for _, p in shots]
+    if sheet_path is not None:
+        lines.append(f"contact sheet:      {shown(sheet_path)}")
+    lines.append(f"saved images:       {len(app.saved)}")
+    for png, dcm in app.saved:
+        lines.append(f"  {shown(dcm)}  ({png.name})")
+    for fmt, paths in exports.items():
+        lines.append(f"dose log ({fmt}):{' ' * (9 - len(fmt))}" + ", ".join(shown(p) for p in paths))
+    return lines

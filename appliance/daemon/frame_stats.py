@@ -1,0 +1,53 @@
+"""Frame rate on screen and motion-to-photon latency, over a sliding window and over a whole run."""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+
+import numpy as np
+
+
+class FrameStats:
+    """Records each live frame written to the display: when, and how old its camera frame was.
+
+    Latency is motion-to-photon: the camera frame's timestamp to the framebuffer write,
+    in wall-clock seconds.
+    """
+
+    def __init__(self, window_s: float = 2.0, keep: int = 100_000):
+        self.window_s = window_s
+        self._recent: deque[float] = deque()
+        self._lock = threading.Lock()
+        self.latencies_s: deque[float] = deque(maxlen=keep)
+        self.shown_at: deque[float] = deque(maxlen=keep)
+        self.frames = 0
+
+    def add(self, t_shown: float, latency_s: float) -> None:
+        with self._lock:
+            self.frames += 1
+            self.latencies_s.append(latency_s)
+            self.shown_at.append(t_shown)
+            self._recent.append(t_shown)
+            while self._recent and t_shown - self._recent[0] > self.window_s:
+                self._recent.popleft()
+
+    def fps(self, now: float) -> float:
+        """Live frames per second over the last `window_s` seconds."""
+        with self._lock:
+            recent = [t for t in self._recent if now - t <= self.window_s]
+        return len(recent) / self.window_s
+
+    def summary(self) -> dict[str, float]:
+        """frames, fps over the whole run (first to last frame), latency median and p99 (ms)."""
+        with self._lock:
+            lat = np.array(self.latencies_s, dtype=float)
+            shown = np.array(self.shown_at, dtype=float)
+        out = {"frames": float(self.frames), "fps": float("nan"),
+               "latency_median_ms": float("nan"), "latency_p99_ms": float("nan")}
+        if len(shown) >= 2 and shown[-1] > shown[0]:
+            out["fps"] = (len(shown) - 1) / (shown[-1] - shown[0])
+        if len(lat):
+            out["latency_median_ms"] = float(np.median(lat) * 1000)
+            out["latency_p99_ms"] = float(np.percentile(lat, 99) * 1000)
+        return out

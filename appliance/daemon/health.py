@@ -1,0 +1,166 @@
+"""Health checks: small classes that each look at one thing and say how it is.
+
+Each `check()` returns a `Health`: a level, the banner shown on screen when it is not OK
+(one short sentence a trainee understands), and context for the log. A degraded mode is
+nothing more than a check that is not OK: its banner shows while it lasts and goes away
+by itself when the check passes again.
+"""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass, field
+from enum import IntEnum
+from pathlib import Path
+from typing import Any, Callable, Protocol
+
+
+class Level(IntEnum):
+    OK = 0
+    WARNING = 1
+    ERROR = 2
+
+
+@dataclass(frozen=True)
+class Health:
+    level: Level
+    banner: str = ""
+    context: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return self.level == Level.OK
+
+
+OK = Health(Level.OK)
+
+
+class HealthCheck(Protocol):
+    name: str
+
+    def check(self) -> Health: ...
+
+
+class DiskSpace:
+    """Free space of the file system holding data_dir (ledger, saved images, logs)."""
+
+    name = "disk"
+
+    def __init__(self, path: Path, min_free_mb: float):
+        self.path = Path(path)
+        self.min_free_mb = min_free_mb
+
+    def check(self) -> Health:
+        try:
+            usage = shutil.disk_usage(self.path)
+        except OSError as e:
+            return Health(Level.ERROR, f"data folder unreadable: {e.strerror or e}", {"path": str(self.path)})
+        free_mb = usage.free / 2**20
+        context = {"path": str(self.path), "free_mb": round(free_mb, 1), "min_free_mb": self.min_free_mb}
+        if free_mb < self.min_free_mb:
+            return Health(Level.WARNING, f"disk nearly full: {free_mb:.0f} MiB free - export and delete old images", context)
+        return Health(Level.OK, "", context)
+
+
+class CameraState:
+    """The camera source's own state: 'starting', 'ok' or 'camera lost'."""
+
+    name = "camera"
+
+    def __init__(self, camera: Callable[[], Any]):
+        self._camera = camera
+
+    def check(self) -> Health:
+        cam = self._camera()
+        state = getattr(cam, "state", "camera lost") if cam is not None else "camera lost"
+        if state == "ok":
+            return OK
+        if state == "starting":
+            return Health(Level.WARNING, "camera starting", {"state": state})
+        return Health(Level.WARNING, "tracking lost: camera lost - check the webcam cable", {"state": state})
+
+
+class TrackingState:
+    """Whether the last camera frame gave a pose of the box."""
+
+    name = "tracking"
+
+    def __init__(self, pose_ok: Callable[[], bool | None]):
+        self._pose_ok = pose_ok
+
+    def check(self) -> Health:
+        ok = self._pose_ok()
+        if ok is None or ok:
+            return OK
+        return Health(Level.WARNING, "tracking lost: bring the box markers into the camera's view", {})
+
+
+class InputDeviceState:
+    """A keypad or pedal: 'ok', 'none' (not configured) or 'unplugged'."""
+
+    def __init__(self, name: str, device: Callable[[], Any]):
+        self.name = name
+        self._device = device
+
+    def check(self) -> Health:
+        dev = self._device()
+        state = getattr(dev, "state", "none") if dev is not None else "none"
+        if state in ("ok", "none"):
+            return OK
+        problem = getattr(dev, "problem", "")
+        banner = f"{self.name}: {problem}" if problem else f"{self.name} unplugged - plug it back in"
+        return Health(Level.WARNING, banner, {"state": state})
+
+
+class RendererDevice:
+    """Whether rendering still runs on the OpenCL device the profile asked for."""
+
+    name = "renderer"
+
+    def __init__(self, fault: Callable[[], str | None]):
+        self._fault = fault
+
+    def check(self) -> Health:
+        fault = self._fault()
+        if not fault:
+            return OK
+        return Health(Level.WARNING, f"OpenCL device failed; rendering on the CPU ({fault})", {"fault": fault})
+
+
+class ProfileState:
+    """Whether the last SIGHUP reload was refused (the appliance runs on the last good profiles)."""
+
+    name = "profile"
+
+    def __init__(self, problem: Callable[[], str | None]):
+        self._problem = problem
+
+    def check(self) -> Health:
+        problem = self._problem()
+        if not problem:
+            return OK
+        return Health(Level.WARNING, f"profile not reloaded, running on the last good one: {problem}", {"problem": problem})
+
+
+class RecordsState:
+    """Whether the ledger and saved images are being written (a full or read-only disk stops them)."""
+
+    name = "records"
+
+    def __init__(self, problem: Callable[[], str | None]):
+        self._problem = problem
+
+    def check(self) -> Health:
+        problem = self._problem()
+        if not problem:
+            return OK
+        return Health(Level.ERROR, f"records not written, kept in memory until they can be: {problem}",
+                      {"problem": problem})
+
+
+def run_check(check: HealthCheck) -> Health:
+    """`check.check()`, with a failing check reported as an error rather than raised."""
+    try:
+        return check.check()
+    except Exception as e:  # noqa: BLE001 - a broken check must not stop the supervisor
+        return Health(Level.ERROR, f"health check {check.name} failed: {type(e).__name__}: {e}", {})

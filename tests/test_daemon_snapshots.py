@@ -1,0 +1,82 @@
+"""Key-moment snapshots and the contact sheet, checked pixel by pixel against known images."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from appliance.daemon.snapshots import Snapshotter, contact_sheet, key_moments, read_png, roll_deg
+from appliance.geometry import make_transform, rotation_about
+
+
+def _pose(roll_deg_true: float, yaw_deg: float = 0.0) -> np.ndarray:
+    # Camera above the box looking down at its top face: phantom z maps to webcam -z.
+    R_facing = rotation_about([1, 0, 0], math.pi)
+    R = rotation_about([0, 0, 1], math.radians(yaw_deg)) @ R_facing @ rotation_about([1, 0, 0], math.radians(roll_deg_true))
+    return make_transform(R, [10.0, -20.0, 600.0])
+
+
+@pytest.mark.parametrize("roll", [0.0, 30.0, 90.0, -90.0, -45.0, 170.0])
+@pytest.mark.parametrize("yaw", [0.0, 37.0, -120.0])
+def test_roll_is_the_rotation_about_the_box_long_axis(roll, yaw):
+    assert roll_deg(_pose(roll, yaw)) == pytest.approx(roll, abs=1e-9)
+
+
+def test_contact_sheet_places_each_image_in_its_tile():
+    colours = [(255, 0, 0), (0, 255, 0), (0, 0, 255), (255, 255, 0), (0, 255, 255)]
+    images = [(f"tile {k}", np.full((100, 200, 3), c, np.uint8)) for k, c in enumerate(colours)]
+    sheet = contact_sheet(images, columns=2, tile_width=100, label_height=20)
+    # Tiles 100 x 50 (the 200 x 100 aspect), captions 20 high: 3 rows of 70, 2 columns of 100.
+    assert sheet.shape == (210, 200, 3)
+    for k, c in enumerate(colours):
+        r, col = divmod(k, 2)
+        y, x = r * 70, col * 100
+        assert (sheet[y:y + 50, x:x + 100] == c).all(), k
+        assert (sheet[y + 50:y + 70, x:x + 100] != c).any()  # the caption strip is not the image
+    assert (sheet[140:190, 100:200] == 24).all()  # the empty sixth cell stays background
+
+
+@dataclass
+class _Frame:
+    rgb: np.ndarray
+    state: SimpleNamespace
+    live: bool = True
+    image: np.ndarray | None = field(default_factory=lambda: np.zeros((4, 4), np.float32))
+    pose: object = None
+    banners: list = field(default_factory=list)
+    saved_flash: bool = False
+
+    def rgb_source(self):
+        return self.rgb
+
+
+def _state(**kw):
+    base = dict(zoom=1, fov_mm=230.0, collimation_mm=(230.0, 230.0), invert=False, breath_hold=False, alarm_sounding=False, fluoro_on=True)
+    base.update(kw)
+    return SimpleNamespace(**base)
+
+
+def test_each_moment_is_taken_once_from_the_first_frame_that_shows_it(tmp_path):
+    snap = Snapshotter(tmp_path, key_moments())
+    frames = [
+        _Frame(np.full((8, 8, 3), 10, np.uint8), _state()),
+        _Frame(np.full((8, 8, 3), 20, np.uint8), _state()),
+        _Frame(np.full((8, 8, 3), 30, np.uint8), _state(zoom=3, fov_mm=130.0, collimation_mm=(130.0, 130.0))),
+        _Frame(np.full((8, 8, 3), 40, np.uint8), _state(collimation_mm=(120.0, 230.0))),
+        _Frame(np.full((8, 8, 3), 50, np.uint8), _state(alarm_sounding=True)),
+        _Frame(np.full((8, 8, 3), 60, np.uint8), _state(alarm_sounding=False, fluoro_on=False), live=False),
+        _Frame(np.full((8, 8, 3), 70, np.uint8), _state(), pose=SimpleNamespace(pose=SimpleNamespace(
+            ok=True, T_webcam_from_phantom=_pose(88.0)))),
+    ]
+    for f in frames:
+        snap(f)
+    expect = {"first-live": 10, "zoom-1": 10, "zoom-3": 30, "collimated": 40, "alarm": 50,
+              "alarm-reset": 60, "last-image-hold": 60, "roll-plus-90": 70}
+    assert set(snap.taken) == set(expect)
+    for name, value in expect.items():
+        assert (read_png(snap.taken[name]) == value).all(), name
+    assert snap.taken["zoom-3"].name == "03-zoom-3.png"

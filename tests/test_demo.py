@@ -1,0 +1,75 @@
+"""`fluorosim demo` end to end on a small case: the shipped demo session script, the real
+daemon, snapshots, contact sheet, saved images and the exported dose logs, checked against
+the script's hand-worked totals."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import pydicom
+
+from appliance_setup import REPO, make_appliance
+
+#: configs/scripts/demo-session.jsonl, summed by hand: fluoroscopy runs of
+#: 20 + 30 + 60 + 40 + 100 + 80 s; the alarm at 300 s (once, then reset); two saves.
+SCRIPT_FLUORO_S = 330.0
+SCRIPT_ALARMS = 1
+SCRIPT_SAVES = 2
+
+
+def test_demo_runs_the_session_and_writes_everything_it_lists(tmp_path):
+    # Clock x60: the 375 s session passes in about 6 s of wall-clock time.
+    config = make_appliance(tmp_path, base="appliance-demo.yaml", clock_rate=60, display=(640, 512))
+    script = config.parent / "scripts" / "demo-session.jsonl"
+    case = config.parent / "cases" / "cylinder.yaml"
+    result = subprocess.run([sys.executable, "-m", "appliance", "demo", "--config", str(config), "--case", str(case)],
+                            cwd=REPO, capture_output=True, text=True, timeout=120)
+    out = result.stdout
+    assert result.returncode == 0, out + result.stderr
+    assert "Traceback" not in result.stderr
+    for step in ("[1/4]", "[2/4]", "[3/4]", "[4/4]"):
+        assert step in out
+    data = tmp_path / "data"
+    assert script.is_file()
+
+    # Every file the summary names exists, and the summary names what it should.
+    listed = [Path(tok.rstrip(",")) for line in out.splitlines() for tok in line.split()
+              if tok.rstrip(",").endswith((".png", ".dcm", ".csv", ".json"))]
+    listed = [p if p.is_absolute() else REPO / p for p in listed]
+    assert listed and all(p.is_file() for p in listed), [p for p in listed if not p.is_file()]
+
+    snaps = sorted((data / "snapshots").glob("[0-9][0-9]-*.png"))
+    names = {p.stem[3:] for p in snaps}
+    assert {"first-live", "zoom-1", "zoom-2", "zoom-3", "zoom-4", "collimated", "inverted", "breath-hold",
+            "saved", "alarm", "alarm-reset", "last-image-hold"} <= names, names
+    for p in snaps:
+        assert cv2.imread(str(p)).shape == (512, 640, 3)  # read back from the 640 x 512 screen
+    sheet = cv2.imread(str(data / "snapshots" / "contact-sheet.png"))
+    rows = math.ceil(len(snaps) / 4)
+    assert sheet.shape == (rows * (round(512 * 320 / 640) + 24), 4 * 320, 3)
+
+    # The dose log of this session, as exported, against the script's own totals.
+    folder = next((data / "exports").glob("session-*"))
+    ledger = json.loads((folder / "ledger.json").read_text())
+    (session,) = ledger["sessions"]
+    assert ledger["chain"]["ok"]
+    assert abs(session["fluoro_time_s"] - SCRIPT_FLUORO_S) < 0.05
+    kinds = [e["kind"] for e in session["events"]]
+    assert kinds.count("alarm") == SCRIPT_ALARMS and kinds.count("alarm_reset") == SCRIPT_ALARMS
+    assert kinds.count("save") == SCRIPT_SAVES
+    with open(folder / "events.csv", newline="") as f:
+        events = list(csv.DictReader(f))
+    assert abs(sum(float(e["d_fluoro_time_s"]) for e in events) - SCRIPT_FLUORO_S) < 0.05
+    assert abs(sum(float(e["d_air_kerma_mgy"]) for e in events) - session["air_kerma_mgy"]) < 1e-6
+    sr = pydicom.dcmread(next(folder.glob("*.dcm")))
+    assert sr.Modality == "SR"
+    saved = sorted((data / "images").glob("*.dcm"))
+    assert len(saved) == SCRIPT_SAVES
+    assert pydicom.dcmread(saved[0]).Rows == 64  # the demo renders the matrix the profile asks for
+    assert f"fluoroscopy time:   {int(SCRIPT_FLUORO_S // 60):02d}:{int(SCRIPT_FLUORO_S % 60):02d}" in out
