@@ -73,6 +73,13 @@ def make_appliance(tmp: Path, *, camera: str = "synthetic", script: list[str] | 
         data["devices"]["pedal"] = {"source": pedal, "silence_timeout_s": 0.5}
     d = data["daemon"]
     d["clock_rate"], d["render_matrix_px"], d["stall_timeout_s"] = clock_rate, render_px, stall_timeout_s
+    # The tests read the screen's brightness against the profile's fixed window and level
+    # (with automatic brightness control any uniform object would sit at mid-grey).
+    fluoroscope = configs / data["fluoroscope"]
+    profile = yaml.load(fluoroscope.read_text())
+    profile["display"]["auto_brightness"] = False
+    with open(fluoroscope, "w") as f:
+        yaml.dump(profile, f)
     path = configs / "appliance-test.yaml"
     with open(path, "w") as f:
         yaml.dump(data, f)

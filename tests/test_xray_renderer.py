@@ -74,14 +74,35 @@ def test_polychromatic_intensity_sums_the_spectrum(flat, slab):
     assert img[64, 64] > mono[64, 64]       # beam hardening: the spectrum's soft end is filtered out first
 
 
-def test_display_is_window_level_of_minus_log(flat, slab):
-    prepared, _, _ = slab
+def test_display_is_window_level_of_minus_log():
+    flat = Renderer(profile("generic-flat-detector.yaml", display={"auto_brightness": False}), Materials(), device="cpu")
+    prepared = flat.prepare(box_volume((16, 64, 64), (6.0, 6.0, 2.5), (0, 0, 0), (63, 63, 15))[0])
     I = flat.render(prepared, POSE, View(quantity="intensity", noise=False))
     disp = flat.render(prepared, POSE, View(quantity="display", noise=False))
     w, l = flat.fluoroscope.display.window, flat.fluoroscope.display.level
     np.testing.assert_allclose(disp, np.clip((-np.log(I) - (l - w / 2)) / w, 0, 1), atol=1e-5)
     inv = flat.render(prepared, POSE, View(quantity="display", noise=False, invert=True))
     np.testing.assert_allclose(inv, 1 - disp, atol=1e-6)
+
+
+def test_automatic_brightness_shows_thin_and_thick_patients_equally_bright():
+    """With ABC the middle of a uniform slab sits at mid-grey whatever its thickness (the window
+    centre is the median attenuation there); with a fixed level a slab four times as thick is
+    brighter by exactly mu x 3 x thickness / window."""
+    fixed = Renderer(profile("generic-flat-detector.yaml", display={"auto_brightness": False}), Materials(), device="cpu")
+    abc = Renderer(profile("generic-flat-detector.yaml", display={"auto_brightness": True}), Materials(), device="cpu")
+    ref = spekpy.Spek(kvp=70, th=12)
+    ref.filter("Al", 6.0)
+    mu = xraylib.CS_Total_CP("Tissue, Soft (ICRP)", ref.get_eeff()) / 10.0      # 1/mm, water-like at 1 g/cm^3
+    w, l = fixed.fluoroscope.display.window, fixed.fluoroscope.display.level
+    c = 64
+    for thickness_mm in (20.0, 80.0):
+        vol, lo, hi = box_volume((8, 64, 64), (6.0, 6.0, thickness_mm / 8), (0, 0, 0), (63, 63, 7))
+        view = View(quantity="display", noise=False, polychromatic=False)
+        L = slab_path_mm(fixed, lo, hi)[c, c]
+        assert L == pytest.approx(thickness_mm, rel=0.01)
+        assert fixed.render(fixed.prepare(vol), POSE, view)[c, c] == pytest.approx((mu * L - (l - w / 2)) / w, abs=2e-3)
+        assert abc.render(abc.prepare(vol), POSE, view)[c, c] == pytest.approx(0.5, abs=2e-3)
 
 
 def test_quantum_noise_is_poisson_with_the_photon_count(flat, slab):

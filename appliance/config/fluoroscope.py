@@ -104,7 +104,11 @@ class Dose(Section):
 
 class Display(Section):
     window: float = Field(gt=0, description="Display window width on the log-attenuation image (dimensionless, line-integral units).")
-    level: float = Field(description="Display window centre on the log-attenuation image (dimensionless).")
+    level: float = Field(description="Display window centre on the log-attenuation image (dimensionless); "
+                                     "unused while auto_brightness is on.")
+    auto_brightness: bool = Field(False, description="Automatic brightness control: the window centre follows the median "
+                                  "log-attenuation of the central measuring field (half the beam's diameter), as a "
+                                  "fluoroscope's ABC keeps a thin and a thick patient, AP and lateral, equally bright.")
     invert: bool = Field(False, description="Start with bone dark instead of bright.")
     noise: bool = Field(True, description="Add quantum noise set by mA and pulse width.")
 

@@ -137,6 +137,22 @@ def quantum_noise(image: np.ndarray, photons_open_field: float, rng: np.random.G
     return out / np.float32(photons_open_field)
 
 
+def measured_level(p: np.ndarray, beam: np.ndarray) -> float:
+    """Window centre set by automatic brightness control: the median log-attenuation over the
+    central measuring field, a disc half the diameter of the beam (the intensifier's circle or
+    the collimated field), as an ABC sensor weights the middle of the image. The median, so a
+    small dense object (a catheter, contrast) in the field does not swing it."""
+    rows, cols = p.shape
+    area = int(beam.sum())
+    if area == 0:
+        return 0.0
+    r = 0.5 * np.sqrt(area / np.pi)
+    ys, xs = np.nonzero(beam)
+    cy, cx = ys.mean(), xs.mean()
+    central = beam & (((np.arange(rows) - cy) ** 2)[:, None] + ((np.arange(cols) - cx) ** 2)[None, :] <= r * r)
+    return float(np.median(p[central] if central.any() else p[beam]))
+
+
 def pick_device(device: str):
     """An OpenCL device: "auto" prefers a GPU and falls back to PoCL's CPU device; "cpu" PoCL only."""
     import pyopencl as cl
@@ -468,7 +484,8 @@ class Renderer:
         # Half a photon stands in for none, so a pixel that caught nothing reads as very dense.
         floor = 0.5 / self.photons_per_pixel(view.zoom) if view.noise else 1e-12
         p = -np.log(np.maximum(image, floor))
-        lo = display.level - display.window / 2.0
+        level = measured_level(p, mask) if display.auto_brightness else display.level
+        lo = level - display.window / 2.0
         out = np.clip((p - lo) / display.window, 0.0, 1.0).astype(np.float32)
         if view.invert:
             out = 1.0 - out
