@@ -189,10 +189,13 @@ def test_window_search_finds_the_same_corners(profiles):
         np.testing.assert_allclose(part[i], full[i], atol=1e-3)
 
 
-def test_following_a_path_searches_a_window_and_agrees_with_whole_images(profiles):
+def test_following_a_path_searches_a_window_and_agrees_with_whole_images(profiles, tmp_path):
     phantom, webcam = profiles
     from appliance.tracking.trajectory import load_trajectory
-    path = load_trajectory(ROOT / "configs" / "trajectories" / "demo.jsonl")
+    # Far enough that the box covers part of the image, so a window is smaller than the whole.
+    (tmp_path / "path.jsonl").write_text('{"t": 8, "position_mm": [-70, -20, 450], "tilt_deg": 10}\n'
+                                         '{"t": 11, "position_mm": [0, 0, 600], "roll_deg": 45}\n')
+    path = load_trajectory(tmp_path / "path.jsonl")
     cam = synthetic_camera(phantom, webcam, path, seed=5)
     windowed = Tracker(phantom, webcam, smoothing=False)
     whole = Tracker(phantom, webcam, smoothing=False, window=False)

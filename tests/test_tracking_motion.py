@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from appliance.config import PhantomProfile, load_appliance, load_profile
+from appliance.config import FluoroscopeProfile, PhantomProfile, load_appliance, load_profile
 from appliance.errors import FluorosimError
 from appliance.geometry import make_transform, rotation_about, rotation_angle_deg
 from appliance.tracking.smoothing import PoseFilter, SmoothingSettings
@@ -52,8 +52,13 @@ def test_demo_path_covers_the_working_range():
     tr = load_trajectory(DEMO)
     ts = np.arange(0.0, tr.duration, 0.1)
     poses = [tr(t) for t in ts]
-    z = [T[2, 3] for T in poses]
-    assert 400 <= min(z) and max(z) <= 700
+    # The box's centre stays within 100 mm of the isocentre along the beam, where a patient lies
+    # (the webcam sits on the intensifier, looking back toward the source).
+    fluoroscope = load_profile(ROOT / "configs" / "fluoroscopes" / "generic-ii-carm.yaml", FluoroscopeProfile)
+    T_xray_from_webcam = np.array(fluoroscope.webcam.T_xray_from_webcam)
+    depth = [(T_xray_from_webcam @ T)[2, 3] for T in poses]          # source to box centre (mm)
+    iso = fluoroscope.geometry.source_to_isocentre_mm
+    assert iso - 100 <= min(depth) and max(depth) <= iso + 100
     # Roll: angle of the box's long-axis rotation away from home, read off where phantom z points.
     rolls = [np.degrees(np.arctan2((T[:3, :3].T @ [0, 0, -1])[1], (T[:3, :3].T @ [0, 0, -1])[2])) for T in poses]
     assert max(rolls) > 85 and min(rolls) < -85

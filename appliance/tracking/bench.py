@@ -103,9 +103,9 @@ def bench_intrinsics(phantom, webcam, rng, frames: int) -> None:
 
 
 def bench_roll(phantom, webcam, rng) -> None:
-    print("roll sweep: roll about the box's long axis from -90 to +90 deg in 5 deg steps, tilt 0, at 400, 550, 700 mm")
+    print("roll sweep: roll about the box's long axis from -90 to +90 deg in 5 deg steps, tilt 0, at 300 (a patient at the isocentre), 400, 550, 700 mm")
     tracker = Tracker(phantom, webcam, "joint", smoothing=False, window=False)
-    for z in (400.0, 550.0, 700.0):
+    for z in (300.0, 400.0, 550.0, 700.0):
         n, ok, worst_t, worst_r = 0, 0, 0.0, 0.0
         for roll in np.arange(-90.0, 90.1, 5.0):
             T = pose_from_angles([0.0, 0.0, z], roll)
