@@ -240,14 +240,30 @@ def test_cpu_packet_kernel_matches_one_ray_per_work_item():
     assert out[0][..., 2].max() > 10 and out[0][..., 3].max() > 10        # bone and contrast both seen
 
 
-def test_low_counts_are_poisson():
-    from appliance.xray.renderer import quantum_noise
-    rng = np.random.default_rng(5)
-    image = np.full((200, 200), 0.002, dtype=np.float32)        # 2 photons expected of 1000
-    noisy = quantum_noise(image, 1000.0, rng) * 1000.0
-    np.testing.assert_allclose(noisy, np.rint(noisy))            # whole photons
-    assert noisy.mean() == pytest.approx(2.0, rel=0.03)
-    assert (noisy == 0).mean() == pytest.approx(math.exp(-2.0), abs=0.01)
+@pytest.mark.parametrize("lam", [0.3, 2.0, 12.0, 29.0])
+def test_low_counts_are_poisson(flat, lam):
+    image = np.full((200, 200), lam / 1000.0, dtype=np.float32)        # lam photons expected of 1000
+    noisy = flat.quantum_noise(image, 1000.0, seed=5) * 1000.0
+    np.testing.assert_allclose(noisy, np.rint(noisy), atol=1e-3)      # whole photons
+    counts = np.rint(noisy).astype(int).ravel()
+    assert counts.mean() == pytest.approx(lam, abs=4 * math.sqrt(lam / counts.size))
+    assert counts.var() == pytest.approx(lam, rel=0.05)
+    # The histogram against the Poisson probabilities lam^k e^-lam / k!, for every k it reaches.
+    for k in range(int(lam + 4 * math.sqrt(lam)) + 1):
+        expected = math.exp(k * math.log(lam) - lam - math.lgamma(k + 1))
+        assert (counts == k).mean() == pytest.approx(expected, abs=4 * math.sqrt(expected / counts.size) + 1e-4)
+
+
+def test_high_counts_are_gaussian_with_poisson_variance(flat):
+    image = np.full((300, 300), 0.5, dtype=np.float32)
+    noisy = flat.quantum_noise(image, 200.0, seed=9) * 200.0           # 100 photons expected
+    assert noisy.mean() == pytest.approx(100.0, abs=0.1)
+    assert noisy.std() == pytest.approx(10.0, rel=0.02)
+    # Neighbouring pixels and two seeds are uncorrelated.
+    assert abs(np.corrcoef(noisy[:, :-1].ravel(), noisy[:, 1:].ravel())[0, 1]) < 0.01
+    other = flat.quantum_noise(image, 200.0, seed=10) * 200.0
+    assert abs(np.corrcoef(noisy.ravel(), other.ravel())[0, 1]) < 0.01
+    assert not np.array_equal(flat.quantum_noise(image, 200.0), flat.quantum_noise(image, 200.0))
 
 
 def test_profile_reload_takes_the_new_tube(flat, slab):

@@ -296,6 +296,40 @@ kernel void polychromatic_packet(global const float4 *lines, global const uchar 
             out[p0 + l] = mask[p0 + l] ? sum[l] : 0.0f;
 }
 
+// Quantum noise: each pixel's relative intensity becomes a photon count drawn around
+// lam = intensity * n0 (photons expected per pixel with nothing in the beam), returned
+// relative to n0 again. Poisson by Knuth's product of uniforms below GAUSSIAN_ABOVE photons,
+// its normal approximation (Box-Muller) above, where the two agree to well under the noise.
+// The uniforms come from a counter-based hash of (seed, pixel, draw), so a frame's noise is
+// the same on every device and for every work-group split, and needs no stored state.
+#define GAUSSIAN_ABOVE 30.0f
+inline uint hash32(uint x)     // "lowbias32" (C. Wellons): a bijection with good avalanche
+{
+    x ^= x >> 16; x *= 0x7feb352dU; x ^= x >> 15; x *= 0x846ca68bU; x ^= x >> 16;
+    return x;
+}
+inline float uniform_open(uint key, uint draw)     // in (0, 1], 24 bits
+{
+    return (float)((hash32(key + draw * 0x9e3779b9U) >> 8) + 1u) * (1.0f / 16777216.0f);
+}
+kernel void quantum_noise(global float *img, const float n0, const uint seed)
+{
+    const int p = get_global_id(0);
+    const float lam = fmax(img[p], 0.0f) * n0;
+    const uint key = hash32(hash32((uint)p) ^ seed);
+    float count;
+    if (lam >= GAUSSIAN_ABOVE) {
+        const float r = sqrt(-2.0f * log(uniform_open(key, 0u)));
+        count = fmax(lam + sqrt(lam) * r * cos(6.2831853f * uniform_open(key, 1u)), 0.0f);
+    } else {
+        const float limit = exp(-lam);
+        float prod = uniform_open(key, 0u);
+        uint k = 0u;
+        while (prod > limit) { ++k; prod *= uniform_open(key, k); }
+        count = (float)k;
+    }
+    img[p] = count / n0;
+}
 // Exact path lengths (Siddon, incremental as Amanatides and Woo): the integral of
 // max(0, 1 + HU/1000) along the ray, in mm; multiplied by mu_water it is the line integral
 // of mu = mu_water (1 + HU/1000) clipped at 0. Voxels are constant, not interpolated.

@@ -122,21 +122,6 @@ def ray_directions(fluoroscope: FluoroscopeProfile, zoom: int, distorted: bool) 
 
 #: Expected photon counts above this get Gaussian noise of the same mean and variance
 #: (Poisson sampling costs ten times more; the two differ by < 1 % in any moment here).
-GAUSSIAN_ABOVE_PHOTONS = 30.0
-
-
-def quantum_noise(image: np.ndarray, photons_open_field: float, rng: np.random.Generator) -> np.ndarray:
-    """Poisson counting noise on a relative intensity image: `image` x `photons_open_field`
-    photons expected per pixel, returned relative to the open field again (float32)."""
-    lam = np.maximum(image, 0.0, dtype=np.float32) * np.float32(photons_open_field)
-    out = lam + np.sqrt(lam) * rng.standard_normal(lam.shape, dtype=np.float32)
-    few = lam < GAUSSIAN_ABOVE_PHOTONS
-    if few.any():
-        out[few] = rng.poisson(lam[few])
-    np.maximum(out, 0.0, out=out)
-    return out / np.float32(photons_open_field)
-
-
 def measured_level(p: np.ndarray, beam: np.ndarray) -> float:
     """Window centre set by automatic brightness control: the median log-attenuation over the
     central measuring field, a disc half the diameter of the beam (the intensifier's circle or
@@ -205,6 +190,8 @@ class Renderer:
         self._joseph_blend = None        # built on the first blended frame
         self._poly_kernel = cl.Kernel(self._program, "polychromatic_packet" if self.packet else "polychromatic")
         self._siddon = cl.Kernel(self._program, "siddon_water")
+        self._noise = cl.Kernel(self._program, "quantum_noise")
+        self._seeds = np.random.default_rng()        # a fresh noise pattern each frame unless View.seed
         self._lock = threading.Lock()        # one frame at a time on the queue
         self.materials = materials
         self.contrast = contrast
@@ -427,6 +414,19 @@ class Renderer:
         abc = f.zoom_levels[zoom - 1].air_kerma_rate_mgy_per_min[mode] / f.zoom_levels[0].air_kerma_rate_mgy_per_min[mode]
         return fluence * mas * pitch * pitch * abc
 
+    def quantum_noise(self, image: np.ndarray, photons_open_field: float, seed: int | None = None) -> np.ndarray:
+        """Poisson counting noise on a relative intensity image (kernel quantum_noise):
+        `image` x `photons_open_field` photons expected per pixel, returned relative to the open
+        field again (float32). The same `seed` gives the same noise; None a new one."""
+        cl = self._cl
+        out = np.ascontiguousarray(image, dtype=np.float32).copy()
+        seed = int(self._seeds.integers(2 ** 32)) if seed is None else int(seed) & 0xFFFFFFFF
+        with self._lock:
+            buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=out)
+            self._noise(self.queue, (out.size,), None, buf, np.float32(photons_open_field), np.uint32(seed))
+            cl.enqueue_copy(self.queue, out, buf)
+        return out
+
     def focal_blur_px(self, zoom: int) -> float:
         """Gaussian sigma (pixels) of the focal spot's penumbra for an object at the isocentre:
         spot size x (SID - SOD) / SOD, taken as the FWHM."""
@@ -475,7 +475,7 @@ class Renderer:
         if sigma > 0.3:
             image = cv2.GaussianBlur(image, (0, 0), sigma)
         if view.noise:
-            image = quantum_noise(image, self.photons_per_pixel(view.zoom), np.random.default_rng(view.seed))
+            image = self.quantum_noise(image, self.photons_per_pixel(view.zoom), view.seed)
         if gain is not None:
             image *= gain
         image[~mask] = 0.0
