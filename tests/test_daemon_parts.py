@@ -13,7 +13,8 @@ import pytest
 
 from appliance import __version__
 from appliance.daemon.handoff import LatestValue
-from appliance.daemon.health import CameraState, DiskSpace, InputDeviceState, Level, ProfileState, RendererDevice
+from appliance.daemon.health import (CameraState, DiskSpace, InputDeviceState, Level, profile_reload_check,
+                                     records_check, renderer_fault_check)
 from appliance.daemon.logqueue import start_logging
 from appliance.daemon.reload import ProfileKeeper
 from appliance.daemon.worker import Worker
@@ -129,9 +130,11 @@ def test_device_states_map_to_banners():
     pedal.state = "ok"
     assert InputDeviceState("pedal", lambda: pedal).check().ok
     assert InputDeviceState("keypad", lambda: _Device("none")).check().ok
-    assert RendererDevice(lambda: None).check().ok
-    assert "CPU" in RendererDevice(lambda: "clBuildProgram failed").check().banner
-    assert ProfileState(lambda: "x.yaml:3: a: bad").check().banner.endswith("x.yaml:3: a: bad")
+    assert renderer_fault_check(lambda: None).check().ok
+    assert "CPU" in renderer_fault_check(lambda: "clBuildProgram failed").check().banner
+    assert profile_reload_check(lambda: "x.yaml:3: a: bad").check().banner.endswith("x.yaml:3: a: bad")
+    records = records_check(lambda: "ledger.sqlite: disk full").check()
+    assert records.level == Level.ERROR and records.banner.endswith("ledger.sqlite: disk full")
 
 
 # --- Logging ----------------------------------------------------------------------------------

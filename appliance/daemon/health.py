@@ -112,50 +112,33 @@ class InputDeviceState:
         return Health(Level.WARNING, banner, {"state": state})
 
 
-class RendererDevice:
+class Reported:
+    """A condition another part of the appliance reports as a one-line problem (None while all
+    is well): shown as `banner` with the problem filled in."""
+
+    def __init__(self, name: str, problem: Callable[[], str | None], level: Level, banner: str):
+        self.name, self._problem, self._level, self._banner = name, problem, level, banner
+
+    def check(self) -> Health:
+        problem = self._problem()
+        if not problem:
+            return OK
+        return Health(self._level, self._banner.format(problem), {"problem": problem})
+
+
+def renderer_fault_check(fault: Callable[[], str | None]) -> Reported:
     """Whether rendering still runs on the OpenCL device the profile asked for."""
-
-    name = "renderer"
-
-    def __init__(self, fault: Callable[[], str | None]):
-        self._fault = fault
-
-    def check(self) -> Health:
-        fault = self._fault()
-        if not fault:
-            return OK
-        return Health(Level.WARNING, f"OpenCL device failed; rendering on the CPU ({fault})", {"fault": fault})
+    return Reported("renderer", fault, Level.WARNING, "OpenCL device failed; rendering on the CPU ({})")
 
 
-class ProfileState:
+def profile_reload_check(problem: Callable[[], str | None]) -> Reported:
     """Whether the last SIGHUP reload was refused (the appliance runs on the last good profiles)."""
-
-    name = "profile"
-
-    def __init__(self, problem: Callable[[], str | None]):
-        self._problem = problem
-
-    def check(self) -> Health:
-        problem = self._problem()
-        if not problem:
-            return OK
-        return Health(Level.WARNING, f"profile not reloaded, running on the last good one: {problem}", {"problem": problem})
+    return Reported("profile", problem, Level.WARNING, "profile not reloaded, running on the last good one: {}")
 
 
-class RecordsState:
+def records_check(problem: Callable[[], str | None]) -> Reported:
     """Whether the ledger and saved images are being written (a full or read-only disk stops them)."""
-
-    name = "records"
-
-    def __init__(self, problem: Callable[[], str | None]):
-        self._problem = problem
-
-    def check(self) -> Health:
-        problem = self._problem()
-        if not problem:
-            return OK
-        return Health(Level.ERROR, f"records not written, kept in memory until they can be: {problem}",
-                      {"problem": problem})
+    return Reported("records", problem, Level.ERROR, "records not written, kept in memory until they can be: {}")
 
 
 def run_check(check: HealthCheck) -> Health:

@@ -37,7 +37,8 @@ from ..records.saved_images import save_image
 from .clock import SimClock
 from .frame_stats import FrameStats
 from .handoff import LatestValue
-from .health import CameraState, DiskSpace, InputDeviceState, ProfileState, RecordsState, RendererDevice, TrackingState
+from .health import (CameraState, DiskSpace, InputDeviceState, TrackingState, profile_reload_check, records_check,
+                     renderer_fault_check)
 from .notify import Notifier
 from .parts import Parts, is_cpu, make_overlay, make_view, open_parts, patient_phases, rendered_fluoroscope
 from .reload import ProfileKeeper
@@ -164,9 +165,9 @@ class Appliance:
                 TrackingState(lambda: self._pose_ok if self.parts.camera.state == "ok" else None),
                 InputDeviceState("keypad", lambda: self.parts.keypad),
                 InputDeviceState("pedal", lambda: self.parts.pedal),
-                RendererDevice(lambda: self.renderer_fault),
-                ProfileState(lambda: self.keeper.problem),
-                RecordsState(lambda: self.records_problem),
+                renderer_fault_check(lambda: self.renderer_fault),
+                profile_reload_check(lambda: self.keeper.problem),
+                records_check(lambda: self.records_problem),
             ])
 
     # --- running -----------------------------------------------------------------------------
