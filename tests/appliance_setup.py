@@ -50,7 +50,8 @@ def write_cylinder(path: Path, rod_offset_mm: float = 0.0) -> None:
 
 def make_appliance(tmp: Path, *, camera: str = "synthetic", script: list[str] | None = None,
                    clock_rate: float = 1.0, render_px: int = 64, display=(320, 256), stall_timeout_s: float = 5.0,
-                   base: str = "appliance-bench.yaml", keypad: str | None = None, pedal: str | None = None) -> Path:
+                   base: str = "appliance-bench.yaml", keypad: str | None = None, pedal: str | None = None,
+                   abc: bool = False) -> Path:
     """configs/ copied under `tmp` with a tiny case; returns the appliance profile's path."""
     configs = tmp / "configs"
     shutil.copytree(REPO / "configs", configs)
@@ -73,11 +74,12 @@ def make_appliance(tmp: Path, *, camera: str = "synthetic", script: list[str] | 
         data["devices"]["pedal"] = {"source": pedal, "silence_timeout_s": 0.5}
     d = data["daemon"]
     d["clock_rate"], d["render_matrix_px"], d["stall_timeout_s"] = clock_rate, render_px, stall_timeout_s
-    # The tests read the screen's brightness against the profile's fixed window and level
-    # (with automatic brightness control any uniform object would sit at mid-grey).
+    # Most tests read the screen's brightness against the profile's fixed window and level
+    # (with automatic brightness control any uniform object would sit at mid-grey) and the
+    # dose against the reference rates, so they run without it.
     fluoroscope = configs / data["fluoroscope"]
     profile = yaml.load(fluoroscope.read_text())
-    profile["display"]["auto_brightness"] = False
+    profile["abc"]["enabled"] = abc
     with open(fluoroscope, "w") as f:
         yaml.dump(profile, f)
     path = configs / "appliance-test.yaml"

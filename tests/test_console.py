@@ -75,6 +75,32 @@ def test_pulsed_kerma_is_one_dose_per_pulse_from_pedal_down():
     assert console.snapshot().fluoro_time_s == pytest.approx(2.5)
 
 
+def test_automatic_brightness_scales_the_dose_rate_from_the_moment_it_changes():
+    console = Console(II, KEYMAP, t0=0.0)
+    console.handle(press(0.0, "pedal"))                          # continuous, zoom 1: 8 mGy/min
+    console.tick(10.0)
+    console.set_exposure_factor(2.5, 10.0)                       # a lateral view: 20 mGy/min
+    console.tick(16.0)
+    console.set_exposure_factor(0.5, 16.0)                       # a thin part: 4 mGy/min
+    console.handle(release(19.0, "pedal"))
+    # 10 s at 8, 6 s at 20 and 3 s at 4 mGy/min.
+    kerma = (10 * 8.0 + 6 * 20.0 + 3 * 4.0) / 60.0
+    state = console.snapshot()
+    assert state.air_kerma_mgy == pytest.approx(kerma, rel=1e-9)
+    assert state.dap_gy_cm2 == pytest.approx(kerma / 1000 * dose.field_area_reference_cm2(II, 1, console.collimation))
+    # Pulsed: each pulse carries the rate in force when it is fired.
+    console = Console(II, KEYMAP, t0=0.0)
+    console.handle(press(0.0, "mode_next"))                     # pulsed-15: 4 mGy/min
+    console.set_exposure_factor(3.0, 0.5)                       # kept from the last image
+    evs = console.handle(press(1.0, "pedal"))
+    for i in range(1, 100):
+        evs += console.tick(1.0 + i * 0.01)
+    evs += console.handle(release(1.99, "pedal"))
+    pulses = [e for e in evs if e.kind == "pulse"]
+    assert len(pulses) == 15                                    # 1.0 + k/15 for k = 0..14
+    assert console.snapshot().air_kerma_mgy == pytest.approx(15 * 3.0 * 4.0 / 60 / 15)
+
+
 def test_alarm_at_exactly_300_s_across_runs_and_reset_silences_it():
     console = Console(II, KEYMAP, t0=0.0)
     starts, lengths = [10.0, 200.0, 400.0, 700.0], [70.0, 80.0, 90.0, 100.0]

@@ -14,6 +14,7 @@ from pathlib import Path
 import cv2
 import pydicom
 
+from appliance.config import FluoroscopeProfile, load_profile
 from appliance_setup import REPO, make_appliance
 
 #: configs/scripts/demo-session.jsonl, summed by hand: fluoroscopy runs of
@@ -25,7 +26,7 @@ SCRIPT_SAVES = 2
 
 def test_demo_runs_the_session_and_writes_everything_it_lists(tmp_path):
     # Clock x60: the 375 s session passes in about 6 s of wall-clock time.
-    config = make_appliance(tmp_path, base="appliance-demo.yaml", clock_rate=60, display=(640, 512))
+    config = make_appliance(tmp_path, base="appliance-demo.yaml", clock_rate=60, display=(640, 512), abc=True)
     script = config.parent / "scripts" / "demo-session.jsonl"
     case = config.parent / "cases" / "cylinder.yaml"
     result = subprocess.run([sys.executable, "-m", "appliance", "demo", "--config", str(config), "--case", str(case)],
@@ -67,6 +68,17 @@ def test_demo_runs_the_session_and_writes_everything_it_lists(tmp_path):
         events = list(csv.DictReader(f))
     assert abs(sum(float(e["d_fluoro_time_s"]) for e in events) - SCRIPT_FLUORO_S) < 0.05
     assert abs(sum(float(e["d_air_kerma_mgy"]) for e in events) - session["air_kerma_mgy"]) < 1e-6
+    # Automatic brightness control sets each run's dose rate: within the tube's limits around the
+    # profile's reference rate, and above it through the test case's 192 mm of water, which
+    # attenuates more than the reference patient (mu >= 0.02 /mm at 75 kVp: -ln(I/I0) >= 3.8 > 3).
+    fluoroscope = load_profile(config.parent / "fluoroscopes" / "generic-ii-carm.yaml", FluoroscopeProfile)
+    ratios = []
+    for run in (e["detail"] for e in session["events"] if e["kind"] == "fluoro_off"):
+        reference = fluoroscope.zoom_levels[run["zoom"] - 1].air_kerma_rate_mgy_per_min[run["mode"]]
+        ratios.append(run["air_kerma_mgy"] / (reference * run["duration_s"] / 60.0))
+    limits = fluoroscope.abc
+    assert all(limits.min_factor - 0.01 <= r <= limits.max_factor + 0.01 for r in ratios), ratios
+    assert max(ratios) > 2.0, ratios
     sr = pydicom.dcmread(next(folder.glob("*.dcm")))
     assert sr.Modality == "SR"
     saved = sorted((data / "images").glob("*.dcm"))

@@ -75,7 +75,7 @@ def test_polychromatic_intensity_sums_the_spectrum(flat, slab):
 
 
 def test_display_is_window_level_of_minus_log():
-    flat = Renderer(profile("generic-flat-detector.yaml", display={"auto_brightness": False}), Materials(), device="cpu")
+    flat = Renderer(profile("generic-flat-detector.yaml", abc={"enabled": False}), Materials(), device="cpu")
     prepared = flat.prepare(box_volume((16, 64, 64), (6.0, 6.0, 2.5), (0, 0, 0), (63, 63, 15))[0])
     I = flat.render(prepared, POSE, View(quantity="intensity", noise=False))
     disp = flat.render(prepared, POSE, View(quantity="display", noise=False))
@@ -87,22 +87,33 @@ def test_display_is_window_level_of_minus_log():
 
 def test_automatic_brightness_shows_thin_and_thick_patients_equally_bright():
     """With ABC the middle of a uniform slab sits at mid-grey whatever its thickness (the window
-    centre is the median attenuation there); with a fixed level a slab four times as thick is
-    brighter by exactly mu x 3 x thickness / window."""
-    fixed = Renderer(profile("generic-flat-detector.yaml", display={"auto_brightness": False}), Materials(), device="cpu")
-    abc = Renderer(profile("generic-flat-detector.yaml", display={"auto_brightness": True}), Materials(), device="cpu")
+    centre is the median attenuation there), and the tube output is exp(mu L - reference)
+    within the profile's limits; with a fixed level a thicker slab is brighter by mu x L / window."""
+    fixed = Renderer(profile("generic-flat-detector.yaml", abc={"enabled": False}), Materials(), device="cpu")
+    abc = Renderer(profile("generic-flat-detector.yaml", abc={"enabled": True}), Materials(), device="cpu")
+    limits = abc.fluoroscope.abc
     ref = spekpy.Spek(kvp=70, th=12)
     ref.filter("Al", 6.0)
     mu = xraylib.CS_Total_CP("Tissue, Soft (ICRP)", ref.get_eeff()) / 10.0      # 1/mm, water-like at 1 g/cm^3
     w, l = fixed.fluoroscope.display.window, fixed.fluoroscope.display.level
     c = 64
-    for thickness_mm in (20.0, 80.0):
+    factors = []
+    for thickness_mm in (20.0, 100.0, 140.0, 400.0):
         vol, lo, hi = box_volume((8, 64, 64), (6.0, 6.0, thickness_mm / 8), (0, 0, 0), (63, 63, 7))
         view = View(quantity="display", noise=False, polychromatic=False)
         L = slab_path_mm(fixed, lo, hi)[c, c]
         assert L == pytest.approx(thickness_mm, rel=0.01)
-        assert fixed.render(fixed.prepare(vol), POSE, view)[c, c] == pytest.approx((mu * L - (l - w / 2)) / w, abs=2e-3)
-        assert abc.render(abc.prepare(vol), POSE, view)[c, c] == pytest.approx(0.5, abs=2e-3)
+        shown = fixed.render(fixed.prepare(vol), POSE, view)[c, c]
+        assert shown == pytest.approx(min(max((mu * L - (l - w / 2)) / w, 0.0), 1.0), abs=2e-3)
+        assert fixed.exposure_factor == 1.0
+        # Mid-grey, less the centre's shorter path than the field's median ray (< 0.3 % of 400 mm).
+        assert abc.render(abc.prepare(vol), POSE, view)[c, c] == pytest.approx(0.5, abs=4e-3)
+        expected = min(max(math.exp(mu * L - limits.reference_attenuation), limits.min_factor), limits.max_factor)
+        assert abc.exposure_factor == pytest.approx(expected, rel=0.01)
+        factors.append(abc.exposure_factor)
+    # The thinnest and thickest slabs reach the tube's limits; the two between do not.
+    assert factors[0] == limits.min_factor and factors[-1] == limits.max_factor
+    assert limits.min_factor < factors[1] < factors[2] < limits.max_factor
 
 
 def test_quantum_noise_is_poisson_with_the_photon_count(flat, slab):

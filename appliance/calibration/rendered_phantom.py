@@ -90,8 +90,7 @@ def render_phantom_images(phantom: CalibrationPhantomProfile, fluoroscope: Fluor
     true_profile = machine_profile(fluoroscope, machine.K, machine.dist)
     # Calibration exposures are taken at a fixed technique (ABC locked), as on the real unit:
     # the thin plate and its steel balls would otherwise be windowed to the plate alone.
-    true_profile = true_profile.model_copy(update={"display": true_profile.display.model_copy(
-        update={"auto_brightness": False})})
+    true_profile = true_profile.model_copy(update={"abc": true_profile.abc.model_copy(update={"enabled": False})})
     renderer = Renderer(true_profile, Materials(), device=device)
     prepared = renderer.prepare(phantom_volume(phantom, voxel_mm))
     images = []

@@ -105,12 +105,26 @@ class Dose(Section):
 class Display(Section):
     window: float = Field(gt=0, description="Display window width on the log-attenuation image (dimensionless, line-integral units).")
     level: float = Field(description="Display window centre on the log-attenuation image (dimensionless); "
-                                     "unused while auto_brightness is on.")
-    auto_brightness: bool = Field(False, description="Automatic brightness control: the window centre follows the median "
-                                  "log-attenuation of the central measuring field (half the beam's diameter), as a "
-                                  "fluoroscope's ABC keeps a thin and a thick patient, AP and lateral, equally bright.")
+                                     "while abc is enabled the measured attenuation takes its place.")
     invert: bool = Field(False, description="Start with bone dark instead of bright.")
     noise: bool = Field(True, description="Add quantum noise set by mA and pulse width.")
+
+
+class AutomaticBrightness(Section):
+    """Automatic brightness (dose-rate) control. The unit measures the median attenuation over the
+    central half of the beam and sets the tube current so that the image there is as bright as
+    for the reference patient: a thicker or denser part (a lateral view, contrast in the field)
+    costs proportionally more dose, a thinner one less. The tube voltage stays at tube.kvp."""
+
+    enabled: bool = Field(False, description="Off: fixed technique at the reference rates and the display's fixed level.")
+    reference_attenuation: float = Field(3.0, gt=0, le=20, description="Median log-attenuation -ln(I/I0) over the "
+                                         "measuring field at which the zoom levels' reference air-kerma rates apply "
+                                         "(dimensionless; 3 is about 13 cm of water at 75 kVp).")
+    min_factor: float = Field(0.1, gt=0, le=1, description="Lowest tube output the control can set, relative to the "
+                              "reference (dimensionless).")
+    max_factor: float = Field(8.0, ge=1, le=100, description="Highest tube output the control can set, relative to the "
+                              "reference; keep max_factor x the highest reference rate within the unit's legal limit "
+                              "(88 mGy/min in normal mode, 21 CFR 1020.32) (dimensionless).")
 
 
 class Webcam(Section):
@@ -130,6 +144,7 @@ class FluoroscopeProfile(Section):
     tube: Tube
     dose: Dose = Field(default_factory=Dose)
     display: Display
+    abc: AutomaticBrightness = Field(default_factory=AutomaticBrightness)
     webcam: Webcam = Field(default_factory=Webcam)
 
     def problems(self):

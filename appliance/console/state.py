@@ -122,6 +122,9 @@ class Console:
         self.alarm_sounding = False
         self.alarm_count = 0
         self._next_alarm_s = fluoroscope.dose.alarm_period_s
+        # Tube output relative to the reference technique, as automatic brightness control set
+        # it for the latest image (1 without it): the dose rate is the reference rate times this.
+        self.exposure_factor = 1.0
         self.save_count = 0
         self.runs = 0
         self._pulse_count = 0
@@ -137,7 +140,7 @@ class Console:
         return self.fl.tube.modes[self.mode_index]
 
     def _rate(self) -> float:
-        return dose.air_kerma_rate_mgy_per_min(self.fl, self.zoom, self.mode.name)
+        return dose.air_kerma_rate_mgy_per_min(self.fl, self.zoom, self.mode.name) * self.exposure_factor
 
     def _area_cm2(self) -> float:
         return dose.field_area_reference_cm2(self.fl, self.zoom, self.collimation)
@@ -345,6 +348,14 @@ class Console:
         self._pulses_at_last_tick = self._pulse_count
         self._frame_exposed = self._exposed_since_tick
         self._exposed_since_tick = self.fluoro_on
+        return out
+
+    def set_exposure_factor(self, factor: float, now: float) -> list[ConsoleEvent]:
+        """The automatic brightness control changed the tube output to `factor` x the reference
+        technique at `now`: dose up to `now` accrues at the old rate, after it at the new."""
+        out: list[ConsoleEvent] = []
+        self._advance(now, out)
+        self.exposure_factor = float(factor)
         return out
 
     def end(self, now: float) -> list[ConsoleEvent]:

@@ -129,6 +129,10 @@ class Appliance:
         self.events: queue.Queue = queue.Queue(maxsize=EVENT_QUEUE)
         self._new_fluoroscope: LatestValue[Any] = LatestValue("fluoroscope")
         self._fluoroscope_seq = 0
+        # Tube output the automatic brightness control set for the latest image, for the dose.
+        self.exposure_factor: LatestValue[float] = LatestValue("exposure factor")
+        self._exposure_seq = 0
+        self._factor_sent = 1.0
         self.renderer_fault: str | None = None
         self.records_problem: str | None = None
         self._unwritten: list[tuple[Any, Any]] = []
@@ -273,6 +277,10 @@ class Appliance:
             if image is not None:
                 self._last_image = image
                 live = True
+                factor = self.parts.renderer.exposure_factor
+                if factor != self._factor_sent:
+                    self._factor_sent = factor
+                    self.exposure_factor.put(factor)
         hold_period = 1.0 / self.config.appliance.daemon.hold_refresh_hz
         if not live and now - self._last_compose < hold_period:
             # Nothing new to draw: wait for the next pose rather than spin.
@@ -338,6 +346,10 @@ class Appliance:
         if switched is not None:
             fluoroscope, self._fluoroscope_seq = switched
             out += [(ce, None) for ce in console.set_fluoroscope(fluoroscope)]
+        exposure = self.exposure_factor.newer(self._exposure_seq)
+        if exposure is not None:
+            factor, self._exposure_seq = exposure
+            out += [(ce, None) for ce in console.set_exposure_factor(factor, now)]
         events = self.parts.keypad.poll(now) + self.parts.pedal.poll(now)
         for e in events:
             for ce in console.handle(e):

@@ -51,8 +51,8 @@ class Overlay:
     """Everything besides the image that the monitor shows; plain data filled in by the daemon.
 
     Units: `fov_mm` and `collimation_mm` (horizontal, vertical blade openings) at the
-    detector plane in mm, `fluoro_time_s` in s, `air_kerma_mgy` in mGy, `dap_gy_cm2` in
-    Gy cm^2, `fps` in frames per second. `zoom` is the zoom level, 1 (widest) to 4.
+    detector plane in mm, `fluoro_time_s` in s, `air_kerma_mgy` in mGy and its rate while
+    exposing in mGy/min (0 otherwise), `dap_gy_cm2` in Gy cm^2, `fps` in frames per second. `zoom` is the zoom level, 1 (widest) to 4.
     `collimation_mm` None means fully open.
     """
 
@@ -62,6 +62,7 @@ class Overlay:
     collimation_mm: tuple[float, float] | None = None
     fluoro_time_s: float = 0.0
     air_kerma_mgy: float = 0.0
+    air_kerma_rate_mgy_per_min: float = 0.0
     dap_gy_cm2: float = 0.0
     mode: str = ""
     alarm: bool = False
@@ -234,7 +235,10 @@ class Compositor:
             right.append((f"COLL {h_mm:.0f} x {v_mm:.0f} mm", GREY))
         texts += self._corner_lines(right, "tr")
         left = [(f"DAP  {dose_number(overlay.dap_gy_cm2)} Gy cm", WHITE, "2"),
-                (f"AIR KERMA  {dose_number(overlay.air_kerma_mgy)} mGy", WHITE),
+                (f"AIR KERMA  {dose_number(overlay.air_kerma_mgy)} mGy"
+                 # The rate while exposing, as IEC 60601-2-43 asks; it follows the ABC.
+                 + (f"   {overlay.air_kerma_rate_mgy_per_min:.1f} mGy/min" if overlay.air_kerma_rate_mgy_per_min > 0 else ""),
+                 WHITE),
                 (f"FLUORO  {fluoro_time_clock(overlay.fluoro_time_s)}   {fluoro_time_minutes(overlay.fluoro_time_s)}",
                  YELLOW if overlay.alarm else WHITE)]
         texts += self._corner_lines(left, "bl")

@@ -16,6 +16,7 @@ Units: lengths mm, energies keV, densities g/cm^3, mass attenuation cm^2/g.
 
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass, field
 from importlib import resources
@@ -122,20 +123,19 @@ def ray_directions(fluoroscope: FluoroscopeProfile, zoom: int, distorted: bool) 
 
 #: Expected photon counts above this get Gaussian noise of the same mean and variance
 #: (Poisson sampling costs ten times more; the two differ by < 1 % in any moment here).
-def measured_level(p: np.ndarray, beam: np.ndarray) -> float:
-    """Window centre set by automatic brightness control: the median log-attenuation over the
-    central measuring field, a disc half the diameter of the beam (the intensifier's circle or
-    the collimated field), as an ABC sensor weights the middle of the image. The median, so a
-    small dense object (a catheter, contrast) in the field does not swing it."""
-    rows, cols = p.shape
+def measuring_field(beam: np.ndarray) -> np.ndarray:
+    """The automatic brightness control's measuring field: a disc half the diameter of the beam
+    (the intensifier's circle or the collimated field), about its centre, as an ABC sensor
+    weights the middle of the image."""
+    rows, cols = beam.shape
     area = int(beam.sum())
     if area == 0:
-        return 0.0
+        return beam
     r = 0.5 * np.sqrt(area / np.pi)
     ys, xs = np.nonzero(beam)
     cy, cx = ys.mean(), xs.mean()
     central = beam & (((np.arange(rows) - cy) ** 2)[:, None] + ((np.arange(cols) - cx) ** 2)[None, :] <= r * r)
-    return float(np.median(p[central] if central.any() else p[beam]))
+    return central if central.any() else beam
 
 
 def pick_device(device: str):
@@ -192,6 +192,9 @@ class Renderer:
         self._siddon = cl.Kernel(self._program, "siddon_water")
         self._noise = cl.Kernel(self._program, "quantum_noise")
         self._seeds = np.random.default_rng()        # a fresh noise pattern each frame unless View.seed
+        # Tube output of the last displayed frame relative to the reference technique, as set
+        # by automatic brightness control (1 without it): the console's dose rate follows it.
+        self.exposure_factor = 1.0
         self._lock = threading.Lock()        # one frame at a time on the queue
         self.materials = materials
         self.contrast = contrast
@@ -427,6 +430,17 @@ class Renderer:
             cl.enqueue_copy(self.queue, out, buf)
         return out
 
+    def abc_response(self, measured_intensity: float) -> tuple[float, float]:
+        """What automatic brightness control makes of the median relative intensity over its
+        measuring field: (window centre, tube output relative to the reference technique).
+        The output makes up the attenuation beyond (or short of) the reference patient's,
+        exp(attenuation - reference), within the tube's limits; the video chain's gain keeps
+        the measured attenuation at the window's centre even where the tube is at a limit."""
+        abc = self.fluoroscope.abc
+        attenuation = -math.log(max(measured_intensity, 1e-12))
+        factor = math.exp(attenuation - abc.reference_attenuation)
+        return attenuation, min(max(factor, abc.min_factor), abc.max_factor)
+
     def focal_blur_px(self, zoom: int) -> float:
         """Gaussian sigma (pixels) of the focal spot's penumbra for an object at the isocentre:
         spot size x (SID - SOD) / SOD, taken as the FWHM."""
@@ -470,21 +484,28 @@ class Renderer:
             image = np.empty((rows, cols), dtype=np.float32)
             cl.enqueue_copy(self.queue, image, out_buf)
             gain = self._gain(view.zoom)
-            display = self.fluoroscope.display
+            display, abc = self.fluoroscope.display, self.fluoroscope.abc
         sigma = self.focal_blur_px(view.zoom)
         if sigma > 0.3:
             image = cv2.GaussianBlur(image, (0, 0), sigma)
+        # What the monitor shows runs under automatic brightness control; the "intensity"
+        # quantity is the physics at the profile's reference technique.
+        level, factor = display.level, 1.0
+        if abc.enabled and view.quantity == "display" and mask.any():
+            seen = image if gain is None else image * gain
+            level, factor = self.abc_response(float(np.median(seen[measuring_field(mask)])))
+        self.exposure_factor = factor
+        photons = self.photons_per_pixel(view.zoom) * factor
         if view.noise:
-            image = self.quantum_noise(image, self.photons_per_pixel(view.zoom), view.seed)
+            image = self.quantum_noise(image, photons, view.seed)
         if gain is not None:
             image *= gain
         image[~mask] = 0.0
         if view.quantity == "intensity":
             return image
         # Half a photon stands in for none, so a pixel that caught nothing reads as very dense.
-        floor = 0.5 / self.photons_per_pixel(view.zoom) if view.noise else 1e-12
+        floor = 0.5 / photons if view.noise else 1e-12
         p = -np.log(np.maximum(image, floor))
-        level = measured_level(p, mask) if display.auto_brightness else display.level
         lo = level - display.window / 2.0
         out = np.clip((p - lo) / display.window, 0.0, 1.0).astype(np.float32)
         if view.invert:
