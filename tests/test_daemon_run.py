@@ -10,11 +10,13 @@ import sys
 import threading
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
 
 from appliance.config import load_appliance
+from appliance.daemon.parts import is_cpu
 from appliance.daemon.notify import Notifier
 from appliance.daemon.pipeline import Appliance
 from appliance.daemon.reload import ProfileKeeper
@@ -212,4 +214,52 @@ def test_camera_and_pedal_that_disappear_and_return(tmp_path):
         stop.set()
         runner.join(10)
         pedal.unplug()
+    assert not runner.is_alive()
+
+
+class FailingGpu:
+    """An OpenCL GPU whose driver fails on the next frame (a lost device, out of resources). This
+    machine has only PoCL's CPU device, so the failure is staged around the real renderer: the
+    appliance sees a GPU that raises, as pyopencl does, when a kernel cannot be enqueued."""
+
+    def __init__(self, renderer):
+        import pyopencl as cl
+        self._renderer = renderer
+        self.device = SimpleNamespace(type=cl.device_type.GPU, name="staged GPU")
+
+    def render(self, *args, **kwargs):
+        raise RuntimeError("clEnqueueNDRangeKernel failed: OUT_OF_RESOURCES")
+
+    def __getattr__(self, name):
+        return getattr(self._renderer, name)
+
+
+def test_an_opencl_device_failure_falls_back_to_the_cpu_and_keeps_imaging(tmp_path):
+    config = make_appliance(tmp_path, display=DISPLAY, render_px=128)     # the pedal is held throughout
+    text = config.read_text().replace("cpu_fallback_matrix_px: 256", "cpu_fallback_matrix_px: 64")
+    assert "cpu_fallback_matrix_px: 64" in text
+    config.write_text(text)
+    app = Appliance(ProfileKeeper(config), Notifier({}))
+    first = app.parts.renderer
+    assert first.shape == (128, 128)
+    app.parts.renderer = FailingGpu(first)
+    stop = threading.Event()
+    runner = threading.Thread(target=app.run, kwargs={"until": stop.is_set, "signals": False})
+    runner.start()
+    try:
+        assert _wait(lambda: any(b.startswith("OpenCL device failed; rendering on the CPU")
+                                 for b in app.supervisor.banners()), 30), app.supervisor.banners()
+        assert "OUT_OF_RESOURCES" in app.renderer_fault
+        # A new renderer on the CPU device at the smaller fallback matrix, with the case's phases
+        # prepared again there; live images go on and no worker has died.
+        renderer = app.parts.renderer
+        assert renderer is not first and is_cpu(renderer) and renderer.shape == (64, 64)
+        frames = app.stats.frames
+        assert _wait(lambda: app.stats.frames >= frames + 5, 60), app.supervisor.banners()
+        assert _shows_the_water_cylinder(_image_region(_screen(tmp_path / "data")))
+        assert app.supervisor.worker_problems == []
+        assert "renderer staged GPU" not in app.status_text() and "(CPU)" in app.status_text()
+    finally:
+        stop.set()
+        runner.join(10)
     assert not runner.is_alive()
