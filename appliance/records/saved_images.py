@@ -11,14 +11,12 @@ session's cumulative fluoroscopy time and dose-area product. Pixels are display 
 from __future__ import annotations
 
 import datetime as dt
-import io
 from pathlib import Path
 
 import cv2
 import numpy as np
-from pydicom.dataset import Dataset, FileMetaDataset
-from pydicom.sequence import Sequence
-from pydicom.uid import ExplicitVRLittleEndian, PYDICOM_IMPLEMENTATION_UID, XRayRadiofluoroscopicImageStorage
+from pydicom.dataset import Dataset
+from pydicom.uid import XRayRadiofluoroscopicImageStorage
 
 from .. import __version__
 from ..atomic_file import write_atomic
@@ -26,7 +24,7 @@ from ..config.case import Patient
 from ..config.fluoroscope import FluoroscopeProfile
 from ..console.state import ConsoleState
 from ..errors import FluorosimError
-from .rdsr import _ds_number, _uid
+from .rdsr import _ds_number, _uid, encode
 
 
 def _as_display(image: np.ndarray) -> np.ndarray:
@@ -127,18 +125,6 @@ def dicom_image(pixels: np.ndarray, state: ConsoleState, fl: FluoroscopeProfile,
     return ds
 
 
-def _encode(ds: Dataset) -> bytes:
-    meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = ds.SOPClassUID
-    meta.MediaStorageSOPInstanceUID = ds.SOPInstanceUID
-    meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    meta.ImplementationClassUID = PYDICOM_IMPLEMENTATION_UID
-    ds.file_meta = meta
-    buffer = io.BytesIO()
-    ds.save_as(buffer, enforce_file_format=True)
-    return buffer.getvalue()
-
-
 def save_image(image: np.ndarray, state: ConsoleState, fluoroscope: FluoroscopeProfile, out_dir: Path, *,
                t_wall: float, session_id: int = 0, operator: str = "", case_title: str = "",
                patient: dict | None = None) -> tuple[Path, Path]:
@@ -154,7 +140,7 @@ def save_image(image: np.ndarray, state: ConsoleState, fluoroscope: FluoroscopeP
     ok, png = cv2.imencode(".png", pixels)
     if not ok:
         raise FluorosimError(f"{out_dir / stem}.png: the image could not be encoded as PNG")
-    dicom = _encode(dicom_image(pixels, state, fluoroscope, t_wall=t_wall, session_id=session_id, operator=operator,
+    dicom = encode(dicom_image(pixels, state, fluoroscope, t_wall=t_wall, session_id=session_id, operator=operator,
                                 case_title=case_title, patient=patient))
     png_path = write_atomic(out_dir / f"{stem}.png", png.tobytes(), overwrite=False)
     try:
