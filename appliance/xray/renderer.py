@@ -281,6 +281,7 @@ class Renderer:
         return m
 
     def _mask_buffer(self, zoom: int, collimation_mm, circle: bool):
+        """(beam mask, its device buffer, the brightness control's measuring field), cached."""
         key = (zoom, None if collimation_mm is None else tuple(float(c) for c in collimation_mm), circle)
         if key not in self._masks:
             if len(self._masks) > 64:
@@ -288,7 +289,7 @@ class Renderer:
             m = self.field_mask(zoom, collimation_mm, circle)
             buf = self._cl.Buffer(self.ctx, self._cl.mem_flags.READ_ONLY | self._cl.mem_flags.COPY_HOST_PTR,
                                   hostbuf=m.astype(np.uint8))
-            self._masks[key] = (m, buf)
+            self._masks[key] = (m, buf, measuring_field(m))
         return self._masks[key]
 
     def _gain(self, zoom: int) -> np.ndarray | None:
@@ -346,7 +347,7 @@ class Renderer:
             circle = self.fluoroscope.detector.kind == "image_intensifier"
         rows, cols = self.shape
         geo = self._geometry(volume, T_xray_from_ct)
-        mask, mask_buf = self._mask_buffer(view.zoom, view.collimation_mm, circle)
+        mask, mask_buf, _ = self._mask_buffer(view.zoom, view.collimation_mm, circle)
         dirs = self._dirs_buffer(view.zoom, distorted)
         vols = (volume,) if blend is None else (volume, blend[0])
         if blend is not None:
@@ -385,7 +386,7 @@ class Renderer:
         rows, cols = self.shape
         with self._lock:
             geo = self._geometry(volume, T_xray_from_ct)
-            _, mask_buf = self._mask_buffer(zoom, collimation_mm, False)
+            _, mask_buf, _ = self._mask_buffer(zoom, collimation_mm, False)
             dirs = self._dirs_buffer(zoom, False)
             out = np.zeros((rows, cols), dtype=np.float32)
             box = self._box(volume)
@@ -472,8 +473,8 @@ class Renderer:
         with self._lock:
             lines, mask = self._cast(volume, T_xray_from_ct, view, blend, True, None)
             weights, mu_rho, n_e = self._poly if view.polychromatic else self._mono
-            _, mask_buf = self._mask_buffer(view.zoom, view.collimation_mm,
-                                            self.fluoroscope.detector.kind == "image_intensifier")
+            _, mask_buf, central = self._mask_buffer(view.zoom, view.collimation_mm,
+                                                     self.fluoroscope.detector.kind == "image_intensifier")
             out_buf = cl.Buffer(self.ctx, cl.mem_flags.WRITE_ONLY, rows * cols * 4)
             if self.packet:
                 self._poly_kernel(self.queue, (-(-rows * cols // PACKET),), None, lines, mask_buf, weights, mu_rho,
@@ -491,9 +492,9 @@ class Renderer:
         # What the monitor shows runs under automatic brightness control; the "intensity"
         # quantity is the physics at the profile's reference technique.
         level, factor = display.level, 1.0
-        if abc.enabled and view.quantity == "display" and mask.any():
-            seen = image if gain is None else image * gain
-            level, factor = self.abc_response(float(np.median(seen[measuring_field(mask)])))
+        if abc.enabled and view.quantity == "display" and central.any():
+            seen = image[central] if gain is None else image[central] * gain[central]
+            level, factor = self.abc_response(float(np.median(seen)))
         self.exposure_factor = factor
         photons = self.photons_per_pixel(view.zoom) * factor
         if view.noise:
