@@ -160,14 +160,24 @@ typedef int v16si __attribute__((vector_size(64)));
     g00 = GATHER(v, i00); g10 = GATHER(v, i10); g01 = GATHER(v, i01); g11 = GATHER(v, i11); } while (0)
 #endif
 
+// SPLIT: two phases on one voxel grid in one pass, each phase's integrals to its own output
+// (out, out_b): the projection cache blends them later in projection space, and sampling both
+// at the same positions costs little more than one, since the addresses are shared.
 kernel void joseph_packet(global const short *vol,
 #ifdef BLEND
                           global const short *vol_b, const float w_b,
 #endif
+#ifdef SPLIT
+                          global const short *vol_b,
+#endif
                           const int nx, const int ny, const int nz,
                           global const float2 *dirs, global const uchar *mask,
                           constant float *geo, constant int *box, constant float *mat,
-                          const int cols, global float4 *out)
+                          const int cols, global float4 *out
+#ifdef SPLIT
+                          , global float4 *out_b
+#endif
+                          )
 {
     const int u0 = get_global_id(0) * LANES, v = get_global_id(1);
     const int p0 = v * cols + u0;
@@ -228,6 +238,17 @@ kernel void joseph_packet(global const short *vol,
     const float bone_off = mat[3], bone_slope = mat[4];
     const float bmax = (float)(dims[b] - 2), cmax = (float)(dims[c] - 2);
     float16 acc_air = 0.0f, acc_soft = 0.0f, acc_bone = 0.0f, acc_con = 0.0f;
+#ifdef SPLIT
+    float16 bcc_air = 0.0f, bcc_soft = 0.0f, bcc_bone = 0.0f, bcc_con = 0.0f;
+#endif
+// One interpolated HU per lane into the four materials' sums (lanes off their own ray add 0).
+#define ACCUMULATE(h, air, soft, bone, con) do { \
+        const float16 rho_w = select((float16)0.0f, fmax(1.0f + 0.001f * (h), 0.0f), on); \
+        const int16 is_air = (h) <= air_max, is_bone = (h) >= bone_min, is_con = (h) >= con_min; \
+        air += select((float16)0.0f, rho_w, is_air); \
+        soft += select(rho_w, (float16)0.0f, is_air | is_bone); \
+        bone += select((float16)0.0f, bone_off + bone_slope * (h), is_bone & ~is_con & on); \
+        con += select((float16)0.0f, (float16)1.0f, is_con & on); } while (0)
 
     for (int k = kmin; k <= kmax; ++k) {
         const float16 fb = clamp(b0 + (float)k * db, 0.0f, bmax);
@@ -243,20 +264,21 @@ kernel void joseph_packet(global const short *vol,
         h = mix(h, mix(mix(g00, g10, wb), mix(g01, g11, wb), wc), w_b);
 #endif
         const int16 on = (k >= k0) & (k <= k1);
-        const float16 rho_w = select((float16)0.0f, fmax(1.0f + 0.001f * h, 0.0f), on);
-        const int16 is_air = h <= air_max, is_bone = h >= bone_min, is_con = h >= con_min;
-        acc_air += select((float16)0.0f, rho_w, is_air);
-        acc_soft += select(rho_w, (float16)0.0f, is_air | is_bone);
-        acc_bone += select((float16)0.0f, bone_off + bone_slope * h, is_bone & ~is_con & on);
-        acc_con += select((float16)0.0f, (float16)1.0f, is_con & on);
+        ACCUMULATE(h, acc_air, acc_soft, acc_bone, acc_con);
+#ifdef SPLIT
+        CORNERS(vol_b, g00, g10, g01, g11);
+        const float16 h_b = mix(mix(g00, g10, wb), mix(g01, g11, wb), wc);
+        ACCUMULATE(h_b, bcc_air, bcc_soft, bcc_bone, bcc_con);
+#endif
     }
-    acc_air *= step_mm;
-    acc_soft *= step_mm;
-    acc_bone *= step_mm;
-    acc_con *= step_mm;
     for (int l = 0; l < LANES; ++l)
-        if (u0 + l < cols)
-            out[p0 + l] = hit[l] ? (float4)(acc_air[l], acc_soft[l], acc_bone[l], acc_con[l]) : (float4)(0.0f);
+        if (u0 + l < cols) {
+            const float st = step_mm[l];
+            out[p0 + l] = hit[l] ? (float4)(acc_air[l], acc_soft[l], acc_bone[l], acc_con[l]) * st : (float4)(0.0f);
+#ifdef SPLIT
+            out_b[p0 + l] = hit[l] ? (float4)(bcc_air[l], bcc_soft[l], bcc_bone[l], bcc_con[l]) * st : (float4)(0.0f);
+#endif
+        }
 }
 
 // Energy-integrating detector: I/I0 = sum_e w_e exp(-sum_m mu_rho[e][m] * L_m), with L in
@@ -371,4 +393,13 @@ kernel void siddon_water(global const short *vol, const int nx, const int ny, co
         else                                          { idx.z += step.z; tnext.z += tdelta.z; if (idx.z < lo.z || idx.z > hi.z) break; }
     }
     out[p] = acc * mm_per_t;
+}
+
+// Projection-space blend of two phases' cached material integrals (appliance/xray/
+// projection_cache.py): out = (1 - w) * a + w * b, exact for the linear blend of the two
+// phases' material densities, since a line integral is linear in the density.
+kernel void blend_lines(global const float4 *a, global const float4 *b, const float w, global float4 *out)
+{
+    const int p = get_global_id(0);
+    out[p] = mix(a[p], b[p], w);
 }

@@ -452,7 +452,7 @@ class Renderer:
         return f.tube.focal_spot_mm * (sid - sod) / sod / pitch / 2.3548
 
     def render(self, volume: PreparedVolume, T_xray_from_ct: np.ndarray, view: View,
-               blend: tuple[PreparedVolume, float] | None = None) -> np.ndarray:
+               blend: tuple[PreparedVolume, float] | None = None, *, cast=None, tables=None) -> np.ndarray:
         """(rows, cols) float32 image of `view.quantity`:
 
         - "line-integral": see `line_integral` (no blend, noise, blur, distortion);
@@ -460,6 +460,10 @@ class Renderer:
           with blur, noise (if view.noise) and vignetting; 0 outside the beam;
         - "display": in [0, 1], what the monitor shows: window/level of -log(intensity),
           bright = more attenuation unless view.invert; 0 (black) outside the beam.
+
+        `cast` stands in for the ray cast (same arguments and result as `_cast`, called under
+        the renderer's lock) and `tables` for the (weights, mu/rho, bins) device tables of the
+        detector: the projection cache (projection_cache.py) hands in cached line integrals.
         """
         import cv2
 
@@ -471,8 +475,8 @@ class Renderer:
         cl = self._cl
         rows, cols = self.shape
         with self._lock:
-            lines, mask = self._cast(volume, T_xray_from_ct, view, blend, True, None)
-            weights, mu_rho, n_e = self._poly if view.polychromatic else self._mono
+            lines, mask = (cast or self._cast)(volume, T_xray_from_ct, view, blend, True, None)
+            weights, mu_rho, n_e = tables or (self._poly if view.polychromatic else self._mono)
             _, mask_buf, central = self._mask_buffer(view.zoom, view.collimation_mm,
                                                      self.fluoroscope.detector.kind == "image_intensifier")
             out_buf = cl.Buffer(self.ctx, cl.mem_flags.WRITE_ONLY, rows * cols * 4)

@@ -1,0 +1,219 @@
+"""A frame costs only what changed: material line integrals cached for an unchanged pose.
+
+A projection is linear in the volume. While the C-arm stands still, each CT phase's four
+material integrals (air, soft tissue, bone, contrast; the `lines` of `Renderer._cast`) are
+the same from frame to frame, so they are cast once per phase and kept on the device; a
+frame between two phases blends the two phases' integrals in projection space, which is
+exactly the projection of the linear blend of the two phases' material densities; and only
+the detector (spectrum, blur, ABC, quantum noise, display) runs per frame. Breathing and a
+changing contrast concentration then cost no ray cast at all.
+
+"Unchanged" is judged where it shows: the pose counts as unchanged while no corner of the
+patient's content box moves by more than `cache_pose_tolerance_px` on the detector.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config.case import Contrast
+from ..patient.materials import mass_attenuation
+from .renderer import PACKET, PreparedVolume, Renderer, View, zoomed_K
+
+
+@dataclass
+class CacheCounts:
+    """What the cache did: casts (phases cast), hits (phases reused), frames drawn."""
+
+    casts: int = 0
+    hits: int = 0
+    frames: int = 0
+
+
+def box_corners_ct(volume: PreparedVolume) -> np.ndarray | None:
+    """(8, 3) corners of the volume's content box in the ct frame (mm), or None when empty."""
+    if volume.box is None:
+        return None
+    lo, hi = np.asarray(volume.box[0], float) - 0.5, np.asarray(volume.box[1], float) + 0.5
+    idx = np.array([[x, y, z, 1.0] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    return (np.linalg.inv(volume.T_index_from_ct) @ idx.T).T[:, :3]
+
+
+def detector_shift_px(K: np.ndarray, corners_ct: np.ndarray, T_a: np.ndarray, T_b: np.ndarray) -> float:
+    """Largest displacement on the detector (pixels, pinhole K) of `corners_ct` between poses
+    T_a and T_b (T_xray_from_ct); infinite when a corner lies behind the focal spot."""
+    def project(T):
+        p = (T[:3, :3] @ corners_ct.T).T + T[:3, 3]
+        if np.any(p[:, 2] <= 1e-6):
+            return None
+        uv = (K @ (p / p[:, 2:3]).T).T
+        return uv[:, :2]
+    a, b = project(np.asarray(T_a, float)), project(np.asarray(T_b, float))
+    if a is None or b is None:
+        return float("inf")
+    return float(np.max(np.linalg.norm(a - b, axis=1)))
+
+
+class ProjectionCache:
+    """Wraps a `Renderer`: `render` takes the renderer's arguments and gives its images, casting
+    a phase only when the pose (or the view's geometry) changed since that phase was cast."""
+
+    def __init__(self, renderer: Renderer, pose_tolerance_px: float = 0.25, max_phases: int = 12):
+        self.renderer = renderer
+        self.pose_tolerance_px = float(pose_tolerance_px)
+        self.max_phases = int(max_phases)
+        self.counts = CacheCounts()
+        self._pose: np.ndarray | None = None
+        self._key: tuple | None = None
+        self._lines: dict[PreparedVolume, object] = {}     # phase -> device buffer of its integrals
+        self._split = None            # the two-phase cast kernel, built on first use
+        self._blend = None
+        self._tables: dict = {}       # (concentration factor, polychromatic) -> detector tables
+
+    # -- what is cached ------------------------------------------------------------------
+    def _geometry_key(self, view: View, distorted: bool, circle) -> tuple:
+        r = self.renderer
+        c = None if view.collimation_mm is None else tuple(float(x) for x in view.collimation_mm)
+        # A reloaded fluoroscope profile replaces the renderer's ray tables: a new key.
+        return (id(r.fluoroscope), r.shape, view.zoom, c, distorted, circle)
+
+    def unchanged(self, volume: PreparedVolume, T_xray_from_ct: np.ndarray, zoom: int) -> bool:
+        """True when the pose moves the content box's corners by no more than the tolerance
+        since the cached pose."""
+        if self._pose is None:
+            return False
+        corners = box_corners_ct(volume)
+        if corners is None:
+            return True
+        K = zoomed_K(self.renderer.fluoroscope, zoom)
+        return detector_shift_px(K, corners, self._pose, T_xray_from_ct) <= self.pose_tolerance_px
+
+    def _adopt(self, volume: PreparedVolume, T_xray_from_ct, view: View, distorted: bool, circle) -> None:
+        key = self._geometry_key(view, distorted, circle)
+        if key != self._key or not self.unchanged(volume, T_xray_from_ct, view.zoom):
+            self._lines.clear()
+            self._key = key
+            self._pose = np.array(T_xray_from_ct, dtype=np.float64)
+
+    # -- the cast the renderer calls -------------------------------------------------------
+    def _cast_phases(self, phases: list[PreparedVolume], T, view, distorted, circle) -> None:
+        """Cast the phases not cached yet (two on one grid in one pass where the kernel can)."""
+        r = self.renderer
+        missing = [p for p in phases if p not in self._lines]
+        self.counts.hits += len(phases) - len(missing)
+        if len(missing) == 2 and r.packet and missing[0].same_grid(missing[1]) and missing[0].box == missing[1].box:
+            self._lines.update(zip(missing, self._cast_two(missing[0], missing[1], T, view, distorted, circle)))
+            self.counts.casts += 2
+            missing = []
+        for p in missing:
+            self._lines[p], _ = r._cast(p, T, view, None, distorted, circle)
+            self.counts.casts += 1
+        while len(self._lines) > self.max_phases:
+            stale = next(k for k in self._lines if k not in phases)
+            del self._lines[stale]
+
+    def _cast_two(self, a: PreparedVolume, b: PreparedVolume, T, view, distorted, circle):
+        """Both phases' integrals from one pass of the SPLIT packet kernel over the two volumes."""
+        r = self.renderer
+        cl = r._cl
+        if self._split is None:
+            program = cl.Program(r.ctx, r._source).build(options=["-DSPLIT", *r._options])
+            self._split = cl.Kernel(program, "joseph_packet")
+        if circle is None:
+            circle = r.fluoroscope.detector.kind == "image_intensifier"
+        rows, cols = r.shape
+        mf = cl.mem_flags
+        out_a = cl.Buffer(r.ctx, mf.READ_WRITE, rows * cols * 16)
+        out_b = cl.Buffer(r.ctx, mf.READ_WRITE, rows * cols * 16)
+        box = r._box(a, b)
+        if box is None:
+            for out in (out_a, out_b):
+                cl.enqueue_fill_buffer(r.queue, out, np.float32(0), 0, rows * cols * 16)
+            return out_a, out_b
+        _, mask_buf, _ = r._mask_buffer(view.zoom, view.collimation_mm, circle)
+        geo = cl.Buffer(r.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=r._geometry(a, T))
+        box_buf = cl.Buffer(r.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=box)
+        nx, ny, nz = a.shape_xyz
+        self._split(r.queue, (-(-cols // PACKET), rows), None, a.buffer, b.buffer, np.int32(nx), np.int32(ny),
+                    np.int32(nz), r._dirs_buffer(view.zoom, distorted), mask_buf, geo, box_buf, r._mat_buf,
+                    np.int32(cols), out_a, out_b)
+        return out_a, out_b
+
+    def _cached_cast(self, volume, T, view, blend, distorted, circle):
+        r = self.renderer
+        cl = r._cl
+        r._check(volume)
+        self._adopt(volume, T, view, distorted, circle)
+        phases = [volume] if blend is None or blend[1] == 0.0 else [volume, blend[0]]
+        if len(phases) == 2:
+            r._check(blend[0])
+            if not volume.same_grid(blend[0]):
+                raise ValueError("phases to blend must share one voxel grid")
+        self._cast_phases(phases, T, view, distorted, circle)
+        c = circle if circle is not None else r.fluoroscope.detector.kind == "image_intensifier"
+        mask = r._mask_buffer(view.zoom, view.collimation_mm, c)[0]
+        if len(phases) == 1:
+            return self._lines[volume], mask
+        if self._blend is None:
+            self._blend = cl.Kernel(r._program, "blend_lines")
+        rows, cols = r.shape
+        out = cl.Buffer(r.ctx, cl.mem_flags.READ_WRITE, rows * cols * 16)
+        self._blend(r.queue, (rows * cols,), None, self._lines[volume], self._lines[blend[0]],
+                    np.float32(blend[1]), out)
+        return out, mask
+
+    # -- the detector's tables at a contrast concentration ---------------------------------
+    def _detector_tables(self, view: View, concentration_factor: float):
+        """(weights, mu/rho, bins) device tables with the iodine at `concentration_factor` times
+        the case's concentration (mass attenuation is linear in the concentration)."""
+        r = self.renderer
+        key = (round(float(concentration_factor), 4), view.polychromatic, id(r.spectrum))
+        if key not in self._tables:
+            if len(self._tables) > 256:
+                self._tables.clear()
+            cl = r._cl
+            s = r.spectrum
+            energies = s.energies_kev if view.polychromatic else [s.effective_kev]
+            weights = s.energy_weights() if view.polychromatic else np.ones(1)
+            contrast = r.contrast
+            factor = max(float(concentration_factor), 0.0)
+            scaled = None if contrast is None or factor == 0.0 else Contrast(
+                agent=contrast.agent, concentration_mg_per_ml=min(contrast.concentration_mg_per_ml * factor, 400.0))
+            mu = mass_attenuation(energies, scaled).astype(np.float32)
+            mf = cl.mem_flags
+            self._tables[key] = (cl.Buffer(r.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.asarray(weights, np.float32)),
+                                 cl.Buffer(r.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(mu)),
+                                 len(energies))
+        return self._tables[key]
+
+    # -- frames ----------------------------------------------------------------------------
+    def render(self, volume: PreparedVolume, T_xray_from_ct: np.ndarray, view: View,
+               blend: tuple[PreparedVolume, float] | None = None,
+               concentration_factor: float | None = None) -> np.ndarray:
+        """The renderer's image (see `Renderer.render`) from cached line integrals where the pose
+        is unchanged. `concentration_factor` scales the case's iodine concentration (contrast
+        filling or washing out); None keeps it."""
+        self.counts.frames += 1
+        if view.quantity == "line-integral":
+            return self.renderer.render(volume, T_xray_from_ct, view)
+        tables = None if concentration_factor is None else self._detector_tables(view, concentration_factor)
+        return self.renderer.render(volume, T_xray_from_ct, view, blend, cast=self._cached_cast, tables=tables)
+
+    def material_integrals(self, volume: PreparedVolume, T_xray_from_ct, view: View,
+                           blend: tuple[PreparedVolume, float] | None = None) -> np.ndarray:
+        """(rows, cols, 4) float32 material integrals (g/cm^3 * mm) of the frame, as the detector
+        receives them: blended in projection space between cached phases."""
+        r = self.renderer
+        with r._lock:
+            lines, _ = self._cached_cast(volume, T_xray_from_ct, view, blend, True, None)
+            out = np.empty(r.shape + (4,), dtype=np.float32)
+            r._cl.enqueue_copy(r.queue, out, lines)
+        return out
+
+    def clear(self) -> None:
+        """Forget every cached projection (a new case, a replaced renderer)."""
+        self._lines.clear()
+        self._pose = None
+        self._key = None
