@@ -24,9 +24,10 @@ def renderer():
 
 
 def two_phases(hu=0):
-    """The same box at two places on one grid: a 'breath' moves it 6 voxels along x."""
-    a, lo_a, hi_a = box_volume(SHAPE, SPACING, (8, 10, 6), (30, 36, 30), hu=hu)
-    b, lo_b, hi_b = box_volume(SHAPE, SPACING, (14, 10, 8), (36, 36, 32), hu=hu)
+    """The same box at two places on one grid: a 'breath' moves its faces by 1-4 voxels (within
+    the 16-voxel blocks the renderer crops by, so both phases keep one device grid)."""
+    a, lo_a, hi_a = box_volume(SHAPE, SPACING, (8, 10, 6), (28, 36, 28), hu=hu)
+    b, lo_b, hi_b = box_volume(SHAPE, SPACING, (12, 10, 8), (31, 35, 31), hu=hu)
     return (a, lo_a, hi_a), (b, lo_b, hi_b)
 
 
@@ -41,7 +42,7 @@ def test_blend_in_projection_space_is_the_blend_of_the_phases_chords(renderer):
     pa, pb = renderer.prepare(a), renderer.prepare(b)
     cache = ProjectionCache(renderer)
     ca, cb = chords(renderer, lo_a, hi_a), chords(renderer, lo_b, hi_b)
-    for w in (0.0, 0.3, 0.75):
+    for w in (0.3, 0.0, 0.75):
         soft = cache.material_integrals(pa, POSE, View(), blend=(pb, w))[..., 1]   # HU 0: soft tissue at 1 g/cm^3
         truth = (1 - w) * ca + w * cb
         sel = truth > 10.0
@@ -50,20 +51,36 @@ def test_blend_in_projection_space_is_the_blend_of_the_phases_chords(renderer):
         # Joseph's bilinear samples smear the faces of this small box by a voxel: 1 % on average
         # (a blend of HU instead would classify the half-overlap as air and miss by far more).
         assert rel.mean() < 0.01, w
-    assert cache.counts.casts == 2          # both phases cast once, in one pass
+    assert (cache.counts.casts, cache.counts.paired) == (2, 1)     # both phases cast once, in one pass
 
 
 def test_two_phase_pass_gives_each_phase_its_own_cast(renderer):
     (a, *_), (b, *_) = two_phases()
     pa, pb = renderer.prepare(a), renderer.prepare(b)
     together = ProjectionCache(renderer)
+    assert pa.same_grid(pb)
     together.material_integrals(pa, POSE, View(), blend=(pb, 0.5))
-    assert together.counts.casts == 2
+    assert (together.counts.casts, together.counts.paired) == (2, 1)
     for phase in (pa, pb):
         alone = renderer.material_integrals(phase, POSE, View())
         cached = together.material_integrals(phase, POSE, View())
         np.testing.assert_allclose(cached, alone, rtol=1e-6, atol=1e-6)
     assert together.counts.casts == 2       # both were still cached
+
+
+def test_phases_on_different_grids_blend_in_projection_space(renderer):
+    # Content boxes in different 16-voxel blocks: the phases are cropped to different grids,
+    # which a blend of HU cannot mix, but their projections can.
+    a, lo_a, hi_a = box_volume(SHAPE, SPACING, (8, 10, 6), (28, 36, 28))
+    b, lo_b, hi_b = box_volume(SHAPE, SPACING, (20, 10, 6), (40, 36, 28))
+    pa, pb = renderer.prepare(a), renderer.prepare(b)
+    assert not pa.same_grid(pb)
+    cache = ProjectionCache(renderer)
+    soft = cache.material_integrals(pa, POSE, View(), blend=(pb, 0.5))[..., 1]
+    truth = 0.5 * chords(renderer, lo_a, hi_a) + 0.5 * chords(renderer, lo_b, hi_b)
+    sel = truth > 10.0
+    assert np.mean(np.abs(soft[sel] - truth[sel]) / truth[sel]) < 0.01
+    assert (cache.counts.casts, cache.counts.paired) == (2, 0)
 
 
 def test_unchanged_pose_casts_nothing_and_a_moved_one_recasts(renderer):

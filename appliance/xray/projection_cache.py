@@ -25,9 +25,11 @@ from .renderer import PACKET, PreparedVolume, Renderer, View, zoomed_K
 
 @dataclass
 class CacheCounts:
-    """What the cache did: casts (phases cast), hits (phases reused), frames drawn."""
+    """What the cache did: casts (phases cast), of them pairs cast in one pass, hits (phases
+    reused), frames drawn."""
 
     casts: int = 0
+    paired: int = 0
     hits: int = 0
     frames: int = 0
 
@@ -103,9 +105,10 @@ class ProjectionCache:
         r = self.renderer
         missing = [p for p in phases if p not in self._lines]
         self.counts.hits += len(phases) - len(missing)
-        if len(missing) == 2 and r.packet and missing[0].same_grid(missing[1]) and missing[0].box == missing[1].box:
+        if len(missing) == 2 and r.packet and missing[0].same_grid(missing[1]):
             self._lines.update(zip(missing, self._cast_two(missing[0], missing[1], T, view, distorted, circle)))
             self.counts.casts += 2
+            self.counts.paired += 1
             missing = []
         for p in missing:
             self._lines[p], _ = r._cast(p, T, view, None, distorted, circle)
@@ -148,9 +151,7 @@ class ProjectionCache:
         self._adopt(volume, T, view, distorted, circle)
         phases = [volume] if blend is None or blend[1] == 0.0 else [volume, blend[0]]
         if len(phases) == 2:
-            r._check(blend[0])
-            if not volume.same_grid(blend[0]):
-                raise ValueError("phases to blend must share one voxel grid")
+            r._check(blend[0])     # in projection space, phases on different grids blend as well
         self._cast_phases(phases, T, view, distorted, circle)
         c = circle if circle is not None else r.fluoroscope.detector.kind == "image_intensifier"
         mask = r._mask_buffer(view.zoom, view.collimation_mm, c)[0]

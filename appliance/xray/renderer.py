@@ -16,6 +16,7 @@ Units: lengths mm, energies keV, densities g/cm^3, mass attenuation cm^2/g.
 
 from __future__ import annotations
 
+import copy
 import math
 import threading
 from dataclasses import dataclass, field
@@ -32,6 +33,9 @@ from ..patient.volume import Volume
 
 #: Voxels of air added on every side of a prepared volume, so bilinear samples never leave it.
 PAD = 2
+#: A prepared volume keeps the voxels of its content box, the box's bounds rounded out to
+#: multiples of this many voxels (see `Renderer.prepare`).
+CROP_BLOCK = 16
 #: Voxels at or below this CT number are treated as empty when clipping rays to the
 #: volume's content: their density is at most 0.01 g/cm^3, and only voxels outside the
 #: bounding box of everything denser are dropped (HU).
@@ -225,34 +229,53 @@ class Renderer:
             self._masks: dict = {}
             self._gains: dict = {}
 
+    def at_matrix(self, columns: int, rows: int) -> "Renderer":
+        """A renderer of the same machine read out at another matrix, on the same OpenCL context,
+        queue, kernels and lock: it renders the volumes this one prepared."""
+        other = copy.copy(self)
+        other.set_fluoroscope(at_resolution(self.fluoroscope, columns, rows))
+        return other
+
     @property
     def shape(self) -> tuple[int, int]:
         return self.fluoroscope.detector.rows, self.fluoroscope.detector.columns
 
     # -- volumes ---------------------------------------------------------------------
     def prepare(self, volume: Volume) -> PreparedVolume:
-        """Copy one phase to the device as padded int16 HU. Thread-safe (OpenCL calls are)."""
+        """Copy one phase's content box to the device as padded int16 HU. Thread-safe (OpenCL
+        calls are). Voxels outside the box are at or below EMPTY_MAX_HU and no ray samples them."""
         cl = self._cl
         hu = np.asarray(volume.hu)
         if hu.ndim != 3 or hu.dtype != np.int16:
             raise FluorosimError(f"{volume.source or 'volume'}: expected a 3D int16 HU array, got {hu.dtype} {hu.shape}")
-        padded = np.pad(hu, PAD, mode="constant", constant_values=-1000)
         mask = hu > EMPTY_MAX_HU
         box = None
+        start = np.zeros(3, dtype=int)            # (i, j, k) of the first voxel kept
         if mask.any():
             ks = np.flatnonzero(mask.any(axis=(1, 2)))
             js = np.flatnonzero(mask.any(axis=(0, 2)))
             is_ = np.flatnonzero(mask.any(axis=(0, 1)))
-            box = ((int(is_[0]) + PAD, int(js[0]) + PAD, int(ks[0]) + PAD),
-                   (int(is_[-1]) + PAD, int(js[-1]) + PAD, int(ks[-1]) + PAD))
+            lo, hi = np.array([is_[0], js[0], ks[0]]), np.array([is_[-1], js[-1], ks[-1]])
+            # Only the content box travels to the device (a CT's air around the patient is
+            # a third to a half of it). Its bounds are rounded out to CROP_BLOCK voxels, so
+            # the phases of one 4D CT, whose outlines differ by a few voxels, keep one grid
+            # and can still be blended.
+            n = np.array(hu.shape[::-1])
+            start = lo // CROP_BLOCK * CROP_BLOCK
+            stop = np.minimum(-(-(hi + 1) // CROP_BLOCK) * CROP_BLOCK, n)
+            hu = hu[start[2]:stop[2], start[1]:stop[1], start[0]:stop[0]]
+            box = (tuple(int(x) for x in lo - start + PAD), tuple(int(x) for x in hi - start + PAD))
+        else:
+            hu = hu[:1, :1, :1]
         del mask
+        padded = np.pad(hu, PAD, mode="constant", constant_values=-1000)
         T_index_from_voxel = np.eye(4)
-        T_index_from_voxel[:3, 3] = PAD
+        T_index_from_voxel[:3, 3] = PAD - start
         T_index_from_ct = T_index_from_voxel @ np.linalg.inv(np.asarray(volume.T_ct_from_voxel, dtype=np.float64))
         buf = cl.Buffer(self.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=padded)
         nz, ny, nx = padded.shape
         return PreparedVolume(buffer=buf, shape_xyz=(nx, ny, nz), T_index_from_ct=T_index_from_ct, box=box,
-                              nbytes=padded.nbytes, source=volume.source, _renderer_id=id(self))
+                              nbytes=padded.nbytes, source=volume.source, _renderer_id=id(self.ctx))
 
     # -- per-view caches -------------------------------------------------------------
     def _dirs_buffer(self, zoom: int, distorted: bool):
@@ -327,7 +350,8 @@ class Renderer:
         return np.array([*lo, 0, *hi, 0], dtype=np.int32)
 
     def _check(self, vol: PreparedVolume) -> None:
-        if vol._renderer_id != id(self):
+        # Renderers of one context (`at_matrix`) share their prepared volumes.
+        if vol._renderer_id != id(self.ctx):
             raise ValueError("this PreparedVolume was prepared by another Renderer")
 
     def material_integrals(self, volume: PreparedVolume, T_xray_from_ct, view: View,

@@ -1,0 +1,124 @@
+"""Progressive resolution: the matrix that keeps the frame rate while the C-arm moves, the full
+matrix once it rests.
+
+While the pose changes every frame, each frame needs a new ray cast, and the cast costs in
+proportion to the pixels: the moving matrix (`rendering.moving_matrix_px`, e.g. 256 of 512)
+is cast instead and scaled up to the full matrix. A moving image is blurred by the motion
+and by the recursive filter of a real unit anyway, so the coarser matrix does not show. Once
+the pose has stayed unchanged (within the projection cache's tolerance) for
+`rendering.settle_s`, the full matrix is cast once and then served from the projection cache,
+so a held view is sharp and costs only the detector per frame.
+
+The switch to the full matrix is a change of sharpness and of the noise's grain, not of
+brightness: both matrices are the same detector (same spectrum, photons per mm^2 and ABC),
+and the ABC's median over its measuring field is the same at either. What remains is hidden
+as a recursive filter would hide it: the first full-matrix frames are blended into the last
+moving one over `rendering.crossfade_s` (linearly, so the refine takes a known time). The
+switch back to the moving matrix, when the C-arm starts moving again, is not faded: a fade
+there would drag a ghost of the old view across the screen, which a real unit's motion
+detection also avoids by shortening its lag.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+import numpy as np
+
+from ..config.rendering import Rendering
+from .projection_cache import ProjectionCache, box_corners_ct, detector_shift_px
+from .renderer import PreparedVolume, Renderer, View, at_resolution, zoomed_K
+
+
+class ProgressiveRenderer:
+    """Wraps a full-matrix `Renderer` (and everything else of it is reached through this object):
+    `render` gives full-matrix images, cast at the moving matrix while the pose moves."""
+
+    def __init__(self, renderer: Renderer, settings: Rendering, clock: Callable[[], float] = time.monotonic):
+        self.full = renderer
+        self.settings = settings
+        self.clock = clock
+        self._caches = {id(renderer): ProjectionCache(renderer, settings.cache_pose_tolerance_px,
+                                                      settings.cache_max_phases)}
+        self.moving: Renderer | None = None
+        n = settings.moving_matrix_px
+        if n is not None and n < max(renderer.shape):
+            self.moving = renderer.at_matrix(n, n)
+            self._caches[id(self.moving)] = ProjectionCache(self.moving, settings.cache_pose_tolerance_px,
+                                                            settings.cache_max_phases)
+        self._last_pose: np.ndarray | None = None
+        self._last_motion = -np.inf
+        self._last_used: Renderer = renderer
+        self._last_image: np.ndarray | None = None
+        self._fade_from: np.ndarray | None = None
+        self._fade_t0 = 0.0
+        #: When the full matrix was first shown after the last motion (s, `clock`), and how long
+        #: after the pose came to rest that was: the "native matrix within 500 ms" figure.
+        self.refined_after_s: list[float] = []
+
+    def __getattr__(self, name):
+        # Everything but rendering (prepare, device, fluoroscope, photons_per_pixel, ...) is the
+        # full-matrix renderer's; only called for names this object does not have.
+        return getattr(self.__dict__["full"], name)
+
+    @property
+    def exposure_factor(self) -> float:
+        return self._last_used.exposure_factor
+
+    @property
+    def matrix(self) -> int:
+        """Columns of the matrix the last frame was cast at."""
+        return self._last_used.shape[1]
+
+    def cache(self, renderer: Renderer | None = None) -> ProjectionCache:
+        return self._caches[id(renderer or self.full)]
+
+    def set_fluoroscope(self, fluoroscope) -> None:
+        self.full.set_fluoroscope(fluoroscope)
+        if self.moving is not None:
+            rows, cols = self.moving.shape
+            self.moving.set_fluoroscope(at_resolution(fluoroscope, cols, rows))
+
+    def _moved(self, volume: PreparedVolume, T: np.ndarray, zoom: int) -> bool:
+        if self._last_pose is None:
+            return True
+        corners = box_corners_ct(volume)
+        if corners is None:
+            return False
+        K = zoomed_K(self.full.fluoroscope, zoom)
+        return detector_shift_px(K, corners, self._last_pose, T) > self.settings.cache_pose_tolerance_px
+
+    def render(self, volume: PreparedVolume, T_xray_from_ct: np.ndarray, view: View,
+               blend: tuple[PreparedVolume, float] | None = None,
+               concentration_factor: float | None = None) -> np.ndarray:
+        """The full-matrix image of `Renderer.render` (line integrals always at the full matrix)."""
+        import cv2
+
+        now = self.clock()
+        T = np.asarray(T_xray_from_ct, dtype=np.float64)
+        if self._moved(volume, T, view.zoom):
+            self._last_motion = now
+            self._last_pose = T
+        resting = now - self._last_motion >= self.settings.settle_s
+        use = self.full if resting or self.moving is None or view.quantity == "line-integral" else self.moving
+        image = self.cache(use).render(volume, T, view, blend, concentration_factor)
+        rows, cols = self.full.shape
+        if image.shape != (rows, cols):
+            image = cv2.resize(image, (cols, rows), interpolation=cv2.INTER_LINEAR)
+        if use is self.full and self._last_used is not self.full:
+            self.refined_after_s.append(now - self._last_motion)
+            if self.settings.crossfade_s > 0 and self._last_image is not None:
+                self._fade_from, self._fade_t0 = self._last_image, now
+        elif use is not self.full:
+            self._fade_from = None
+        if self._fade_from is not None:
+            a = (now - self._fade_t0) / self.settings.crossfade_s
+            if a >= 1.0 or self._fade_from.shape != image.shape:
+                self._fade_from = None
+            else:
+                image = (1.0 - a) * self._fade_from + a * image
+                image = image.astype(np.float32)
+        self._last_used = use
+        self._last_image = image
+        return image

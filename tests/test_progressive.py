@@ -1,0 +1,116 @@
+"""Progressive resolution: the moving matrix while the pose changes, the full one at rest, the
+switch faded in, and both matrices against the closed-form transmission of a box."""
+
+import cv2
+import numpy as np
+import pytest
+import xraylib
+
+from appliance.config.case import Materials
+from appliance.config.rendering import Rendering
+from appliance.geometry import make_transform, rotation_about
+from appliance.xray.analytic import box_chords, box_volume, pixel_rays_ct
+from appliance.xray.benchmark import flat_profile
+from appliance.xray.progressive import ProgressiveRenderer
+from appliance.xray.renderer import Renderer, View, zoomed_K
+
+POSE = make_transform(rotation_about([0.2, 1.0, 0.1], np.radians(20)), [0.0, 0.0, 700.0])
+SETTINGS = Rendering(moving_matrix_px=64, settle_s=0.1, crossfade_s=0.2)
+
+
+class Clock:
+    def __init__(self):
+        self.t = 100.0
+
+    def __call__(self):
+        return self.t
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    return Renderer(flat_profile(128), Materials(), device="cpu")
+
+
+@pytest.fixture(scope="module")
+def box(renderer):
+    vol, lo, hi = box_volume((40, 48, 48), (1.5, 1.25, 2.0), (8, 10, 6), (36, 38, 30))
+    return renderer.prepare(vol), lo, hi
+
+
+def shifted(dx_mm):
+    return make_transform(POSE[:3, :3], POSE[:3, 3] + [dx_mm, 0.0, 0.0])
+
+
+def test_moving_frames_use_the_moving_matrix_and_rest_refines_to_the_full_one(renderer, box):
+    prepared, _, _ = box
+    clock = Clock()
+    pr = ProgressiveRenderer(renderer, SETTINGS, clock=clock)
+    view = View(seed=3)
+    for i in range(6):                         # 2 mm a frame at 25 frames/s
+        clock.t += 0.04
+        image = pr.render(prepared, shifted(2.0 * i), view)
+        assert image.shape == (128, 128)
+        assert pr.matrix == 64 or i == 0       # the very first frame has no motion before it
+    moving_casts = pr.cache(pr.moving).counts.casts
+    assert moving_casts >= 5
+    matrices = []
+    for i in range(10):                        # at rest for 0.4 s
+        clock.t += 0.04
+        pr.render(prepared, shifted(10.0), view)
+        matrices.append(pr.matrix)
+    # Still the moving matrix until settle_s has passed, then the full matrix for good.
+    first_full = matrices.index(128)
+    assert 0.1 <= 0.04 * (first_full + 1) <= 0.1 + 0.04 + 1e-9
+    assert all(m == 128 for m in matrices[first_full:])
+    assert pr.refined_after_s and pr.refined_after_s[-1] <= 0.5
+    # Held: the full matrix was cast once and served from the cache afterwards.
+    assert pr.cache().counts.casts == 1
+
+
+def test_switch_is_faded_in_over_the_crossfade(renderer, box):
+    prepared, _, _ = box
+    clock = Clock()
+    pr = ProgressiveRenderer(renderer, SETTINGS, clock=clock)
+    view = View(noise=False)
+    for i in range(3):
+        clock.t += 0.04
+        last_moving = pr.render(prepared, shifted(2.0 * i), view)
+    while pr.matrix != 128:
+        clock.t += 0.04
+        last_moving = first_full = pr.render(prepared, shifted(4.0), view)
+    # The first full-matrix frame is still the last moving one; the fade then runs to the full image.
+    moving_only = cv2.resize(pr.cache(pr.moving).render(prepared, shifted(4.0), view), (128, 128),
+                             interpolation=cv2.INTER_LINEAR)
+    np.testing.assert_allclose(first_full, moving_only, atol=1e-6)
+    full = pr.cache().render(prepared, shifted(4.0), view)
+    clock.t += 0.1
+    half = pr.render(prepared, shifted(4.0), view)
+    np.testing.assert_allclose(half, 0.5 * moving_only + 0.5 * full, atol=0.02)
+    clock.t += 0.2
+    np.testing.assert_allclose(pr.render(prepared, shifted(4.0), view), full, atol=1e-6)
+    del last_moving
+
+
+def test_both_matrices_show_the_closed_form_transmission(renderer, box):
+    """Same brightness at either matrix: the transmission through the box's middle against
+    exp(-mu L) with the chord L and mu of soft tissue from xraylib at the effective energy."""
+    prepared, lo, hi = box
+    clock = Clock()
+    pr = ProgressiveRenderer(renderer, SETTINGS, clock=clock)
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    s, d = pixel_rays_ct(zoomed_K(renderer.fluoroscope, 1), POSE, 128, 128)
+    L_cm = box_chords(s, d, lo, hi) / 10.0
+    inner = cv2.erode((L_cm > 2.0).astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
+    assert inner.sum() > 200
+    mu = xraylib.CS_Total_CP("Tissue, Soft (ICRP)", renderer.spectrum.effective_kev)
+    clock.t += 0.04
+    moving = pr.render(prepared, POSE, view)
+    assert pr.matrix == 64
+    clock.t += 1.0
+    pr.render(prepared, POSE, view)
+    clock.t += 1.0
+    full = pr.render(prepared, POSE, view)
+    assert pr.matrix == 128
+    for image in (moving, full):
+        implied = -np.log(image[inner]) / mu
+        assert np.median(np.abs(implied - L_cm[inner]) / L_cm[inner]) < 0.01
