@@ -37,9 +37,16 @@ PAD = 2
 #: multiples of this many voxels (see `Renderer.prepare`).
 CROP_BLOCK = 16
 #: Voxels at or below this CT number are treated as empty when clipping rays to the
-#: volume's content: their density is at most 0.01 g/cm^3, and only voxels outside the
-#: bounding box of everything denser are dropped (HU).
-EMPTY_MAX_HU = -990
+#: volume's content: their density is at most 0.1 g/cm^3, and only voxels outside the
+#: bounding box of everything denser are dropped (HU). A scanner's air reads -1000 with
+#: 5-20 HU of noise, so a threshold closer to -1000 would count the noise as content.
+EMPTY_MAX_HU = -900
+#: A plane of voxels (along any axis) belongs to the content box where more than this many
+#: of its voxels are above EMPTY_MAX_HU (count), or any is above SURE_CONTENT_HU: single
+#: noise spikes in the air do not stretch the box to the whole grid, a small dense object
+#: (a steel ball, a catheter tip) is never dropped.
+EMPTY_PLANE_MAX_VOXELS = 4
+SURE_CONTENT_HU = -500
 #: Energy bins of the polychromatic detector (the issue asks for at least 16).
 ENERGY_BINS = 24
 QUANTITIES = ("display", "intensity", "line-integral")
@@ -243,7 +250,7 @@ class Renderer:
     # -- volumes ---------------------------------------------------------------------
     def prepare(self, volume: Volume) -> PreparedVolume:
         """Copy one phase's content box to the device as padded int16 HU. Thread-safe (OpenCL
-        calls are). Voxels outside the box are at or below EMPTY_MAX_HU and no ray samples them."""
+        calls are). Voxels outside the box are air (see EMPTY_MAX_HU) and no ray samples them."""
         cl = self._cl
         hu = np.asarray(volume.hu)
         if hu.ndim != 3 or hu.dtype != np.int16:
@@ -251,10 +258,11 @@ class Renderer:
         mask = hu > EMPTY_MAX_HU
         box = None
         start = np.zeros(3, dtype=int)            # (i, j, k) of the first voxel kept
-        if mask.any():
-            ks = np.flatnonzero(mask.any(axis=(1, 2)))
-            js = np.flatnonzero(mask.any(axis=(0, 2)))
-            is_ = np.flatnonzero(mask.any(axis=(0, 1)))
+        sure = hu > SURE_CONTENT_HU
+        ks, js, is_ = (np.flatnonzero((mask.sum(axis=ax) > EMPTY_PLANE_MAX_VOXELS) | sure.any(axis=ax))
+                       for ax in ((1, 2), (0, 2), (0, 1)))
+        del sure
+        if len(ks) and len(js) and len(is_):
             lo, hi = np.array([is_[0], js[0], ks[0]]), np.array([is_[-1], js[-1], ks[-1]])
             # Only the content box travels to the device (a CT's air around the patient is
             # a third to a half of it). Its bounds are rounded out to CROP_BLOCK voxels, so
