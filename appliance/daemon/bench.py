@@ -10,6 +10,7 @@ to the end of the run.
 from __future__ import annotations
 
 import logging
+import os
 import time
 from pathlib import Path
 
@@ -28,23 +29,61 @@ WARMUP_FRACTION = 0.2
 WARMUP_MIN_S = 5.0
 
 
-def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None) -> int:
+def adult_chest_case(data_dir: Path) -> Path:
+    """The case profile of the real-size adult chest CT (512 x 512 x 136), written under
+    data_dir/cache on the first run and reused afterwards."""
+    from ..patient.adult_chest import write_adult_chest
+
+    profile = data_dir / "cache" / "adult-chest" / "adult-chest.yaml"
+    if not profile.exists():
+        print(f"bench e2e: drawing the adult chest CT into {shown(profile.parent)} (once)", flush=True)
+        write_adult_chest(profile.parent)
+    return profile
+
+
+def hold_camera_still(app, t_s: float) -> str:
+    """Replace the synthetic webcam by a cheap source: its frame at trajectory time `t_s`,
+    written once and looped by the file camera at the same rate (the C-arm at rest; decoding
+    a PNG instead of drawing the scene). Returns a label for the report."""
+    import cv2
+
+    from drivers.camera import FileCamera
+
+    cam = app.parts.camera
+    folder = app.config.data_dir / "still-camera"
+    folder.mkdir(parents=True, exist_ok=True)
+    image, _ = cam.render_at(t_s)
+    cv2.imwrite(str(folder / "frame.png"), image)
+    still = FileCamera(folder, fps=cam.fps, loop=True)
+    app.parts.camera = app.capture.camera = still
+    return f"a still frame (trajectory at {t_s:g} s) looped from a PNG at {cam.fps:g} fps"
+
+
+def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None, case: Path | None = None,
+            ct: str | None = None, still_s: float | None = None) -> int:
     from .pipeline import Appliance
 
-    keeper = ProfileKeeper(config_path, data_dir=Path(out) if out else None)
+    if ct == "chest":
+        base = ProfileKeeper(config_path, data_dir=Path(out) if out else None).current.data_dir
+        case = adult_chest_case(base)
+    keeper = ProfileKeeper(config_path, case=case, data_dir=Path(out) if out else None)
     data_dir = keeper.current.data_dir
     logs = start_logging(data_dir / "logs", console_level=logging.WARNING)
     try:
         app = Appliance(keeper, Notifier())
+        camera = None if still_s is None else hold_camera_still(app, still_s)
         duration = minutes * 60.0
         warmup = max(WARMUP_MIN_S, WARMUP_FRACTION * duration)
         process = psutil.Process()
         rss: list[tuple[float, int]] = []
         cfg = keeper.current
         matrix = cfg.appliance.daemon.render_matrix_px or cfg.fluoroscope.detector.columns
-        print(f"bench e2e: {config_path}, {duration:.0f} s measured after {warmup:.0f} s warm-up; renderer on "
-              f"{app.parts.renderer_device}, {matrix} px matrix; camera {cfg.appliance.devices.camera.source} at "
-              f"{cfg.appliance.devices.camera.fps:g} fps; data in {shown(data_dir)}", flush=True)
+        moving = cfg.appliance.rendering.moving_matrix_px
+        camera = camera or f"{cfg.appliance.devices.camera.source} at {cfg.appliance.devices.camera.fps:g} fps"
+        print(f"bench e2e: {config_path}, case {cfg.case.title}, {duration:.0f} s measured after {warmup:.0f} s "
+              f"warm-up; renderer on {app.parts.renderer_device}, {matrix} px matrix"
+              f"{f' ({moving} px while moving)' if moving and moving < matrix else ''}; camera {camera}; "
+              f"load average {os.getloadavg()[0]:.1f}; data in {shown(data_dir)}", flush=True)
         t0 = time.monotonic()
         next_sample = [t0]
 
@@ -72,6 +111,15 @@ def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None)
         if after:
             print(f"resident memory:        {after[0] / 2**20:.0f} MiB -> {after[-1] / 2**20:.0f} MiB "
                   f"({growth:+.1f} % over {rss[-1][0] - warmup:.0f} s)")
+        renderer = app.parts.renderer
+        refined = getattr(renderer, "refined_after_s", [])
+        if refined:
+            print(f"full matrix after rest:  median {np.median(refined) * 1000:.0f} ms, max {max(refined) * 1000:.0f} ms "
+                  f"after the pose came to rest ({len(refined)} times)")
+        counts = renderer.cache().counts if hasattr(renderer, "cache") else None
+        if counts is not None:
+            print(f"projection cache:       {counts.frames} full-matrix frames, {counts.casts} phase casts, "
+                  f"{counts.hits} phases reused")
         dropped = app.poses.dropped
         print(f"stale poses skipped:    {dropped} (the renderer always draws the newest)")
         return 0

@@ -37,7 +37,8 @@ def run_demo(args) -> int:
 
 def run_bench_e2e(args) -> int:
     from .bench import run_e2e
-    return run_e2e(Path(args.config), minutes=args.minutes, out=Path(args.out) if args.out else None)
+    return run_e2e(Path(args.config), minutes=args.minutes, out=Path(args.out) if args.out else None,
+                   case=Path(args.case) if args.case else None, ct=args.ct, still_s=args.still)
 
 
 def register(commands, benches) -> None:
@@ -72,4 +73,9 @@ def register(commands, benches) -> None:
                    help="appliance profile to run (default: configs/appliance-bench.yaml)")
     b.add_argument("--minutes", type=float, default=0.5, help="how long to run (min; default 0.5; 10 for the memory figure)")
     b.add_argument("--out", metavar="DIR", help="data_dir for the run (default: the profile's, var/bench)")
+    b.add_argument("--case", metavar="CASE.yaml", help="run this case instead of the profile's")
+    b.add_argument("--ct", choices=("chest",), help="run the real-size adult chest CT (512x512x136, drawn once into "
+                                                   "the data folder's cache)")
+    b.add_argument("--still", type=float, metavar="SECONDS",
+                   help="a cheap camera: the synthetic webcam's frame at this trajectory time, looped from a file")
     b.set_defaults(run=run_bench_e2e)

@@ -27,7 +27,8 @@ from ..display.compositor import Compositor, Overlay
 from ..display.target import open_target
 from ..patient.timeline import PhaseTimeline
 from ..tracking.tracker import Tracker
-from ..xray.renderer import Renderer, View, at_resolution
+from ..xray.progressive import ProgressiveRenderer
+from ..xray.renderer import Renderer, at_resolution
 
 log = logging.getLogger(__name__)
 
@@ -54,17 +55,18 @@ def rendered_fluoroscope(cfg: ApplianceConfig, fallback: bool = False) -> Fluoro
     return at_resolution(cfg.fluoroscope, n, n)
 
 
-def make_renderer(cfg: ApplianceConfig, device: str = "auto") -> Renderer:
-    return Renderer(rendered_fluoroscope(cfg, fallback=device == "cpu"), cfg.case.materials,
-                    contrast=cfg.case.contrast, device=device)
+def make_renderer(cfg: ApplianceConfig, device: str = "auto") -> ProgressiveRenderer:
+    """The renderer behind its projection cache and progressive matrix (the `rendering` section)."""
+    return ProgressiveRenderer(Renderer(rendered_fluoroscope(cfg, fallback=device == "cpu"), cfg.case.materials,
+                                        contrast=cfg.case.contrast, device=device), cfg.appliance.rendering)
 
 
-def device_label(renderer: Renderer) -> str:
+def device_label(renderer: Renderer | ProgressiveRenderer) -> str:
     d = renderer.device
     return f"{d.name.strip()} ({'CPU' if is_cpu(renderer) else 'GPU'})"
 
 
-def is_cpu(renderer: Renderer) -> bool:
+def is_cpu(renderer: Renderer | ProgressiveRenderer) -> bool:
     import pyopencl as cl
     return bool(renderer.device.type & cl.device_type.CPU)
 
@@ -79,7 +81,7 @@ def open_tracker(cfg: ApplianceConfig) -> Tracker:
     return tracker_for(cfg)
 
 
-def open_timeline(cfg: ApplianceConfig, renderer: Renderer) -> PhaseTimeline:
+def open_timeline(cfg: ApplianceConfig, renderer: Renderer | ProgressiveRenderer) -> PhaseTimeline:
     """The active case's phases, loaded and prepared for `renderer` by the timeline's own thread."""
     return PhaseTimeline(patient_phases(cfg), renderer, at_end=cfg.case.at_end)
 
@@ -88,7 +90,7 @@ def open_timeline(cfg: ApplianceConfig, renderer: Renderer) -> PhaseTimeline:
 class Parts:
     camera: CameraSource
     tracker: Tracker
-    renderer: Renderer
+    renderer: ProgressiveRenderer
     timeline: PhaseTimeline
     console: Console
     keypad: InputDevice
@@ -135,7 +137,7 @@ class Parts:
 FIRST_PHASE_TIMEOUT_S = 300.0
 
 
-def warm_up(cfg: ApplianceConfig, renderer: Renderer, timeline: PhaseTimeline) -> float:
+def warm_up(cfg: ApplianceConfig, renderer: ProgressiveRenderer, timeline: PhaseTimeline) -> float:
     """Render two throw-away frames (plain and blended) so kernels and ray tables are built
     before the session starts; returns the seconds it took."""
     import time
@@ -147,8 +149,7 @@ def warm_up(cfg: ApplianceConfig, renderer: Renderer, timeline: PhaseTimeline) -
     a, _, _ = timeline.at(0.0)
     # The box straight under the webcam: any pose that puts the patient in the beam will do.
     T = cfg.fluoroscope.T_xray_from_webcam() @ pose_from_angles([0.0, 0.0, 550.0]) @ matrix(cfg.case.T_phantom_from_ct)
-    renderer.render(a, T, View())
-    renderer.render(a, T, View(), blend=(a, 0.5))
+    renderer.warm(a, T)
     return time.monotonic() - t0
 
 

@@ -172,9 +172,13 @@ def run(args) -> int:
     ii = load_profile(here, FluoroscopeProfile)
     print(f"fluorosim bench drr: {os.cpu_count()} CPU(s) visible, load average {os.getloadavg()[0]:.2f}")
 
+    from .frame_cost import bench_ct, cached_frames, centred, next_phase, plastimatch_side_by_side
+
+    ct = centred(bench_ct(args.ct)) if not {"speed", "cache", "plastimatch", "memory"} <= skip else None
     if "speed" not in skip:
-        torso = synthetic_torso()
-        print(f"\nSpeed: {torso.source} ({CLINICAL_SPACING_MM[0]} x {CLINICAL_SPACING_MM[1]} x {CLINICAL_SPACING_MM[2]} mm), "
+        torso = ct
+        sp = np.linalg.norm(np.asarray(ct.T_ct_from_voxel)[:3, :3], axis=0)
+        print(f"\nSpeed: {torso.source} ({sp[0]:.2f} x {sp[1]:.2f} x {sp[2]:.2f} mm), "
               f"{ii.name} profile, PA view with the pose moving 0-6 degrees between frames,\n"
               f"display quantity with noise, focal-spot blur and vignetting; {args.frames} frames each, medians.")
         print("'cpu ms' is the process's CPU time per frame (all threads): on an otherwise idle machine with N cores\n"
@@ -200,6 +204,22 @@ def run(args) -> int:
             del prepared, renderer
         print(f"OpenCL device: {_device_name(args.device)}")
 
+    if "cache" not in skip:
+        print(f"\nProjection cache: {ct.source} and a second phase 10 mm caudal, PA, display quantity with noise; "
+              f"{args.frames} frames at new poses, {3 * args.frames} at one pose, medians:")
+        for size in [int(s) for s in args.sizes.split(",") if s.strip()]:
+            renderer = Renderer(at_resolution(ii, size, size), materials, contrast, device=args.device)
+            for line in cached_frames(renderer, ct, args.frames, lambda deg: pa_pose(620.0, deg)):
+                print(line)
+            del renderer
+
+    if "plastimatch" not in skip:
+        print(f"\nSide by side with plastimatch's drr on {ct.source}, alternating in one run:")
+        renderer = Renderer(at_resolution(ii, 512, 512), materials, contrast, device=args.device)
+        for line in plastimatch_side_by_side(renderer, ct, args.rounds, 3):
+            print(line)
+        del renderer
+
     if "accuracy" not in skip:
         renderer = Renderer(flat_profile(128), Materials(), device=args.device)
         print(f"\nAccuracy against closed-form line integrals (128x128 image, mu_water = {renderer.mu_water_per_mm:.5f} /mm "
@@ -214,7 +234,8 @@ def run(args) -> int:
         base = proc.memory_info().rss
         renderer = Renderer(at_resolution(ii, 512, 512), materials, contrast, device=args.device)
         n = args.phases
-        phases = [(i * 0.4, (lambda b=i / max(n - 1, 1): synthetic_torso(breath=b))) for i in range(n)]
+        # The phases of a 4D CT: the bench's CT with its content shifted 0-9 slices (up to 22 mm).
+        phases = [(i * 0.4, (lambda i=i: next_phase(ct, i) if i else ct)) for i in range(n)]
         t0 = time.perf_counter()
         timeline = PhaseTimeline(phases, renderer, at_end="loop")
         timeline.wait_ready(timeout_s=600)
@@ -233,9 +254,9 @@ def run(args) -> int:
         renderer.render(a, pa_pose(620.0), View(), blend=(b, w) if b is not None else None)
         rss = proc.memory_info().rss
         held = sum(p.nbytes for p in timeline._prepared if p is not None)
-        print(f"\nMemory: {n} phases of 512x512x136 prepared in {load_s:.1f} s by the background loader; "
+        print(f"\nMemory: {n} phases of {ct.source} prepared in {load_s:.1f} s by the background loader; "
               f"device copies {held / 1e9:.2f} GB; process resident {rss / 1e9:.2f} GB "
-              f"({(rss - base) / 1e9:.2f} GB more than before the renderer); limit 1.5 GB")
+              f"({(rss - base) / 1e9:.2f} GB more than before the renderer); limit 1.0 GB")
         if frames:
             print(f"While loading: {len(frames)} frames rendered, timeline lookup max {1000 * max(lookups):.2f} ms, "
                   f"frame median {1000 * float(np.median(frames)):.0f} ms, max {1000 * max(frames):.0f} ms "

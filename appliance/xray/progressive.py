@@ -80,6 +80,16 @@ class ProgressiveRenderer:
             rows, cols = self.moving.shape
             self.moving.set_fluoroscope(at_resolution(fluoroscope, cols, rows))
 
+    def warm(self, volume: PreparedVolume, T_xray_from_ct: np.ndarray) -> None:
+        """Build every matrix's kernels and ray tables (a plain and a blended frame each), so the
+        first live frames cost what later ones do."""
+        for r in (self.full, self.moving):
+            if r is not None:
+                r.render(volume, T_xray_from_ct, View())
+                r.render(volume, T_xray_from_ct, View(), blend=(volume, 0.5))
+                self.cache(r).render(volume, T_xray_from_ct, View(), blend=(volume, 0.5))
+                self.cache(r).clear()
+
     def _moved(self, volume: PreparedVolume, T: np.ndarray, zoom: int) -> bool:
         if self._last_pose is None:
             return True
