@@ -87,12 +87,19 @@ def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None,
         t0 = time.monotonic()
         next_sample = [t0]
 
+        cpu_at: dict[str, float] = {}
+
         def until() -> bool:
             now = time.monotonic()
             if now >= next_sample[0]:
                 rss.append((now - t0, process.memory_info().rss))
                 next_sample[0] += 1.0
-            return now - t0 >= duration + warmup
+            if "start" not in cpu_at and now - t0 >= warmup:
+                cpu_at["start"] = time.process_time()
+            done = now - t0 >= duration + warmup
+            if done:
+                cpu_at["end"] = time.process_time()
+            return done
 
         app.run(until=until)
         t_shown = np.array(app.stats.shown_at) - t0
@@ -105,6 +112,12 @@ def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None,
         growth = (after[-1] - after[0]) / after[0] * 100 if len(after) >= 2 else float("nan")
         print(f"frames on screen:       {n} live in {span:.0f} s ({app.stats.frames} with the warm-up)")
         print(f"frames per second:      {fps:.1f}")
+        if n and "start" in cpu_at and "end" in cpu_at:
+            # What the appliance itself spent, whatever else the machine ran: on an otherwise idle
+            # machine with N cores, the frame rate approaches N * 1000 / (cpu ms per frame).
+            cpu_ms = 1000 * (cpu_at["end"] - cpu_at["start"]) / n
+            print(f"CPU per live frame:     {cpu_ms:.0f} cpu ms (all threads; load average {os.getloadavg()[0]:.1f} "
+                  f"on {os.cpu_count()} CPUs)")
         if n:
             print(f"motion-to-photon:       median {np.median(lat[steady]) * 1000:.0f} ms, "
                   f"p99 {np.percentile(lat[steady], 99) * 1000:.0f} ms")
