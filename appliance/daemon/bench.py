@@ -17,6 +17,8 @@ from pathlib import Path
 import numpy as np
 import psutil
 
+from drivers.camera import CameraSource
+
 from .demo import shown
 from .logqueue import start_logging
 from .notify import Notifier
@@ -41,22 +43,32 @@ def adult_chest_case(data_dir: Path) -> Path:
     return profile
 
 
+class StillCamera(CameraSource):
+    """The bench's cheap camera: one frame, drawn once, published again at `fps` (the C-arm at
+    rest, at the cost of a real webcam's driver: next to nothing)."""
+
+    def __init__(self, image: np.ndarray, fps: float):
+        super().__init__()
+        self.image, self.fps = image, fps
+
+    def _run(self) -> None:
+        period = 1.0 / self.fps
+        next_t = time.monotonic()
+        while not self._stop.is_set():
+            self._publish(self.image, time.monotonic())
+            self._set_state("ok")
+            next_t += period
+            self._stop.wait(max(0.0, next_t - time.monotonic()))
+
+
 def hold_camera_still(app, t_s: float) -> str:
-    """Replace the synthetic webcam by a cheap source: its frame at trajectory time `t_s`,
-    written once and looped by the file camera at the same rate (the C-arm at rest; decoding
-    a PNG instead of drawing the scene). Returns a label for the report."""
-    import cv2
-
-    from drivers.camera import FileCamera
-
+    """Replace the synthetic webcam by the cheap StillCamera showing its frame at trajectory
+    time `t_s`, at the same rate. Returns a label for the report."""
     cam = app.parts.camera
-    folder = app.config.data_dir / "still-camera"
-    folder.mkdir(parents=True, exist_ok=True)
     image, _ = cam.render_at(t_s)
-    cv2.imwrite(str(folder / "frame.png"), image)
-    still = FileCamera(folder, fps=cam.fps, loop=True)
+    still = StillCamera(image, cam.fps)
     app.parts.camera = app.capture.camera = still
-    return f"a still frame (trajectory at {t_s:g} s) looped from a PNG at {cam.fps:g} fps"
+    return f"a still frame (the synthetic webcam's at {t_s:g} s, drawn once) at {cam.fps:g} fps"
 
 
 def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None, case: Path | None = None,
