@@ -173,7 +173,7 @@ def datetime_item(relationship: str, concept: tuple, when: dt.datetime) -> Datas
 
 
 def utc(t_wall: float) -> dt.datetime:
-    return dt.datetime.fromtimestamp(t_wall, tz=dt.timezone.utc)
+    return dt.datetime.fromtimestamp(t_wall, tz=dt.UTC)
 
 
 def dicom_datetime(when: dt.datetime) -> str:

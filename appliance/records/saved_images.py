@@ -43,7 +43,7 @@ def _as_display(image: np.ndarray) -> np.ndarray:
 def dicom_image(pixels: np.ndarray, state: ConsoleState, fl: FluoroscopeProfile, *, t_wall: float,
                 session_id: int, operator: str, case_title: str, patient: dict | None = None) -> Dataset:
     rows, cols = pixels.shape
-    when = dt.datetime.fromtimestamp(t_wall, tz=dt.timezone.utc)
+    when = dt.datetime.fromtimestamp(t_wall, tz=dt.UTC)
     # The field of view fills the image: this zoom's pixel size at the detector plane.
     pitch = state.fov_mm / max(rows, cols)
     h_px = min(state.collimation_mm[0], state.fov_mm) / pitch
