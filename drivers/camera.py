@@ -18,9 +18,9 @@ import logging
 import os
 import threading
 import time
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -83,8 +83,9 @@ class CameraSource:
 
     @property
     def message(self) -> str:
-        if self._state == "ok" and self._stalled():
-            return f"{self.name}: no frame for {time.monotonic() - self._frame.t_monotonic:.1f} s"
+        frame = self._frame
+        if self._state == "ok" and self._stalled() and frame is not None:
+            return f"{self.name}: no frame for {time.monotonic() - frame.t_monotonic:.1f} s"
         return self._message
 
     @property
@@ -113,11 +114,11 @@ class CameraSource:
                 return frame
             time.sleep(0.002)
 
-    def __enter__(self):
+    def __enter__(self) -> CameraSource:
         self.start()
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.stop()
 
     def _publish(self, image: np.ndarray, t: float, truth: np.ndarray | None = None) -> None:
@@ -152,7 +153,8 @@ class V4L2Camera(CameraSource):
                  fourcc: str = "MJPG", stall_timeout_s: float = 2.0, retry_interval_s: float = 1.0) -> None:
         super().__init__()
         self.device, self.width, self.height, self.fps, self.fourcc = device, width, height, fps, fourcc
-        self.stall_timeout_s, self.retry_interval_s = stall_timeout_s, retry_interval_s
+        self.stall_timeout_s: float = stall_timeout_s
+        self.retry_interval_s = retry_interval_s
         self.open_attempts = 0
 
     @property
@@ -171,7 +173,7 @@ class V4L2Camera(CameraSource):
             self._set_state("camera lost", f"camera {self.device}: cannot be opened as a V4L2 capture device "
                                            f"(in use or not a camera?), retrying every {self.retry_interval_s:g} s")
             return None
-        cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*self.fourcc))
+        cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter.fourcc(*self.fourcc))
         cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.width)
         cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.height)
         cap.set(cv2.CAP_PROP_FPS, self.fps)
