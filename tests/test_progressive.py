@@ -54,7 +54,7 @@ def test_moving_frames_use_the_moving_matrix_and_rest_refines_to_the_full_one(re
     moving_casts = pr.cache(pr.moving).counts.casts
     assert moving_casts >= 5
     matrices = []
-    for i in range(10):                        # at rest for 0.4 s
+    for _ in range(10):                        # at rest for 0.4 s
         clock.t += 0.04
         pr.render(prepared, shifted(10.0), view)
         matrices.append(pr.matrix)

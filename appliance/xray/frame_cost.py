@@ -69,21 +69,20 @@ def cached_frames(renderer, volume: Volume, frames: int, pose) -> list[str]:
     cache.render(a, pose(0.3), view, blend=(b, 0.5))      # builds the two-phase kernel
     direct, miss, hit = [], [], []
 
-    def timed(out, render):
+    def timed(out, render, *args, **kwargs):
         t0, c0 = time.perf_counter(), time.process_time()
-        render()
+        render(*args, **kwargs)
         out.append((time.perf_counter() - t0, time.process_time() - c0))
 
     for f in range(frames):
         T = pose(1.0 + f * 1.7 % 6.0)
-        timed(direct, lambda: renderer.render(a, T, view, blend=(b, 0.4)))
-        timed(miss, lambda: cache.render(a, T, view, blend=(b, 0.4)))
+        timed(direct, renderer.render, a, T, view, blend=(b, 0.4))
+        timed(miss, cache.render, a, T, view, blend=(b, 0.4))
     T = pose(3.0)
     cache.render(a, T, view, blend=(b, 0.5))
     casts = cache.counts.casts
     for f in range(3 * frames):
-        timed(hit, lambda: cache.render(a, T, view, blend=(b, (f % 10) / 10.0),
-                                        concentration_factor=0.2 + 0.8 * (f % 7) / 6))
+        timed(hit, cache.render, a, T, view, blend=(b, (f % 10) / 10.0), concentration_factor=0.2 + 0.8 * (f % 7) / 6)
     rows, cols = renderer.shape
 
     def med(xs):
@@ -151,11 +150,11 @@ def plastimatch_side_by_side(renderer, volume: Volume, rounds: int, frames: int)
         image.SetOrigin(tuple(float(x) for x in T[:3, 3]))
         sitk.WriteImage(image, str(ct_path))
         for name, gantry, tilt in (("PA", 0.0, 0.0), ("lateral", 90.0, 90.0)):
-            for view, label in ((display, "display path (poly, noise)"), (exact, "exact path (Siddon)")):
+            for view in (display, exact):
                 renderer.render(prepared, pa_pose(sod, tilt), view)
             ratios: dict[tuple[str, str], list[float]] = {}
             times: dict[str, list[float]] = {}
-            for r in range(rounds):
+            for _ in range(rounds):
                 for algorithm in ("exact", "uniform"):
                     pm = _plastimatch_frame_s(exe, ct_path, tmp_dir, algorithm, fl, gantry, frames)
                     times.setdefault(f"plastimatch {algorithm}", []).append(pm)

@@ -22,7 +22,7 @@ detection also avoids by shortening its lag.
 from __future__ import annotations
 
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 

@@ -236,7 +236,7 @@ class Renderer:
             self._masks: dict = {}
             self._gains: dict = {}
 
-    def at_matrix(self, columns: int, rows: int) -> "Renderer":
+    def at_matrix(self, columns: int, rows: int) -> Renderer:
         """A renderer of the same machine read out at another matrix, on the same OpenCL context,
         queue, kernels and lock: it renders the volumes this one prepared."""
         other = copy.copy(self)
