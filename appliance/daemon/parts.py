@@ -86,7 +86,9 @@ def make_view(cfg: ApplianceConfig, state) -> View:
     fov = state.fov_mm
     c = state.collimation_mm
     collimation = None if c is None or (c[0] >= fov and c[1] >= fov) else tuple(c)
-    return View(zoom=state.zoom, collimation_mm=collimation, invert=state.invert, noise=cfg.fluoroscope.display.noise)
+    # Live frames run through the recursive filter, so moving the C-arm leaves its trail.
+    return View(zoom=state.zoom, collimation_mm=collimation, invert=state.invert, noise=cfg.fluoroscope.display.noise,
+                temporal="live", mode=state.mode)
 
 
 def make_overlay(cfg: ApplianceConfig, state, *, live: bool, saved_flash: bool, warnings: list[str],

@@ -34,6 +34,7 @@ from ..errors import FluorosimError
 from ..records.ledger import Ledger
 from ..records.rdsr import equipment_of, patient_of
 from ..records.saved_images import save_image
+from ..xray.renderer import Frame
 from .clock import SimClock
 from .frame_stats import FrameStats
 from .handoff import LatestValue
@@ -273,11 +274,11 @@ class Appliance:
         live = False
         if (state.fluoro_on and tracked is not None and tracked.pose.ok and phase is not None
                 and phase.generation == self._renderer_generation and self._pulse_due(state)):
-            image = self._render(tracked, phase, state, w)
-            if image is not None:
-                self._last_image = image
+            frame = self._render(tracked, phase, state, w)
+            if frame is not None:
+                self._last_image = frame.image
                 live = True
-                factor = self.parts.renderer.exposure_factor
+                factor = frame.exposure_factor
                 if factor != self._factor_sent:
                     self._factor_sent = factor
                     self.exposure_factor.put(factor)
@@ -316,7 +317,7 @@ class Appliance:
             return True
         return False
 
-    def _render(self, tracked: TrackedPose, phase: PhaseValue, state, w: Worker) -> np.ndarray | None:
+    def _render(self, tracked: TrackedPose, phase: PhaseValue, state, w: Worker) -> Frame | None:
         cfg = self.config
         T_xray_from_ct = (cfg.fluoroscope.T_xray_from_webcam() @ tracked.pose.T_webcam_from_phantom
                           @ np.asarray(cfg.case.T_phantom_from_ct, dtype=np.float64))
