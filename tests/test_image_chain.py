@@ -191,3 +191,31 @@ def test_invert_flips_every_screen_pixel(ii128, adult, tmp_path):
     corner = (v - 255.5) ** 2 + (u - 319.5) ** 2 >= 262 ** 2
     corner &= (u > 64) & (u < 576) & (v > 100) & (v < 400)          # beside the circle, away from the text
     assert screens[0][corner].max() == 0 and screens[1][corner].max() == 0
+
+
+def test_saved_png_and_dicom_agree_with_the_screen_about_polarity(ii128, adult, tmp_path):
+    """The saved PNG and DICOM hold the pixels as shown: inverted ones are 255 - p of the
+    plain ones, and the DICOM says not to invert again (Presentation LUT Shape IDENTITY)."""
+    import cv2
+    import pydicom
+
+    from appliance.config import KeymapProfile
+    from appliance.console.state import Console
+    from appliance.records.saved_images import save_image
+
+    keymap = load_profile(Path(__file__).resolve().parents[1] / "configs/keymaps/usb-numeric-keypad.yaml", KeymapProfile)
+    state = Console(II, keymap, t0=0.0).snapshot()
+    prepared = ii128.prepare(adult)
+    T = acceptance.ap_pose(620.0, (0.0, 0.0, 30.0))
+    saved = []
+    for k, inv in enumerate((False, True)):
+        image = ii128.render(prepared, T, View(zoom=1, seed=3, invert=inv)).image
+        png, dcm = save_image(image, state, ii128.fluoroscope, tmp_path / str(k), t_wall=1.7e9)
+        ds = pydicom.dcmread(dcm)
+        assert ds.PresentationLUTShape == "IDENTITY" and ds.PixelIntensityRelationship == "DISP"
+        np.testing.assert_array_equal(ds.pixel_array, cv2.imread(str(png), cv2.IMREAD_UNCHANGED))
+        saved.append(ds.pixel_array.astype(int))
+    mask = ii128.field_mask(1, None, True)
+    inside = acceptance.interior(mask, ii128.detector.edge(mask, 1))
+    assert np.abs(saved[1][inside] - (255 - saved[0][inside])).max() <= 1
+    assert saved[0][~mask].max() == 0 and saved[1][~mask].max() == 0

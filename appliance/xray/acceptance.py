@@ -179,6 +179,7 @@ def run(args) -> int:
     zooms = [int(z) for z in args.zooms.split(",")]
     rows: list[Row] = []
     fails: list[str] = []
+    timings: dict[str, tuple[float, float]] = {}
     for name, volume, views in patients(args.adult):
         prepared = renderer.prepare(volume)
         for where, centre in views:
@@ -194,6 +195,8 @@ def run(args) -> int:
                                 detail_correlation(clean.image, line, inside), detail_correlation(clean.image, joseph, inside),
                                 detail_correlation(noisy.image, line, inside, pre_blur_px=0.7),
                                 detail_correlation(joseph, line, inside), noisy.exposure_factor))
+            if where == views[0][0]:
+                timings[name] = _timing(renderer, prepared, T)
         del prepared
     print(f"Display on {fl.name} at {args.size}x{args.size}, {time.perf_counter() - started:.0f} s. AP views; detail = "
           "|correlation| of band-passed (sigma 1 - 6 px) images inside the field: 'detail' noise-free display vs the exact "
@@ -201,6 +204,9 @@ def run(args) -> int:
           "the profile's noise after a 0.7 px blur vs Siddon, 'ceiling' Joseph vs Siddon (what the CT's voxels allow); "
           "tube x = the exposure control's output factor")
     _report(rows)
+    for name, (chain_ms, physics_ms) in timings.items():
+        print(f"time per frame, {name}, zoom 1 (median of 5): whole chain {chain_ms:.0f} ms, the physics alone "
+              f"(rays and spectrum, no detector or display) {physics_ms:.0f} ms: the chain adds {chain_ms - physics_ms:.0f} ms")
     for r in rows:
         if r.clipped > 0.01:
             fails.append(f"{r.patient} {r.where} zoom {r.zoom}: {100 * r.clipped:.2f} % clipped (limit 1 %)")
@@ -269,6 +275,22 @@ def run(args) -> int:
     for f in fails:
         print(f"  {f}", file=sys.stderr)
     return 1 if fails else 0
+
+
+def _timing(renderer, prepared, T) -> tuple[float, float]:
+    """Median ms per frame of the displayed image and of the detector signal without its chain."""
+    from .renderer import View
+
+    out = []
+    for view in (View(temporal="live"), View(quantity="intensity", noise=False)):
+        renderer.render(prepared, T, view)
+        times = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            renderer.render(prepared, T, view)
+            times.append(time.perf_counter() - t0)
+        out.append(1000.0 * statistics.median(times))
+    return out[0], out[1]
 
 
 def _disc(shape, fraction: float) -> np.ndarray:
