@@ -129,6 +129,13 @@ def run_adult_chest(args) -> int:
     return 0
 
 
+def run_bar_pattern(args) -> int:
+    from ..xray.bar_pattern import write_bar_pattern
+
+    print(write_bar_pattern(args.out))
+    return 0
+
+
 def register(commands, benches) -> None:
     from ..cli import command_group
 
@@ -143,6 +150,11 @@ def register(commands, benches) -> None:
     a.add_argument("--seed", type=int, default=0, help="vessel branching, bowel gas and CT noise (default 0)")
     a.add_argument("--format", choices=(".mha", ".nii.gz", ".nii"), default=".mha", help="volume file format")
     a.set_defaults(run=run_adult_chest)
+    b = case.add_parser("bar-pattern", help="write the bar-pattern resolution test object and its case profile",
+                        description="Write a TOR 18FG-like bar pattern (0.5-5 lp/mm, 1 mm plate) as bar-pattern.mha "
+                                    "with its case profile bar-pattern.yaml into --out (configs/cases ships one).")
+    b.add_argument("--out", required=True, metavar="DIR")
+    b.set_defaults(run=run_bar_pattern)
 
     p = commands.add_parser("build-patient", help="build (or reuse) the built-in 4D patient and show it",
                             description="Build the phases of a built-in patient into the cache (once per machine), "

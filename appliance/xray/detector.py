@@ -112,12 +112,13 @@ class Detector:
         f_lim = self.chain.limiting_resolution_lp_per_mm[zoom - 1]
         return _SIGMA_TIMES_F / f_lim / pixel_pitch_at_zoom_mm(self.fl, zoom)
 
-    def focal_blur_px(self, zoom: int) -> float:
-        """Gaussian sigma (pixels) of the focal spot's penumbra for an object at the isocentre:
-        spot size x (SID - SOD) / SOD, taken as the FWHM."""
+    def focal_blur_px(self, zoom: int, depth_mm: float | None = None) -> float:
+        """Gaussian sigma (pixels) of the focal spot's penumbra for an object `depth_mm` from the
+        source (default: the isocentre): spot size x (SID - depth) / depth, taken as the FWHM."""
         f = self.fl
-        sid, sod = f.geometry.source_to_image_mm, f.geometry.source_to_isocentre_mm
-        return f.tube.focal_spot_mm * (sid - sod) / sod / pixel_pitch_at_zoom_mm(f, zoom) / 2.3548
+        sid = f.geometry.source_to_image_mm
+        depth = f.geometry.source_to_isocentre_mm if depth_mm is None else min(max(depth_mm, 1.0), sid)
+        return f.tube.focal_spot_mm * (sid - depth) / depth / pixel_pitch_at_zoom_mm(f, zoom) / 2.3548
 
     def gain(self, zoom: int) -> np.ndarray | None:
         """Intensifier vignetting as a multiplicative gain, 1 at the centre (None for none)."""

@@ -154,8 +154,17 @@ class Renderer:
         """Photons one pixel counts per frame with nothing in the beam at the reference technique."""
         return self.detector.open_photons_per_pixel(zoom, mode)
 
-    def focal_blur_px(self, zoom: int) -> float:
-        return self.detector.focal_blur_px(zoom)
+    def focal_blur_px(self, zoom: int, depth_mm: float | None = None) -> float:
+        return self.detector.focal_blur_px(zoom, depth_mm)
+
+    @staticmethod
+    def depth_mm(volume: PreparedVolume, T_xray_from_ct) -> float | None:
+        """Distance from the source (mm, along the beam) of the middle of what the volume holds:
+        the depth whose focal-spot penumbra the frame is given."""
+        if volume.box is None:
+            return None
+        centre = np.append((np.asarray(volume.box[0], float) + volume.box[1]) / 2.0, 1.0)
+        return float((np.asarray(T_xray_from_ct, float) @ np.linalg.inv(volume.T_index_from_ct) @ centre)[2])
 
     def quantum_noise(self, image: np.ndarray, photons_open_field: float, seed: int | None = None) -> np.ndarray:
         """Poisson counting noise on a relative intensity image (kernel quantum_noise):
@@ -206,7 +215,7 @@ class Renderer:
                                           view.polychromatic)
             mask, _, central = self.caster.beam(view.zoom, view.collimation_mm, circle)
             detector, chain, abc = self.detector, self.fluoroscope.image, self.fluoroscope.abc
-        sigma = detector.focal_blur_px(view.zoom)
+        sigma = detector.focal_blur_px(view.zoom, self.depth_mm(volume, T_xray_from_ct))
         if sigma > 0.3:
             image = cv2.GaussianBlur(image, (0, 0), sigma)
         display = view.quantity == "display"
