@@ -28,20 +28,19 @@ COMMAND_MODULES = (
 )
 
 
-_GROUPS: dict[tuple[int, str], argparse._SubParsersAction] = {}
-
-
 def command_group(commands, name: str, help: str) -> argparse._SubParsersAction:
     """The subcommands of group `name` (e.g. `calibrate`), created on first use.
 
     Several areas add commands to one group (`calibrate webcam` from tracking, `calibrate
-    xray` from X-ray calibration), so the group is made once and shared.
+    xray` from X-ray calibration), so the group is made once and shared. The groups are kept
+    on the parser they belong to: a table keyed by id() would hand a later parser, built at
+    a recycled address, the groups of one already gone.
     """
-    key = (id(commands), name)
-    if key not in _GROUPS:
+    groups = commands.__dict__.setdefault("_fluorosim_groups", {})
+    if name not in groups:
         parser = commands.add_parser(name, help=help, description=help)
-        _GROUPS[key] = parser.add_subparsers(dest=f"{name}_command", metavar="WHAT", required=True)
-    return _GROUPS[key]
+        groups[name] = parser.add_subparsers(dest=f"{name}_command", metavar="WHAT", required=True)
+    return groups[name]
 
 
 def build_parser() -> argparse.ArgumentParser:

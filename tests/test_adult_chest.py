@@ -14,7 +14,7 @@ import pytest
 from appliance.config.case import CaseProfile
 from appliance.config.loading import load_profile
 from appliance.errors import FluorosimError
-from appliance.patient.adult_chest import LEFT_DOME, RIGHT_DOME, SIZES, build_adult_chest, write_adult_chest
+from appliance.patient.adult_chest import LEFT_DOME, RIGHT_DOME, SIZES, build_adult_chest
 from appliance.patient.volume_io import load_volume
 
 
@@ -109,8 +109,12 @@ def test_lungs_hold_vessels(chest):
     assert vessels.sum() >= 10
 
 
-def test_round_trip_through_a_file_keeps_hu_and_frame(chest, tmp_path):
-    profile_path = write_adult_chest(tmp_path, size="small", seed=3)
+def test_round_trip_through_a_file_keeps_hu_and_frame(chest, tmp_path, capsys):
+    from appliance.cli import main
+
+    assert main(["case", "adult-chest", "--out", str(tmp_path), "--size", "small", "--seed", "3"]) == 0
+    profile_path = tmp_path / "adult-chest.yaml"
+    assert str(profile_path) in capsys.readouterr().out
     case = load_profile(profile_path, CaseProfile)
     volume = load_volume(tmp_path / case.phases[0].volume)
     hu, spacing, origin = chest
@@ -118,6 +122,16 @@ def test_round_trip_through_a_file_keeps_hu_and_frame(chest, tmp_path):
     assert np.allclose(volume.T_ct_from_voxel[:3, 3], origin)
     assert np.allclose(volume.spacing_mm, spacing[::-1])
     assert case.patient.age_years >= 18
+
+
+def test_unwritable_folder_is_one_line(tmp_path, capsys):
+    from appliance.cli import main
+
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    assert main(["case", "adult-chest", "--out", str(blocker / "sub"), "--size", "small"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cannot create the folder" in err[0]
 
 
 def test_bad_grid_is_refused():

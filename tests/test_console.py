@@ -183,8 +183,8 @@ def test_zoom_mode_and_collimation_while_exposing_split_the_run():
     state = console.snapshot()
     assert state.zoom == 2 and state.fov_mm == 170.0 and state.collimation_mm == (170.0, 170.0)
     assert offs[0].detail["zoom"] == 2 and offs[0].detail["duration_s"] == pytest.approx(10.0)
-    # 10 s at 8 mGy/min then 10 s at 11 mGy/min.
-    assert state.air_kerma_mgy == pytest.approx((8.0 + 11.0) * 10 / 60)
+    # 10 s at 8 mGy/min then 10 s at 14.6 mGy/min.
+    assert state.air_kerma_mgy == pytest.approx((8.0 + 14.6) * 10 / 60)
     assert state.runs == 2
 
 

@@ -48,7 +48,7 @@ def test_moving_frames_use_the_moving_matrix_and_rest_refines_to_the_full_one(re
     view = View(seed=3)
     for i in range(6):                         # 2 mm a frame at 25 frames/s
         clock.t += 0.04
-        image = pr.render(prepared, shifted(2.0 * i), view)
+        image = pr.render(prepared, shifted(2.0 * i), view).image
         assert image.shape == (128, 128)
         assert pr.matrix == 64 or i == 0       # the very first frame has no motion before it
     moving_casts = pr.cache(pr.moving).counts.casts
@@ -74,20 +74,20 @@ def test_switch_is_faded_in_over_the_crossfade(renderer, box):
     view = View(noise=False)
     for i in range(3):
         clock.t += 0.04
-        last_moving = pr.render(prepared, shifted(2.0 * i), view)
+        last_moving = pr.render(prepared, shifted(2.0 * i), view).image
     while pr.matrix != 128:
         clock.t += 0.04
-        last_moving = first_full = pr.render(prepared, shifted(4.0), view)
+        last_moving = first_full = pr.render(prepared, shifted(4.0), view).image
     # The first full-matrix frame is still the last moving one; the fade then runs to the full image.
-    moving_only = cv2.resize(pr.cache(pr.moving).render(prepared, shifted(4.0), view), (128, 128),
+    moving_only = cv2.resize(pr.cache(pr.moving).render(prepared, shifted(4.0), view).image, (128, 128),
                              interpolation=cv2.INTER_LINEAR)
     np.testing.assert_allclose(first_full, moving_only, atol=1e-6)
-    full = pr.cache().render(prepared, shifted(4.0), view)
+    full = pr.cache().render(prepared, shifted(4.0), view).image
     clock.t += 0.1
-    half = pr.render(prepared, shifted(4.0), view)
+    half = pr.render(prepared, shifted(4.0), view).image
     np.testing.assert_allclose(half, 0.5 * moving_only + 0.5 * full, atol=0.02)
     clock.t += 0.2
-    np.testing.assert_allclose(pr.render(prepared, shifted(4.0), view), full, atol=1e-6)
+    np.testing.assert_allclose(pr.render(prepared, shifted(4.0), view).image, full, atol=1e-6)
     del last_moving
 
 
@@ -104,13 +104,36 @@ def test_both_matrices_show_the_closed_form_transmission(renderer, box):
     assert inner.sum() > 200
     mu = xraylib.CS_Total_CP("Tissue, Soft (ICRP)", renderer.spectrum.effective_kev)
     clock.t += 0.04
-    moving = pr.render(prepared, POSE, view)
+    moving = pr.render(prepared, POSE, view).image
     assert pr.matrix == 64
     clock.t += 1.0
     pr.render(prepared, POSE, view)
     clock.t += 1.0
-    full = pr.render(prepared, POSE, view)
+    full = pr.render(prepared, POSE, view).image
     assert pr.matrix == 128
     for image in (moving, full):
         implied = -np.log(image[inner]) / mu
         assert np.median(np.abs(implied - L_cm[inner]) / L_cm[inner]) < 0.01
+
+
+def test_recursive_filter_carries_over_the_switch(renderer, box):
+    """With the live recursive filter (weight w), the first full-matrix frame's detector signal
+    is w x (the moving matrix's settled signal, resampled) + (1 - w) x the full matrix's own."""
+    prepared, _, _ = box
+    clock = Clock()
+    pr = ProgressiveRenderer(renderer, Rendering(moving_matrix_px=64, settle_s=0.1, crossfade_s=0), clock=clock)
+    live, still = View(noise=False, temporal="live"), View(noise=False, temporal="settled")
+    w = renderer.fluoroscope.image.recursive_weight
+    assert 0 < w < 1
+    clock.t += 0.04
+    moving = pr.render(prepared, POSE, live)
+    assert pr.matrix == 64
+    moving_signal = pr.moving.lag._state.copy()       # one frame: the filter holds that frame
+    clock.t += 0.2
+    first_full = pr.render(prepared, POSE, live)
+    assert pr.matrix == 128
+    own = pr.full.render(prepared, POSE, still).signal   # the full matrix's unfiltered signal
+    expected = w * cv2.resize(moving_signal, (128, 128), interpolation=cv2.INTER_LINEAR) + (1 - w) * own
+    beam = own > 0
+    np.testing.assert_allclose(first_full.signal[beam], expected[beam], rtol=1e-4, atol=1e-6)
+    assert moving.image.shape == first_full.image.shape == (128, 128)

@@ -118,7 +118,7 @@ def test_contrast_concentration_changes_without_a_cast(renderer):
     inner = cv2.erode((L_cm > 1.5).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     assert inner.sum() > 200
     for factor in (0.5, 1.0):
-        image = cache.render(p, POSE, view, concentration_factor=factor)
+        image = cache.render(p, POSE, view, concentration_factor=factor).image
         mu = xraylib.CS_Total_CP("Water, Liquid", e) + factor * 0.150 * xraylib.CS_Total(53, e)
         # The path the image implies at this attenuation coefficient, against the chord: 1 %
         # of path is 2-6 % of intensity here, and half the concentration would be 40 % off.

@@ -96,7 +96,7 @@ def render_phantom_images(phantom: CalibrationPhantomProfile, fluoroscope: Fluor
     images = []
     for T in poses:
         seed = int(rng.integers(2 ** 31))
-        image = renderer.render(prepared, T, View(zoom=1, invert=True, noise=True, quantity="display", seed=seed))
+        image = renderer.render(prepared, T, View(zoom=1, invert=True, noise=True, quantity="display", seed=seed)).image
         burn_in_text(image)
         images.append(image)
     det = fluoroscope.detector

@@ -13,6 +13,7 @@ from pydantic import Field, model_validator
 
 from ..geometry import camera_matrix
 from .base import IDENTITY, RigidTransform, Section, matrix
+from .image_chain import ImageChain
 
 
 class Detector(Section):
@@ -151,6 +152,7 @@ class FluoroscopeProfile(Section):
     dose: Dose = Field(default_factory=Dose)
     display: Display
     abc: AutomaticBrightness = Field(default_factory=AutomaticBrightness)
+    image: ImageChain = Field(default_factory=ImageChain, description="Detector blur, glare, lag and display characteristic.")
     webcam: Webcam = Field(default_factory=Webcam)
 
     def problems(self):

@@ -22,5 +22,5 @@ class Rendering(Section):
     settle_s: float = Field(
         0.12, ge=0, le=5, description="The pose must stay unchanged this long before the full matrix is rendered (s).")
     crossfade_s: float = Field(
-        0.25, ge=0, le=5, description="After a switch of matrix the new image is blended in over this long, as a "
-        "recursive filter would, so the change of sharpness does not jump (s).")
+        0.0, ge=0, le=5, description="After the switch to the full matrix its image is blended into the last moving one "
+        "over this long (s); for a fluoroscope without a recursive filter, which otherwise hides the switch.")

@@ -21,7 +21,7 @@ from ..config import ApplianceConfig
 from ..console.state import ConsoleState
 from ..display.compositor import Overlay
 from ..errors import FluorosimError
-from ..xray.renderer import View
+from ..xray.renderer import Frame, View
 from .frame_stats import FrameStats
 from .handoff import LatestValue, PhaseValue, SavedImage, ShownFrame, TrackedPose
 from .parts import Parts, is_cpu
@@ -46,8 +46,9 @@ FAULT_CHARS = 120
 
 def view_for(cfg: ApplianceConfig, state: ConsoleState) -> View:
     """What the renderer is asked for: the console's zoom, collimation and inversion."""
+    # Live frames run through the recursive filter, so moving the C-arm leaves its trail.
     return View(zoom=state.zoom, collimation_mm=state.collimated_mm, invert=state.invert,
-                noise=cfg.fluoroscope.display.noise)
+                noise=cfg.fluoroscope.display.noise, temporal="live", mode=state.mode)
 
 
 def overlay_for(cfg: ApplianceConfig, state: ConsoleState, *, live: bool, saved_flash: bool, warnings: list[str],
@@ -105,10 +106,10 @@ class RenderWorker(Worker):
         live = False
         if (tracked is not None and tracked.pose.ok and phase is not None
                 and phase.generation == self.parts.generation and state.image_due(self._drawn)):
-            image = self._render(cfg, tracked, phase, state)
-            if image is not None:
-                self._image, self._drawn, live = image, state, True
-                self._send_exposure_factor(self.parts.renderer.exposure_factor)
+            frame = self._render(cfg, tracked, phase, state)
+            if frame is not None:
+                self._image, self._drawn, live = frame.image, state, True
+                self._send_exposure_factor(frame.exposure_factor)
         hold_period = 1.0 / cfg.appliance.daemon.hold_refresh_hz
         if not live and now - self._last_compose < hold_period:
             # Nothing new to draw: wait for the next pose rather than spin.
@@ -134,7 +135,7 @@ class RenderWorker(Worker):
         return True
 
     def _render(self, cfg: ApplianceConfig, tracked: TrackedPose, phase: PhaseValue,
-                state: ConsoleState) -> np.ndarray | None:
+                state: ConsoleState) -> Frame | None:
         T_xray_from_ct = (cfg.fluoroscope.T_xray_from_webcam() @ tracked.pose.T_webcam_from_phantom
                           @ np.asarray(cfg.case.T_phantom_from_ct, dtype=np.float64))
         blend = (phase.prepared_b, phase.weight) if phase.prepared_b is not None else None

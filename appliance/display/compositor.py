@@ -69,7 +69,7 @@ class Overlay:
     mode: str = ""
     alarm: bool = False
     saved_flash: bool = False
-    invert: bool = False
+    invert: bool = False               # shows the INVERT label; the image arrives already inverted
     breath_hold: bool = False
     case: str = ""
     operator: str = ""
@@ -273,8 +273,7 @@ class Compositor:
         img = np.asarray(image, dtype=np.float32)
         img = cv2.max(img, 0.0)
         img8 = cv2.convertScaleAbs(img, alpha=255.0)           # rounds and saturates at 255
-        if overlay.invert:
-            cv2.bitwise_not(img8, dst=img8)
+        # No inverting here: the renderer's display LUT owns polarity (overlay.invert is the label).
         rows, cols = img8.shape
         # The longer side fills the square; a non-square detector keeps its aspect ratio.
         w, h = self._fitted(rows, cols)

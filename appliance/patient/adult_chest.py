@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FluorosimError
-from .shapes import Layer, bounds, ellipsoid, elliptic_prism, intersect, paint_bone, paint_tube, rotation, union
+from .shapes import Layer, bounds, ellipsoid, elliptic_prism, intersect, paint_bone, paint_tube, rotation
 
 # --- Hounsfield units (typical unenhanced adult CT values) ---
 HU_AIR = -1000.0
@@ -240,7 +240,10 @@ def _paint_ribs_and_sternum(layer: Layer) -> None:
                 # Costal cartilage from the rib's end to the sternum (ribs 1-7) or to the
                 # cartilage above (8-10), rising toward the front.
                 z_st = sternum_top - 8 - (sternum_top - sternum_bottom - 16) * min(level, 6) / 6.0
-                target = (s * 14.0, sternum_y, z_st) if level < 7 else (s * (50.0 + 12 * (level - 7)), sternum_y + 12.0, z_st - 10 * (level - 6))
+                if level < 7:
+                    target = (s * 14.0, sternum_y, z_st)
+                else:
+                    target = (s * (50.0 + 12 * (level - 7)), sternum_y + 12.0, z_st - 10 * (level - 6))
                 mid = 0.5 * (side[-1] + np.array(target)) + [0, -6.0, 0]
                 paint_tube(layer, [side[-1], mid, target], (r_out - 0.5, r_out - 1.0, r_out - 1.5), HU_CARTILAGE)
     for zc, half_w, half_h in ((108.0, 26.0, 14.0), (80.0, 16.0, 14.0), (50.0, 15.0, 15.0), (20.0, 14.0, 14.0), (-8.0, 10.0, 8.0)):
@@ -278,7 +281,8 @@ def _tree(rng, start, direction, radius, length, side, out, depth=0):
     w = np.cross(direction, u)
     phi = rng.uniform(0, 2 * np.pi)
     plane = np.cos(phi) * u + np.sin(phi) * w
-    for sign, share in ((1, rng.uniform(0.45, 0.55)), (-1, None)):
+    rng.uniform(0.45, 0.55)          # a draw kept so that each seed keeps the tree it always had
+    for sign in (1, -1):
         angle = np.radians(rng.uniform(25, 42))
         child = np.cos(angle) * direction + sign * np.sin(angle) * plane
         r = radius * 2 ** (-1 / 3) * (1.0 + rng.uniform(-0.1, 0.1))
@@ -364,7 +368,7 @@ def _paint_abdomen(layer: Layer, rng) -> None:
                                           Y - (stomach_c[1] - 15.0)), HU_AIR, *bounds([stomach_c], 65))
     for s in (-1, 1):
         kc = (s * 75.0, 55.0, -165.0 + (10.0 if s > 0 else 0.0))
-        layer.paint(lambda X, Y, Z, c=kc: ellipsoid(X, Y, Z, c, (28.0, 25.0, 55.0), rotation("y", s * 12)), HU_KIDNEY,
+        layer.paint(lambda X, Y, Z, c=kc, s=s: ellipsoid(X, Y, Z, c, (28.0, 25.0, 55.0), rotation("y", s * 12)), HU_KIDNEY,
                     *bounds([kc], 60))
     # Colon: the hepatic and splenic flexures and transverse colon, with gas pockets.
     colon = [(-110.0, 10.0, -200.0), (-100.0, -20.0, -120.0), (-40.0, -60.0, -140.0),
@@ -405,7 +409,6 @@ def build_adult_chest(shape_zyx=(136, 512, 512), spacing_mm=(2.5, 0.8, 0.8), see
     layer.paint(lambda *box: outer, HU_SKIN, *every)
     layer.paint(lambda *box: outer + np.float32(SKIN_MM), HU_FAT, *every)
     layer.paint(lambda *box: outer + np.float32(SKIN_MM + SUBCUT_FAT_MM), HU_MUSCLE, *every)
-    del outer
     layer.paint(cavity, HU_MEDIASTINUM, *every)
     _paint_abdomen(layer, rng)
     _paint_lungs(layer, rng)

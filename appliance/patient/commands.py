@@ -119,7 +119,43 @@ def run_bench(args) -> int:
     return 0
 
 
+def run_adult_chest(args) -> int:
+    from .adult_chest import write_adult_chest
+
+    started = time.perf_counter()
+    profile = write_adult_chest(args.out, args.size, args.seed, args.format)
+    print(f"{profile}: case profile of the synthetic adult chest ({args.size} grid), "
+          f"CT written beside it in {time.perf_counter() - started:.1f} s")
+    return 0
+
+
+def run_bar_pattern(args) -> int:
+    from ..xray.bar_pattern import write_bar_pattern
+
+    print(write_bar_pattern(args.out))
+    return 0
+
+
 def register(commands, benches) -> None:
+    from ..cli import command_group
+
+    case = command_group(commands, "case", "make and inspect training cases")
+    a = case.add_parser("adult-chest", help="write a synthetic adult chest CT and its case profile",
+                        description="Draw a synthetic adult chest and upper abdomen CT (ribs with a cortical shell, "
+                                    "spine, lungs with branching vessels, heart, diaphragm domes, liver, bowel gas) "
+                                    "and write it with a case profile into --out.")
+    a.add_argument("--out", required=True, metavar="DIR", help="folder for adult-chest.mha and adult-chest.yaml")
+    a.add_argument("--size", choices=("full", "small"), default="full",
+                   help="full: 136x512x512 voxels of 2.5x0.8x0.8 mm (about 30 s); small: 68x128x128 for quick tests")
+    a.add_argument("--seed", type=int, default=0, help="vessel branching, bowel gas and CT noise (default 0)")
+    a.add_argument("--format", choices=(".mha", ".nii.gz", ".nii"), default=".mha", help="volume file format")
+    a.set_defaults(run=run_adult_chest)
+    b = case.add_parser("bar-pattern", help="write the bar-pattern resolution test object and its case profile",
+                        description="Write a TOR 18FG-like bar pattern (0.5-5 lp/mm, 1 mm plate) as bar-pattern.mha "
+                                    "with its case profile bar-pattern.yaml into --out (configs/cases ships one).")
+    b.add_argument("--out", required=True, metavar="DIR")
+    b.set_defaults(run=run_bar_pattern)
+
     p = commands.add_parser("build-patient", help="build (or reuse) the built-in 4D patient and show it",
                             description="Build the phases of a built-in patient into the cache (once per machine), "
                                         "report the time, and optionally write PNG previews of each stage.")

@@ -122,7 +122,7 @@ def accuracy_table(renderer, cases, with_reference: bool = True):
         s, d = pixel_rays_ct(K, T, rows, cols)
         truth = chords(s, d) * renderer.mu_water_per_mm
         sel = truth > min_mm * renderer.mu_water_per_mm
-        siddon = renderer.render(prepared, T, View(quantity="line-integral"))
+        siddon = renderer.render(prepared, T, View(quantity="line-integral")).image
         joseph = renderer.material_integrals(prepared, T, View(), distorted=False, circle=False).sum(-1) * renderer.mu_water_per_mm
         for method, img in (("siddon (line-integral)", siddon), ("joseph (display)", joseph)):
             rel = np.abs(img[sel] - truth[sel]) / truth[sel]

@@ -78,7 +78,7 @@ def run_render(args) -> int:
     prepared = renderer.prepare(volume)
     view = View(zoom=args.zoom, quantity=args.quantity, noise=fluoroscope.display.noise and not args.no_noise,
                 invert=fluoroscope.display.invert, seed=args.seed, polychromatic=not args.mono)
-    image = renderer.render(prepared, matrix(pose.T_xray_from_ct), view)
+    image = renderer.render(prepared, matrix(pose.T_xray_from_ct), view).image
     data, note = _encode(image, suffix, args.quantity)
     try:
         write_atomic(out, data)
@@ -129,3 +129,6 @@ def register(commands, benches) -> None:
     b.add_argument("--rounds", type=int, default=3, help="alternating rounds of the plastimatch side-by-side")
     b.add_argument("--device", default="auto", choices=("auto", "cpu", "gpu"))
     b.set_defaults(run=run_bench)
+
+    from .acceptance import register as register_image_bench
+    register_image_bench(benches)

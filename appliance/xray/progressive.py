@@ -11,16 +11,19 @@ so a held view is sharp and costs only the detector per frame.
 
 The switch to the full matrix is a change of sharpness and of the noise's grain, not of
 brightness: both matrices are the same detector (same spectrum, photons per mm^2 and ABC),
-and the ABC's median over its measuring field is the same at either. What remains is hidden
-as a recursive filter would hide it: the first full-matrix frames are blended into the last
-moving one over `rendering.crossfade_s` (linearly, so the refine takes a known time). The
-switch back to the moving matrix, when the C-arm starts moving again, is not faded: a fade
-there would drag a ghost of the old view across the screen, which a real unit's motion
-detection also avoids by shortening its lag.
+and the ABC's median over its measuring field is the same at either. The recursive filter
+hides what remains, as on a real unit: at a switch its state is resampled to the new matrix
+and carried over (`RecursiveFilter.carry_over`), so the first sharp frame enters the filter
+like any new frame and the image sharpens over the filter's time constant instead of
+jumping; in the other direction the moving matrix takes over the sharp state and blurs into
+the motion. Where a profile runs without the filter, `rendering.crossfade_s` blends the first
+full-matrix frames into the last moving one instead (linearly, so the refine takes a known
+time).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 
@@ -28,7 +31,7 @@ import numpy as np
 
 from ..config.rendering import Rendering
 from .projection_cache import ProjectionCache, box_corners_ct, detector_shift_px
-from .renderer import PreparedVolume, Renderer, View, at_resolution, zoomed_K
+from .renderer import Frame, PreparedVolume, Renderer, View, at_resolution, zoomed_K
 
 
 class ProgressiveRenderer:
@@ -101,8 +104,8 @@ class ProgressiveRenderer:
 
     def render(self, volume: PreparedVolume, T_xray_from_ct: np.ndarray, view: View,
                blend: tuple[PreparedVolume, float] | None = None,
-               concentration_factor: float | None = None) -> np.ndarray:
-        """The full-matrix image of `Renderer.render` (line integrals always at the full matrix)."""
+               concentration_factor: float | None = None) -> Frame:
+        """The full-matrix frame of `Renderer.render` (line integrals always at the full matrix)."""
         import cv2
 
         now = self.clock()
@@ -112,7 +115,12 @@ class ProgressiveRenderer:
             self._last_pose = T
         resting = now - self._last_motion >= self.settings.settle_s
         use = self.full if resting or self.moving is None or view.quantity == "line-integral" else self.moving
-        image = self.cache(use).render(volume, T, view, blend, concentration_factor)
+        if use is not self._last_used:
+            # The recursive filter goes on across the switch: its state, resampled to the new
+            # matrix, is what the first frame of that matrix is blended into.
+            use.lag.carry_over(self._last_used.lag, use.shape)
+        frame = self.cache(use).render(volume, T, view, blend, concentration_factor)
+        image = frame.image
         rows, cols = self.full.shape
         if image.shape != (rows, cols):
             image = cv2.resize(image, (cols, rows), interpolation=cv2.INTER_LINEAR)
@@ -127,8 +135,7 @@ class ProgressiveRenderer:
             if a >= 1.0 or self._fade_from.shape != image.shape:
                 self._fade_from = None
             else:
-                image = (1.0 - a) * self._fade_from + a * image
-                image = image.astype(np.float32)
+                image = ((1.0 - a) * self._fade_from + a * image).astype(np.float32)
         self._last_used = use
         self._last_image = image
-        return image
+        return frame if image is frame.image else dataclasses.replace(frame, image=image)

@@ -1,7 +1,7 @@
 """A frame costs only what changed: material line integrals cached for an unchanged pose.
 
 A projection is linear in the volume. While the C-arm stands still, each CT phase's four
-material integrals (air, soft tissue, bone, contrast; the `lines` of `Renderer._cast`) are
+material integrals (air, soft tissue, bone, contrast; the `lines` of `Caster.cast`) are
 the same from frame to frame, so they are cast once per phase and kept on the device; a
 frame between two phases blends the two phases' integrals in projection space, which is
 exactly the projection of the linear blend of the two phases' material densities; and only
@@ -20,7 +20,7 @@ import numpy as np
 
 from ..config.case import Contrast
 from ..patient.materials import mass_attenuation
-from .renderer import PACKET, PreparedVolume, Renderer, View, zoomed_K
+from .renderer import PACKET, Frame, PreparedVolume, Renderer, View, zoomed_K
 
 
 @dataclass
@@ -75,11 +75,11 @@ class ProjectionCache:
         self._tables: dict = {}       # (concentration factor, polychromatic) -> detector tables
 
     # -- what is cached ------------------------------------------------------------------
-    def _geometry_key(self, view: View, distorted: bool, circle) -> tuple:
+    def _geometry_key(self, zoom: int, collimation_mm, distorted: bool, circle) -> tuple:
         r = self.renderer
-        c = None if view.collimation_mm is None else tuple(float(x) for x in view.collimation_mm)
+        c = None if collimation_mm is None else tuple(float(x) for x in collimation_mm)
         # A reloaded fluoroscope profile replaces the renderer's ray tables: a new key.
-        return (id(r.fluoroscope), r.shape, view.zoom, c, distorted, circle)
+        return (id(r.fluoroscope), r.shape, zoom, c, distorted, circle)
 
     def unchanged(self, volume: PreparedVolume, T_xray_from_ct: np.ndarray, zoom: int) -> bool:
         """True when the pose moves the content box's corners by no more than the tolerance
@@ -92,76 +92,70 @@ class ProjectionCache:
         K = zoomed_K(self.renderer.fluoroscope, zoom)
         return detector_shift_px(K, corners, self._pose, T_xray_from_ct) <= self.pose_tolerance_px
 
-    def _adopt(self, volume: PreparedVolume, T_xray_from_ct, view: View, distorted: bool, circle) -> None:
-        key = self._geometry_key(view, distorted, circle)
-        if key != self._key or not self.unchanged(volume, T_xray_from_ct, view.zoom):
+    def _adopt(self, volume: PreparedVolume, T_xray_from_ct, zoom: int, collimation_mm, distorted: bool,
+               circle) -> None:
+        key = self._geometry_key(zoom, collimation_mm, distorted, circle)
+        if key != self._key or not self.unchanged(volume, T_xray_from_ct, zoom):
             self._lines.clear()
             self._key = key
             self._pose = np.array(T_xray_from_ct, dtype=np.float64)
 
     # -- the cast the renderer calls -------------------------------------------------------
-    def _cast_phases(self, phases: list[PreparedVolume], T, view, distorted, circle) -> None:
+    def _cast_phases(self, phases: list[PreparedVolume], T, zoom, collimation_mm, distorted, circle) -> None:
         """Cast the phases not cached yet (two on one grid in one pass where the kernel can)."""
         r = self.renderer
         missing = [p for p in phases if p not in self._lines]
         self.counts.hits += len(phases) - len(missing)
         if len(missing) == 2 and r.packet and missing[0].same_grid(missing[1]):
-            self._lines.update(zip(missing, self._cast_two(missing[0], missing[1], T, view, distorted, circle)))
+            self._lines.update(zip(missing, self._cast_two(missing[0], missing[1], T, zoom, collimation_mm,
+                                                           distorted, circle)))
             self.counts.casts += 2
             self.counts.paired += 1
             missing = []
         for p in missing:
-            self._lines[p], _ = r._cast(p, T, view, None, distorted, circle)
+            self._lines[p], _ = r.caster.cast(p, T, zoom, collimation_mm, None, distorted, circle)
             self.counts.casts += 1
         while len(self._lines) > self.max_phases:
             stale = next(k for k in self._lines if k not in phases)
             del self._lines[stale]
 
-    def _cast_two(self, a: PreparedVolume, b: PreparedVolume, T, view, distorted, circle):
+    def _cast_two(self, a: PreparedVolume, b: PreparedVolume, T, zoom, collimation_mm, distorted, circle):
         """Both phases' integrals from one pass of the SPLIT packet kernel over the two volumes."""
-        r = self.renderer
-        cl = r._cl
+        dev, caster = self.renderer.dev, self.renderer.caster
+        cl = dev.cl
         if self._split is None:
-            program = cl.Program(r.ctx, r._source).build(options=["-DSPLIT", *r._options])
+            program = cl.Program(dev.ctx, dev.source).build(options=["-DSPLIT", *dev.options])
             self._split = cl.Kernel(program, "joseph_packet")
-        if circle is None:
-            circle = r.fluoroscope.detector.kind == "image_intensifier"
-        rows, cols = r.shape
-        mf = cl.mem_flags
-        out_a = cl.Buffer(r.ctx, mf.READ_WRITE, rows * cols * 16)
-        out_b = cl.Buffer(r.ctx, mf.READ_WRITE, rows * cols * 16)
-        box = r._box(a, b)
+        rows, cols = caster.shape
+        out_a, out_b = dev.scratch(rows * cols * 16), dev.scratch(rows * cols * 16)
+        box = caster._box(a, b)
         if box is None:
             for out in (out_a, out_b):
-                cl.enqueue_fill_buffer(r.queue, out, np.float32(0), 0, rows * cols * 16)
+                cl.enqueue_fill_buffer(dev.queue, out, np.float32(0), 0, rows * cols * 16)
             return out_a, out_b
-        _, mask_buf, _ = r._mask_buffer(view.zoom, view.collimation_mm, circle)
-        geo = cl.Buffer(r.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=r._geometry(a, T))
-        box_buf = cl.Buffer(r.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=box)
+        _, mask_buf, _ = caster.beam(zoom, collimation_mm, circle)
         nx, ny, nz = a.shape_xyz
-        self._split(r.queue, (-(-cols // PACKET), rows), None, a.buffer, b.buffer, np.int32(nx), np.int32(ny),
-                    np.int32(nz), r._dirs_buffer(view.zoom, distorted), mask_buf, geo, box_buf, r._mat_buf,
-                    np.int32(cols), out_a, out_b)
+        self._split(dev.queue, (-(-cols // PACKET), rows), None, a.buffer, b.buffer, np.int32(nx), np.int32(ny),
+                    np.int32(nz), caster._dirs_buffer(zoom, distorted), mask_buf, dev.upload(caster._geometry(a, T)),
+                    dev.upload(box), caster._mat_buf, np.int32(cols), out_a, out_b)
         return out_a, out_b
 
-    def _cached_cast(self, volume, T, view, blend, distorted, circle):
+    def _cached_cast(self, volume, T, zoom, collimation_mm, blend, distorted, circle):
+        """`Caster.cast`'s stand-in: (device buffer of the frame's material integrals, beam mask)."""
         r = self.renderer
-        cl = r._cl
-        r._check(volume)
-        self._adopt(volume, T, view, distorted, circle)
+        dev = r.dev
+        self._adopt(volume, T, zoom, collimation_mm, distorted, circle)
+        # In projection space, phases on different grids blend as well.
         phases = [volume] if blend is None or blend[1] == 0.0 else [volume, blend[0]]
-        if len(phases) == 2:
-            r._check(blend[0])     # in projection space, phases on different grids blend as well
-        self._cast_phases(phases, T, view, distorted, circle)
-        c = circle if circle is not None else r.fluoroscope.detector.kind == "image_intensifier"
-        mask = r._mask_buffer(view.zoom, view.collimation_mm, c)[0]
+        self._cast_phases(phases, T, zoom, collimation_mm, distorted, circle)
+        mask = r.caster.beam(zoom, collimation_mm, circle)[0]
         if len(phases) == 1:
             return self._lines[volume], mask
         if self._blend is None:
-            self._blend = cl.Kernel(r._program, "blend_lines")
+            self._blend = dev.kernel("blend_lines")
         rows, cols = r.shape
-        out = cl.Buffer(r.ctx, cl.mem_flags.READ_WRITE, rows * cols * 16)
-        self._blend(r.queue, (rows * cols,), None, self._lines[volume], self._lines[blend[0]],
+        out = dev.scratch(rows * cols * 16)
+        self._blend(dev.queue, (rows * cols,), None, self._lines[volume], self._lines[blend[0]],
                     np.float32(blend[1]), out)
         return out, mask
 
@@ -174,7 +168,6 @@ class ProjectionCache:
         if key not in self._tables:
             if len(self._tables) > 256:
                 self._tables.clear()
-            cl = r._cl
             s = r.spectrum
             energies = s.energies_kev if view.polychromatic else [s.effective_kev]
             weights = s.energy_weights() if view.polychromatic else np.ones(1)
@@ -183,17 +176,15 @@ class ProjectionCache:
             scaled = None if contrast is None or factor == 0.0 else Contrast(
                 agent=contrast.agent, concentration_mg_per_ml=min(contrast.concentration_mg_per_ml * factor, 400.0))
             mu = mass_attenuation(energies, scaled).astype(np.float32)
-            mf = cl.mem_flags
-            self._tables[key] = (cl.Buffer(r.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.asarray(weights, np.float32)),
-                                 cl.Buffer(r.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(mu)),
+            self._tables[key] = (r.dev.upload(np.asarray(weights, np.float32)), r.dev.upload(np.ascontiguousarray(mu)),
                                  len(energies))
         return self._tables[key]
 
     # -- frames ----------------------------------------------------------------------------
     def render(self, volume: PreparedVolume, T_xray_from_ct: np.ndarray, view: View,
                blend: tuple[PreparedVolume, float] | None = None,
-               concentration_factor: float | None = None) -> np.ndarray:
-        """The renderer's image (see `Renderer.render`) from cached line integrals where the pose
+               concentration_factor: float | None = None) -> Frame:
+        """The renderer's frame (see `Renderer.render`) from cached line integrals where the pose
         is unchanged. `concentration_factor` scales the case's iodine concentration (contrast
         filling or washing out); None keeps it."""
         self.counts.frames += 1
@@ -207,11 +198,11 @@ class ProjectionCache:
         """(rows, cols, 4) float32 material integrals (g/cm^3 * mm) of the frame, as the detector
         receives them: blended in projection space between cached phases."""
         r = self.renderer
+        r._check(volume, *(() if blend is None else (blend[0],)))
         with r._lock:
-            lines, _ = self._cached_cast(volume, T_xray_from_ct, view, blend, True, None)
-            out = np.empty(r.shape + (4,), dtype=np.float32)
-            r._cl.enqueue_copy(r.queue, out, lines)
-        return out
+            lines, _ = self._cached_cast(volume, T_xray_from_ct, view.zoom, view.collimation_mm, blend, True,
+                                         r._circle(None))
+            return r.dev.download(lines, np.empty(r.shape + (4,), dtype=np.float32))
 
     def clear(self) -> None:
         """Forget every cached projection (a new case, a replaced renderer)."""

@@ -1,0 +1,377 @@
+"""`fluorosim bench image`: a physicist's acceptance figures of the displayed image.
+
+Each figure is measured on images the renderer makes of patients and test objects, against
+ground truth computed here independently of the image chain:
+
+- clipping and grey range of the display inside the field (8-bit grey 0 or 255 is clipped);
+- detail: correlation of the band-passed display (Gaussian sigma 1 px minus sigma 6 px)
+  with the band-passed exact (Siddon) line integral of the same view;
+- noise: the pixel SNR of a uniform water slab against the photon statistics the profile
+  implies (spekpy's fluence per air kerma, the inverse-square law, the slab's transmission,
+  the recursive filter's and point-spread's variance reduction), and its spread across zooms;
+- lag: the recursive filter's step response against w^k.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import sys
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config.fluoroscope import FluoroscopeProfile
+from ..geometry import make_transform
+from ..patient.volume import Volume
+
+#: Clipped: the 8-bit grey the monitor shows is 0 or 255.
+CLIP_LOW, CLIP_HIGH = 0, 255
+
+
+def ap_pose(source_to_isocentre_mm: float, centre_ct=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """T_xray_from_ct of an antero-posterior beam with `centre_ct` (LPS mm) at the isocentre,
+    shown the radiological way: superior up, the patient's right on the viewer's left."""
+    # xray x = patient's left (+x ct), xray y (down the image) = inferior (-z ct), beam along +y ct.
+    R = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
+    return make_transform(R, -R @ np.asarray(centre_ct, float) + [0.0, 0.0, source_to_isocentre_mm])
+
+
+def interior(mask: np.ndarray, edge: np.ndarray) -> np.ndarray:
+    """Pixels fully inside the field: in the beam and past the soft field edge."""
+    return mask & (edge >= 0.999)
+
+
+def grey8(display: np.ndarray) -> np.ndarray:
+    return np.rint(np.clip(display, 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def clipped_fraction(display: np.ndarray, inside: np.ndarray) -> float:
+    """Fraction of `inside` pixels the monitor shows as pure black or pure white."""
+    g = grey8(display)[inside]
+    return float(np.mean((g == CLIP_LOW) | (g == CLIP_HIGH))) if g.size else 0.0
+
+
+def grey_span(display: np.ndarray, inside: np.ndarray) -> float:
+    """2nd to 98th percentile of the in-field grey, as a fraction of the scale."""
+    v = display[inside]
+    if not v.size:
+        return 0.0
+    lo, hi = np.percentile(v, (2.0, 98.0))
+    return float(hi - lo)
+
+
+def band_pass(image: np.ndarray) -> np.ndarray:
+    import cv2
+
+    img = image.astype(np.float32)
+    return cv2.GaussianBlur(img, (0, 0), 1.0) - cv2.GaussianBlur(img, (0, 0), 6.0)
+
+
+def detail_correlation(display: np.ndarray, truth: np.ndarray, inside: np.ndarray, pre_blur_px: float = 0.0) -> float:
+    """|Pearson correlation| of the band-passed display and band-passed truth over `inside`
+    shrunk by 18 px (three of the wide Gaussian's sigmas), so the field edge does not count."""
+    import cv2
+
+    d = display.astype(np.float32)
+    if pre_blur_px > 0:
+        d = cv2.GaussianBlur(d, (0, 0), pre_blur_px)
+    core = cv2.erode(inside.astype(np.uint8), np.ones((37, 37), np.uint8)).astype(bool)
+    if core.sum() < 100:
+        return float("nan")
+    a, b = band_pass(d)[core], band_pass(truth)[core]
+    return abs(float(np.corrcoef(a, b)[0, 1]))
+
+
+def gaussian_noise_gain(sigma_px: float) -> float:
+    """Sum of squared weights of the normalised sampled Gaussian of `sigma_px` (the factor a
+    blur multiplies white noise's variance by), from its closed-form 1-D samples."""
+    if sigma_px <= 0.3:
+        return 1.0          # the detector skips blurs this small
+    r = int(math.ceil(4 * sigma_px))
+    x = np.arange(-r, r + 1, dtype=float)
+    k = np.exp(-x * x / (2 * sigma_px * sigma_px))
+    k /= k.sum()
+    return float((k * k).sum() ** 2)
+
+
+def expected_slab_snr(fl: FluoroscopeProfile, zoom: int, transmission: float, factor: float, mu_water_per_mm: float,
+                      psf_sigma_px: float, settled: bool) -> float:
+    """Pixel SNR that photon statistics give a uniform slab: sqrt(N) with N the photons per
+    pixel per frame (profile rate -> air kerma per frame at the reference point -> inverse
+    square to the detector -> spekpy fluence per air kerma behind the reference patient ->
+    pixel area -> slab transmission x exposure factor), N raised by (1 + w)/(1 - w) for the
+    settled recursive filter, the noise lowered by the point-spread and by glare's (1 - g)."""
+    import spekpy
+
+    mode = fl.tube.modes[0]
+    rate = fl.zoom_levels[zoom - 1].air_kerma_rate_mgy_per_min[mode.name]
+    fps = getattr(mode, "pulse_rate_per_s", None) or fl.image.frame_rate_per_s
+    d_ref = fl.geometry.source_to_isocentre_mm - fl.dose.reference_point_from_isocentre_mm
+    kerma_ugy = rate * 1000.0 / 60.0 / fps * (d_ref / fl.geometry.source_to_image_mm) ** 2
+    s = spekpy.Spek(kvp=fl.tube.kvp, th=12.0, dk=0.5)
+    s.filter("Al", fl.tube.filtration_mm_al)
+    s.filter("Water, Liquid", fl.abc.reference_attenuation / mu_water_per_mm)
+    per_mm2_per_ugy = s.get_flu() / s.get_kerma() / 100.0
+    fovs = [z.fov_mm for z in fl.zoom_levels]
+    pitch = fl.detector.pixel_pitch_mm * fovs[zoom - 1] / fovs[0]
+    n = kerma_ugy * per_mm2_per_ugy * pitch * pitch * transmission * factor
+    w = fl.image.recursive_weight
+    if settled:
+        n *= (1 + w) / (1 - w)
+    g = fl.image.veiling_glare
+    return math.sqrt(n) / math.sqrt(gaussian_noise_gain(psf_sigma_px)) / (1.0 - g)
+
+
+def resolution_per_zoom(fl_native: FluoroscopeProfile, device: str = "auto",
+                        zooms=(1, 2, 3, 4)) -> list[tuple[int, float, float]]:
+    """(zoom, measured limiting resolution lp/mm at the input plane, the profile's) of the bar
+    pattern laid on the intensifier's input face (15 mm in front of it), rendered noise-free at
+    the detector's native matrix in a 6 mm strip across the bars (no pincushion: straight bars)."""
+    from ..config.case import Materials
+    from .bar_pattern import bar_pattern_volume, limiting_from, modulations
+    from .casting import pixel_pitch_at_zoom_mm
+    from .detector import MTF_AT_LIMIT
+    from .renderer import Renderer, View, zoomed_K
+
+    straight = _undistorted(fl_native)
+    renderer = Renderer(straight, Materials(), device=device)
+    prepared = renderer.prepare(bar_pattern_volume())
+    sid = straight.geometry.source_to_image_mm
+    depth = sid - 15.0
+    T = make_transform(np.eye(3), [0.0, 0.0, depth])
+    out = []
+    for zoom in zooms:
+        fov = straight.zoom_levels[zoom - 1].fov_mm
+        image = renderer.render(prepared, T, View(zoom=zoom, quantity="intensity", noise=False,
+                                                  collimation_mm=(fov, 6.0))).image
+        K = zoomed_K(straight, zoom)
+        row = image[int(round(K[1, 2]))]
+        nyquist = 0.5 / pixel_pitch_at_zoom_mm(straight, zoom)
+        mods = modulations(row, lambda x, K=K: K[0, 2] + K[0, 0] * x / depth, sid / depth, nyquist)
+        out.append((zoom, limiting_from(mods, MTF_AT_LIMIT, nyquist), straight.image.limiting_resolution_lp_per_mm[zoom - 1]))
+    return out
+
+
+def _undistorted(fl: FluoroscopeProfile) -> FluoroscopeProfile:
+    """The same machine without pincushion distortion."""
+    d = fl.intrinsics.distortion.model_copy(update=dict(k1=0.0, k2=0.0, p1=0.0, p2=0.0, k3=0.0))
+    return fl.model_copy(update={"intrinsics": fl.intrinsics.model_copy(update={"distortion": d})})
+
+
+@dataclass
+class Row:
+    patient: str
+    where: str
+    zoom: int
+    clipped: float
+    span: float
+    detail: float           # noise-free display against the exact (Siddon) line integral
+    detail_chain: float     # noise-free display against the renderer's own line integral of the same rays
+    detail_noisy: float     # with noise, after a 0.7 px blur, against the exact line integral
+    ceiling: float          # the renderer's own line integral against the exact one (the CT's sampling)
+    factor: float
+
+
+def _report(rows: list[Row]) -> None:
+    print(f"{'patient':<16} {'view':<12} {'zoom':>4} {'clipped':>8} {'grey 2-98':>9} {'detail':>7} {'chain':>6} "
+          f"{'noisy':>6} {'ceiling':>7} {'tube x':>7}")
+    for r in rows:
+        print(f"{r.patient:<16} {r.where:<12} {r.zoom:>4} {100 * r.clipped:7.2f}% {100 * r.span:8.1f}% "
+              f"{r.detail:7.3f} {r.detail_chain:6.3f} {r.detail_noisy:6.3f} {r.ceiling:7.3f} {r.factor:7.2f}")
+
+
+def patients(adult_size: str):
+    """(name, volume, [(view name, centre in ct mm)]) of the built-in child and the adult chest."""
+    from ..patient import builtin
+    from ..patient.adult_chest import SIZES, build_adult_chest
+
+    b = builtin.Builder()
+    child = Volume(hu=b.phase(builtin.PhaseSpec(12.0, 3, 0.0)), T_ct_from_voxel=builtin.grid().T_ct_from_voxel,
+                   source="built-in child, bladder full")
+    hu, spacing, origin = build_adult_chest(*SIZES[adult_size])
+    T = np.diag([spacing[2], spacing[1], spacing[0], 1.0])
+    T[:3, 3] = origin
+    adult = Volume(hu=hu, T_ct_from_voxel=T, source=f"adult chest ({adult_size})")
+    return [("child", child, [("chest", (0.0, 0.0, 90.0)), ("abdomen", (0.0, 0.0, -30.0)), ("bladder", (0.0, 0.0, -140.0))]),
+            ("adult chest", adult, [("mediastinum", (0.0, 0.0, 30.0)), ("r lung", (-90.0, 0.0, 60.0)),
+                                    ("upper abdo", (0.0, 0.0, -90.0))])]
+
+
+def run(args) -> int:
+    from ..config.case import Materials
+    from ..config.loading import load_profile
+    from .renderer import Renderer, View, at_resolution
+
+    fl_full = load_profile(args.fluoroscope, FluoroscopeProfile)
+    fl = at_resolution(fl_full, args.size, args.size)
+    # The detail figure compares with the undistorted line integral: the same machine without pincushion.
+    straight = _undistorted(fl)
+    started = time.perf_counter()
+    renderer = Renderer(straight, Materials(), device=args.device)
+    sod = fl.geometry.source_to_isocentre_mm
+    zooms = [int(z) for z in args.zooms.split(",")]
+    rows: list[Row] = []
+    fails: list[str] = []
+    timings: dict[str, tuple[float, float]] = {}
+    for name, volume, views in patients(args.adult):
+        prepared = renderer.prepare(volume)
+        for where, centre in views:
+            T = ap_pose(sod, centre)
+            for zoom in zooms:
+                clean = renderer.render(prepared, T, View(zoom=zoom, noise=False))
+                noisy = renderer.render(prepared, T, View(zoom=zoom, noise=True, seed=zoom))
+                mask = renderer.field_mask(zoom, None, fl.detector.kind == "image_intensifier")
+                inside = interior(mask, renderer.detector.edge(mask, zoom))
+                line = renderer.line_integral(prepared, T, zoom)
+                joseph = renderer.material_integrals(prepared, T, View(zoom=zoom), distorted=False).sum(-1)
+                rows.append(Row(name, where, zoom, clipped_fraction(noisy.image, inside), grey_span(noisy.image, inside),
+                                detail_correlation(clean.image, line, inside), detail_correlation(clean.image, joseph, inside),
+                                detail_correlation(noisy.image, line, inside, pre_blur_px=0.7),
+                                detail_correlation(joseph, line, inside), noisy.exposure_factor))
+            if where == views[0][0]:
+                timings[name] = _timing(renderer, prepared, T)
+        del prepared
+    print(f"Display on {fl.name} at {args.size}x{args.size}, {time.perf_counter() - started:.0f} s. AP views; detail = "
+          "|correlation| of band-passed (sigma 1 - 6 px) images inside the field: 'detail' noise-free display vs the exact "
+          "Siddon line integral, 'chain' vs the renderer's own (Joseph) line integral of the same rays, 'noisy' with "
+          "the profile's noise after a 0.7 px blur vs Siddon, 'ceiling' Joseph vs Siddon (what the CT's voxels allow); "
+          "tube x = the exposure control's output factor")
+    _report(rows)
+    for name, (chain_ms, physics_ms) in timings.items():
+        print(f"time per frame, {name}, zoom 1 (median of 5): whole chain {chain_ms:.0f} ms, the physics alone "
+              f"(rays and spectrum, no detector or display) {physics_ms:.0f} ms: the chain adds {chain_ms - physics_ms:.0f} ms")
+    for r in rows:
+        if r.clipped > 0.01:
+            fails.append(f"{r.patient} {r.where} zoom {r.zoom}: {100 * r.clipped:.2f} % clipped (limit 1 %)")
+        if r.span < 0.5:
+            fails.append(f"{r.patient} {r.where} zoom {r.zoom}: grey range {100 * r.span:.0f} % (at least 50 %)")
+        if r.detail_chain < 0.8:
+            fails.append(f"{r.patient} {r.where} zoom {r.zoom}: detail {r.detail_chain:.2f} through the chain (at least 0.80)")
+    for r in rows:
+        if r.patient == "adult chest" and r.where == "mediastinum" and r.zoom in (1, 4):
+            need = 0.5 if r.zoom == 1 else 0.3
+            if not r.detail_noisy >= need:
+                fails.append(f"adult mediastinum zoom {r.zoom}: noisy detail {r.detail_noisy:.2f} (at least {need})")
+
+    # Noise: a 150 mm water slab filling the beam, with the exposure control on.
+    slab = _water_slab(150.0)
+    prepared = renderer.prepare(slab)
+    T = ap_pose(sod)
+    print("\nNoise in a 150 mm water slab (central disc of a quarter of the field's radius), settled recursive filter:")
+    print(f"{'zoom':>4} {'SNR measured':>12} {'photon stats':>12} {'ratio':>6} {'tube x':>7}")
+    snrs = []
+    for zoom in (1, 2, 3, 4):
+        transmission = float(np.median(renderer.render(prepared, T, View(zoom=zoom, quantity="intensity", noise=False)).image[
+            _disc(renderer.shape, 0.1)]))
+        roi = _disc(renderer.shape, 0.25)
+        # The noise is the signal over its noise-free self (vignetting and the slab's own
+        # obliquity divide out), on the detector signal the display LUT is given.
+        clean = renderer.render(prepared, T, View(zoom=zoom, noise=False)).signal[roi]
+        measured = []
+        for seed in range(3):
+            frame = renderer.render(prepared, T, View(zoom=zoom, noise=True, seed=100 + seed))
+            measured.append(1.0 / float(np.std(frame.signal[roi] / clean)))
+        vig = renderer.detector.gain(zoom)
+        transmission_at_detector = transmission / (1.0 if vig is None else float(np.median(vig[_disc(renderer.shape, 0.1)])))
+        expected = expected_slab_snr(renderer.fluoroscope, zoom, transmission_at_detector, frame.exposure_factor,
+                                     renderer.mu_water_per_mm, renderer.detector.psf_sigma_px(zoom), settled=True)
+        snr = statistics.median(measured)
+        snrs.append(snr)
+        print(f"{zoom:>4} {snr:12.1f} {expected:12.1f} {snr / expected:6.3f} {frame.exposure_factor:7.2f}")
+        if abs(snr / expected - 1) > 0.10:
+            fails.append(f"water slab zoom {zoom}: SNR {snr:.1f} vs photon statistics {expected:.1f} (within 10 %)")
+    spread = max(snrs) / min(snrs) - 1
+    print(f"SNR spread across zooms: {100 * spread:.1f} % (limit 25 %)")
+    if spread >= 0.25:
+        fails.append(f"SNR varies {100 * spread:.0f} % across zooms (under 25 %)")
+
+    # Lag: step from the slab to open air, the recursive filter live.
+    air = _water_slab(0.0)
+    air_prepared = renderer.prepare(air)
+    w = renderer.fluoroscope.image.recursive_weight
+    renderer.lag.reset()
+    for _ in range(30):
+        before = renderer.render(prepared, T, View(noise=False, temporal="live", quantity="display"))
+    steps = [renderer.render(air_prepared, T, View(noise=False, temporal="live")) for _ in range(6)]
+    # The filter runs on the detector signal: read it back through the frames' log windows.
+    roi = _disc(renderer.shape, 0.1)
+    s_before = before.signal[roi].mean()
+    s_after = float(np.median(renderer.render(air_prepared, T, View(quantity="intensity", noise=False)).image[roi]))
+    print(f"\nLag: step from the slab to air, recursive weight {w}: fraction of the step still to come after k frames")
+    print(f"{'k':>3} {'measured':>9} {'w^k':>7}")
+    for k, frame in enumerate(steps, start=1):
+        remaining = (s_after - frame.signal[roi].mean()) / (s_after - s_before)
+        print(f"{k:>3} {remaining:9.4f} {w ** k:7.4f}")
+        if abs(remaining - w ** k) > 0.02:
+            fails.append(f"lag after {k} frames: {remaining:.3f} of the step left, w^k = {w ** k:.3f}")
+    print(f"\nLimiting resolution of the bar pattern (configs/cases/bar-pattern.yaml) on the input face, "
+          f"{fl_full.detector.columns}x{fl_full.detector.rows} native matrix, where the bars' modulation falls to 4 %:")
+    print(f"{'zoom':>4} {'measured lp/mm':>15} {'profile lp/mm':>14} {'ratio':>6}")
+    last = 0.0
+    for zoom, measured, stated in resolution_per_zoom(fl_full, args.device):
+        print(f"{zoom:>4} {measured:15.2f} {stated:14.2f} {measured / stated:6.3f}")
+        if abs(measured / stated - 1) > 0.2:
+            fails.append(f"resolution at zoom {zoom}: {measured:.2f} lp/mm vs the profile's {stated:.2f} (within 20 %)")
+        if not measured > last:
+            fails.append(f"resolution at zoom {zoom} ({measured:.2f} lp/mm) does not rise with zoom")
+        last = measured
+    print(f"\n{len(fails)} figure(s) outside the acceptance limits" + (":" if fails else ""))
+    for f in fails:
+        print(f"  {f}", file=sys.stderr)
+    return 1 if fails else 0
+
+
+def _timing(renderer, prepared, T) -> tuple[float, float]:
+    """Median ms per frame of the displayed image and of the detector signal without its chain."""
+    from .renderer import View
+
+    out = []
+    for view in (View(temporal="live"), View(quantity="intensity", noise=False)):
+        renderer.render(prepared, T, view)
+        times = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            renderer.render(prepared, T, view)
+            times.append(time.perf_counter() - t0)
+        out.append(1000.0 * statistics.median(times))
+    return out[0], out[1]
+
+
+def _disc(shape, fraction: float) -> np.ndarray:
+    rows, cols = shape
+    v, u = np.ogrid[:rows, :cols]
+    r = fraction * min(rows, cols) / 2
+    return (v - (rows - 1) / 2) ** 2 + (u - (cols - 1) / 2) ** 2 <= r * r
+
+
+def _water_slab(thickness_mm: float) -> Volume:
+    """A 500 x 500 mm water slab `thickness_mm` thick (0: one voxel of air), centred at the origin, y its thin axis."""
+    n = max(2, int(round(thickness_mm / 5.0)))
+    hu = np.full((8, n, 100), 0 if thickness_mm > 0 else -1000, np.int16)
+    T = np.diag([5.0, thickness_mm / n if thickness_mm > 0 else 5.0, 62.5, 1.0])
+    T[:3, 3] = [-247.5, -(n - 1) / 2 * T[1, 1], -218.75]
+    return Volume(hu=hu, T_ct_from_voxel=T, source=f"water slab {thickness_mm:g} mm")
+
+
+def register(benches) -> None:
+    b = benches.add_parser("image", help="acceptance figures of the displayed image (clipping, detail, noise, lag)",
+                           description="Render the built-in child and a synthetic adult chest at zooms and positions, a "
+                                       "water slab and a step; print clipping, grey range, detail correlation, SNR "
+                                       "against photon statistics and the lag step response. Exit 1 if a figure "
+                                       "misses the issue's limits.")
+    b.add_argument("--fluoroscope", default=None, metavar="PROFILE.yaml",
+                   help="fluoroscope profile (default: the shipped image-intensifier C-arm)")
+    b.add_argument("--size", type=int, default=256, help="render matrix (pixels, default 256)")
+    b.add_argument("--zooms", default="1,4", help="zoom levels for the patient figures (default 1,4)")
+    b.add_argument("--adult", choices=("small", "full"), default="full", help="adult chest grid (default full)")
+    b.add_argument("--device", default="auto", choices=("auto", "cpu", "gpu"))
+    b.set_defaults(run=_run_with_default)
+
+
+def _run_with_default(args) -> int:
+    if args.fluoroscope is None:
+        from ..config.commands import default_config_dir
+        args.fluoroscope = str(default_config_dir() / "fluoroscopes" / "generic-ii-carm.yaml")
+    return run(args)
