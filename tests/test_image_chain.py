@@ -235,3 +235,29 @@ def test_bar_pattern_limiting_resolution_follows_the_profile_and_rises_with_zoom
     for zoom, measured, stated in figures:
         assert measured == pytest.approx(stated, rel=0.2), zoom
     assert figures[1][1] > 1.5 * figures[0][1]
+
+
+def test_window_and_level_keys_reach_the_view():
+    """F6 twice: the window 1.25^2 wider; F8: the level a twentieth of the width up; KP8 back to
+    the automatic window. The exposure goes on: no dose event, no new run."""
+    from appliance.config import KeymapProfile
+    from appliance.console.state import Console
+    from appliance.daemon.render_worker import view_for
+    from drivers.input_event import InputEvent
+
+    keymap = load_profile(Path(__file__).resolve().parents[1] / "configs/keymaps/usb-numeric-keypad.yaml", KeymapProfile)
+    console = Console(II, keymap, t0=0.0)
+    console.handle(InputEvent(0.0, "pedal", "pedal", True))
+    events = []
+    for t, key in ((1.0, "KEY_F6"), (1.1, "KEY_F6"), (1.2, "KEY_F8")):
+        events += console.handle(InputEvent(t, "keypad", key, True))
+    state = console.snapshot()
+    assert state.window_scale == pytest.approx(1.25 ** 2) and state.level_shift == pytest.approx(0.05)
+    assert state.fluoro_on and not [e for e in events if e.kind in ("fluoro_off", "fluoro_on")]
+
+    class Cfg:
+        fluoroscope = II
+    view = view_for(Cfg, state)
+    assert view.window_scale == state.window_scale and view.level_shift == state.level_shift
+    console.handle(InputEvent(2.0, "keypad", "KEY_KP8", True))
+    assert console.snapshot().window_scale == 1.0 and console.snapshot().level_shift == 0.0

@@ -48,7 +48,8 @@ def view_for(cfg: ApplianceConfig, state: ConsoleState) -> View:
     """What the renderer is asked for: the console's zoom, collimation and inversion."""
     # Live frames run through the recursive filter, so moving the C-arm leaves its trail.
     return View(zoom=state.zoom, collimation_mm=state.collimated_mm, invert=state.invert,
-                noise=cfg.fluoroscope.display.noise, temporal="live", mode=state.mode)
+                noise=cfg.fluoroscope.display.noise, temporal="live", mode=state.mode,
+                window_scale=state.window_scale, level_shift=state.level_shift)
 
 
 def overlay_for(cfg: ApplianceConfig, state: ConsoleState, *, live: bool, saved_flash: bool, warnings: list[str],
