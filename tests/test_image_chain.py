@@ -261,3 +261,22 @@ def test_window_and_level_keys_reach_the_view():
     assert view.window_scale == state.window_scale and view.level_shift == state.level_shift
     console.handle(InputEvent(2.0, "keypad", "KEY_KP8", True))
     assert console.snapshot().window_scale == 1.0 and console.snapshot().level_shift == 0.0
+
+
+def test_a_frame_rendered_again_at_the_native_matrix_shows_the_same_view(adult):
+    """at_matrix: the same prepared volume read out at a finer matrix (what a save stores on a
+    GPU appliance) shows the same anatomy: the fine frame averaged down matches the coarse one."""
+    import cv2
+
+    coarse = Renderer(at_resolution(II, 64, 64), Materials(), device="cpu")
+    fine = coarse.at_matrix(128, 128)
+    assert fine.shape == (128, 128) and fine.dev is coarse.dev
+    prepared = coarse.prepare(adult)
+    T = acceptance.ap_pose(620.0, (0.0, 0.0, 30.0))
+    a = coarse.render(prepared, T, View(noise=False)).image
+    b = fine.render(prepared, T, View(noise=False)).image
+    mask = coarse.field_mask(1, None, True)
+    inside = acceptance.interior(mask, coarse.detector.edge(mask, 1))
+    down = cv2.resize(b, (64, 64), interpolation=cv2.INTER_AREA)
+    assert np.corrcoef(down[inside], a[inside])[0, 1] > 0.98
+    assert coarse.at_matrix(64, 64) is coarse

@@ -116,7 +116,7 @@ class Appliance:
                                  console_state=self.console_state, events=self.events,
                                  fluoroscope=self._new_fluoroscope, exposure_factor=exposure_factor)
         self.records = RecordsWorker(self.ledger, keeper, parts, self.clock, events=self.events, shown=self.shown,
-                                     saves=saves)
+                                     saves=saves, native=self.render.native_image)
         self.stats = self.render.stats
         self.supervisor = Supervisor(
             # In this order: at shutdown the input worker ends its exposure before records flushes.
