@@ -22,10 +22,10 @@ from appliance.display.compositor import Compositor, Overlay
 from appliance.patient.adult_chest import SIZES, build_adult_chest
 from appliance.patient.volume import Volume
 from appliance.xray import acceptance
-from appliance.xray.analytic import box_volume
 from appliance.xray.detector import Detector, RecursiveFilter
 from appliance.xray.display_lut import soft_knee
 from appliance.xray.renderer import Renderer, View, at_resolution
+from appliance.xray.truth.analytic import box_volume
 from drivers.framebuffer import open_display
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "fluoroscopes"
@@ -38,6 +38,8 @@ def with_chain(fl, **values):
 
 @pytest.fixture(scope="module")
 def adult():
+    # The adult chest on the quick grid (5 x 3.2 x 3.2 mm): coarser slices stair-step the
+    # exact line integral the detail figure is measured against.
     hu, spacing, origin = build_adult_chest(*SIZES["small"], seed=1)
     T = np.diag([spacing[2], spacing[1], spacing[0], 1.0])
     T[:3, 3] = origin
