@@ -22,10 +22,10 @@ from appliance.display.compositor import Compositor, Overlay
 from appliance.patient.adult_chest import SIZES, build_adult_chest
 from appliance.patient.volume import Volume
 from appliance.xray import acceptance
-from appliance.xray.analytic import box_volume
 from appliance.xray.detector import Detector, RecursiveFilter
 from appliance.xray.display_lut import soft_knee
 from appliance.xray.renderer import Renderer, View, at_resolution
+from appliance.xray.truth.analytic import box_volume
 from drivers.framebuffer import open_display
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "fluoroscopes"
@@ -38,6 +38,8 @@ def with_chain(fl, **values):
 
 @pytest.fixture(scope="module")
 def adult():
+    # The adult chest on the quick grid (5 x 3.2 x 3.2 mm): coarser slices stair-step the
+    # exact line integral the detail figure is measured against.
     hu, spacing, origin = build_adult_chest(*SIZES["small"], seed=1)
     T = np.diag([spacing[2], spacing[1], spacing[0], 1.0])
     T[:3, 3] = origin
@@ -235,3 +237,48 @@ def test_bar_pattern_limiting_resolution_follows_the_profile_and_rises_with_zoom
     for zoom, measured, stated in figures:
         assert measured == pytest.approx(stated, rel=0.2), zoom
     assert figures[1][1] > 1.5 * figures[0][1]
+
+
+def test_window_and_level_keys_reach_the_view():
+    """F6 twice: the window 1.25^2 wider; F8: the level a twentieth of the width up; KP8 back to
+    the automatic window. The exposure goes on: no dose event, no new run."""
+    from appliance.config import KeymapProfile
+    from appliance.console.state import Console
+    from appliance.daemon.render_worker import view_for
+    from drivers.input_event import InputEvent
+
+    keymap = load_profile(Path(__file__).resolve().parents[1] / "configs/keymaps/usb-numeric-keypad.yaml", KeymapProfile)
+    console = Console(II, keymap, t0=0.0)
+    console.handle(InputEvent(0.0, "pedal", "pedal", True))
+    events = []
+    for t, key in ((1.0, "KEY_F6"), (1.1, "KEY_F6"), (1.2, "KEY_F8")):
+        events += console.handle(InputEvent(t, "keypad", key, True))
+    state = console.snapshot()
+    assert state.window_scale == pytest.approx(1.25 ** 2) and state.level_shift == pytest.approx(0.05)
+    assert state.fluoro_on and not [e for e in events if e.kind in ("fluoro_off", "fluoro_on")]
+
+    class Cfg:
+        fluoroscope = II
+    view = view_for(Cfg, state)
+    assert view.window_scale == state.window_scale and view.level_shift == state.level_shift
+    console.handle(InputEvent(2.0, "keypad", "KEY_KP8", True))
+    assert console.snapshot().window_scale == 1.0 and console.snapshot().level_shift == 0.0
+
+
+def test_a_frame_rendered_again_at_the_native_matrix_shows_the_same_view(adult):
+    """at_matrix: the same prepared volume read out at a finer matrix (what a save stores on a
+    GPU appliance) shows the same anatomy: the fine frame averaged down matches the coarse one."""
+    import cv2
+
+    coarse = Renderer(at_resolution(II, 64, 64), Materials(), device="cpu")
+    fine = coarse.at_matrix(128, 128)
+    assert fine.shape == (128, 128) and fine.dev is coarse.dev
+    prepared = coarse.prepare(adult)
+    T = acceptance.ap_pose(620.0, (0.0, 0.0, 30.0))
+    a = coarse.render(prepared, T, View(noise=False)).image
+    b = fine.render(prepared, T, View(noise=False)).image
+    mask = coarse.field_mask(1, None, True)
+    inside = acceptance.interior(mask, coarse.detector.edge(mask, 1))
+    down = cv2.resize(b, (64, 64), interpolation=cv2.INTER_AREA)
+    assert np.corrcoef(down[inside], a[inside])[0, 1] > 0.98
+    assert coarse.at_matrix(64, 64) is coarse

@@ -9,10 +9,10 @@ import xraylib
 from appliance.config.case import Materials
 from appliance.config.rendering import Rendering
 from appliance.geometry import make_transform, rotation_about
-from appliance.xray.analytic import box_chords, box_volume, pixel_rays_ct
-from appliance.xray.benchmark import flat_profile
+from appliance.xray.bench import flat_profile
 from appliance.xray.progressive import ProgressiveRenderer
 from appliance.xray.renderer import Renderer, View, zoomed_K
+from appliance.xray.truth.analytic import box_chords, box_volume, pixel_rays_ct
 
 POSE = make_transform(rotation_about([0.2, 1.0, 0.1], np.radians(20)), [0.0, 0.0, 700.0])
 SETTINGS = Rendering(moving_matrix_px=64, settle_s=0.1, crossfade_s=0.2)

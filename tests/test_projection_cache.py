@@ -8,10 +8,10 @@ import xraylib
 
 from appliance.config.case import Contrast, Materials
 from appliance.geometry import make_transform, rotation_about
-from appliance.xray.analytic import box_chords, box_volume, pixel_rays_ct
-from appliance.xray.benchmark import flat_profile
+from appliance.xray.bench import flat_profile
 from appliance.xray.projection_cache import ProjectionCache
 from appliance.xray.renderer import Renderer, View, zoomed_K
+from appliance.xray.truth.analytic import box_chords, box_volume, pixel_rays_ct
 
 SHAPE, SPACING = (40, 48, 48), (1.5, 1.25, 2.0)
 POSE = make_transform(rotation_about([1.0, 0.4, -0.3], np.radians(25)), [-5.0, 6.0, 700.0])

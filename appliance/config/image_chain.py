@@ -47,3 +47,9 @@ class ImageChain(Section):
     display_knee: float = Field(
         0.15, ge=0, lt=0.5, description="Grey values within this of black or white are reached through a soft knee "
                                         "that never clips (fraction of the grey scale).")
+    window_step: float = Field(
+        1.25, gt=1, le=4, description="The window keys widen or narrow the display window by this ratio per press "
+                                      "(dimensionless).")
+    level_step: float = Field(
+        0.05, gt=0, le=0.5, description="The level keys move the window centre by this fraction of its width per "
+                                        "press (dimensionless).")

@@ -6,13 +6,14 @@ from typing import Literal
 
 from pydantic import Field
 
-from .base import Section
+from .base import Findings, Section
 
 Action = Literal[
     "fluoro",
     "collimate_h_open", "collimate_h_close", "collimate_v_open", "collimate_v_close",
     "zoom_1", "zoom_2", "zoom_3", "zoom_4", "zoom_next", "zoom_prev",
     "mode_next", "save", "invert", "alarm_reset", "hold_breath", "resume_breath",
+    "window_wider", "window_narrower", "level_up", "level_down", "window_reset",
 ]
 
 
@@ -22,7 +23,7 @@ class KeymapProfile(Section):
     hid_usages: dict[int, Action] = Field(default_factory=dict, description="HID keyboard-page usage ids (integers) "
                                                                             "to actions, for hidapi keypads.")
 
-    def problems(self):
+    def problems(self) -> Findings:
         for name in self.keys:
             if not (name.startswith("KEY_") or name.startswith("BTN_")) or not name.replace("_", "").isalnum():
                 yield ("keys", name), "must be an evdev key name such as KEY_F1 or BTN_0"

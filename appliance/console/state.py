@@ -89,6 +89,8 @@ class ConsoleState:
     kvp: float
     ma: float
     pulses: int = 0                 # pulses so far this session (counts images in the pulsed modes)
+    window_scale: float = 1.0       # the radiographer's window: the automatic width times this
+    level_shift: float = 0.0        # the radiographer's level: the centre moved by this fraction of the width
 
     @property
     def held(self) -> bool:
@@ -133,6 +135,7 @@ class Console:
         fov = fluoroscope.zoom_levels[0].fov_mm
         self.collimation = (fov, fov)
         self.invert = fluoroscope.display.invert
+        self.window_scale, self.level_shift = 1.0, 0.0
         self.breath_hold = False
         self._fluoro_holders: set[tuple[str, str]] = set()
         self.fluoro_on = False
@@ -338,6 +341,8 @@ class Console:
         elif action == "invert":
             self.invert = not self.invert
             self._emit(out, t, "invert", invert=self.invert)
+        elif action in ("window_wider", "window_narrower", "level_up", "level_down", "window_reset"):
+            self._adjust_window(action)
         elif action == "save":
             if self.has_image:
                 self.save_count += 1
@@ -355,6 +360,19 @@ class Console:
                 self.breath_hold = False
                 self._emit(out, t, "resume_breath")
         return out
+
+    def _adjust_window(self, action: str) -> None:
+        """Window and level keys: steps of the profile's image.window_step (a ratio) and
+        image.level_step (a fraction of the width), within a few steps of the automatic window."""
+        chain = self.fl.image
+        if action == "window_reset":
+            self.window_scale, self.level_shift = 1.0, 0.0
+        elif action.startswith("window_"):
+            factor = chain.window_step if action == "window_wider" else 1.0 / chain.window_step
+            self.window_scale = min(max(self.window_scale * factor, 0.25), 4.0)
+        else:
+            step = chain.level_step if action == "level_up" else -chain.level_step
+            self.level_shift = min(max(self.level_shift + step, -0.5), 0.5)
 
     def _set_zoom(self, target: int) -> None:
         old_fov = self.fl.zoom_levels[self.zoom - 1].fov_mm
@@ -425,4 +443,5 @@ class Console:
             alarm_sounding=self.alarm_sounding, alarm_count=self.alarm_count, save_count=self.save_count,
             runs=self.runs,
             new_image=self._frame_pulses > 0 if mode.pulse_rate_per_s else self._frame_exposed,
-            pulses_this_frame=self._frame_pulses, kvp=fl.tube.kvp, ma=fl.tube.ma, pulses=self._pulse_count)
+            pulses_this_frame=self._frame_pulses, kvp=fl.tube.kvp, ma=fl.tube.ma, pulses=self._pulse_count,
+            window_scale=self.window_scale, level_shift=self.level_shift)

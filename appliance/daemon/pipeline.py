@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from drivers.camera import CaptureState
+
 from ..config import ApplianceConfig
 from ..config.fluoroscope import FluoroscopeProfile
 from ..console.state import ConsoleState
@@ -116,7 +118,7 @@ class Appliance:
                                  console_state=self.console_state, events=self.events,
                                  fluoroscope=self._new_fluoroscope, exposure_factor=exposure_factor)
         self.records = RecordsWorker(self.ledger, keeper, parts, self.clock, events=self.events, shown=self.shown,
-                                     saves=saves)
+                                     saves=saves, native=self.render.native_image)
         self.stats = self.render.stats
         self.supervisor = Supervisor(
             # In this order: at shutdown the input worker ends its exposure before records flushes.
@@ -127,7 +129,7 @@ class Appliance:
             health_checks=[
                 DiskSpace(cfg.data_dir, daemon.disk_min_free_mb),
                 CameraState(lambda: parts.camera),
-                TrackingState(lambda: self.capture.pose_ok if parts.camera.state == "ok" else None),
+                TrackingState(lambda: self.capture.pose_ok if parts.camera.state == CaptureState.OK else None),
                 InputDeviceState("keypad", lambda: parts.keypad),
                 InputDeviceState("pedal", lambda: parts.pedal),
                 renderer_fault_check(lambda: self.render.fault),

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config.fluoroscope import FluoroscopeProfile
 from ..console.state import ConsoleState
 from ..errors import FluorosimError
 from ..records.ledger import Ledger
@@ -38,10 +39,13 @@ class RecordsWorker(Worker):
     """
 
     def __init__(self, ledger: Ledger, keeper: ProfileKeeper, parts: Parts, clock: Callable[[], float], *,
-                 events: queue.Queue[Recorded], shown: LatestValue[np.ndarray], saves: LatestValue[SavedImage]):
+                 events: queue.Queue[Recorded], shown: LatestValue[np.ndarray], saves: LatestValue[SavedImage],
+                 native: Callable[[], tuple[np.ndarray, FluoroscopeProfile] | None] | None = None):
         super().__init__("records", idle_s=0.0)
         self.ledger, self.keeper, self.parts, self.console_clock = ledger, keeper, parts, clock
         self.events, self.shown, self.saves = events, shown, saves
+        # The saved image re-rendered at the detector's native matrix (None: save what is shown).
+        self.native = native
         self.session_id: int | None = None
         #: Why the last write failed (None while records are written), for the records health check.
         self.problem: str | None = None
@@ -107,7 +111,16 @@ class RecordsWorker(Worker):
             return
         cfg = self.keeper.current
         # The fluoroscope as rendered: the DICOM pixel spacing is that of the saved matrix.
-        png, dicom = save_image(image, state, self.parts.renderer.fluoroscope, cfg.data_dir / "images",
+        fluoroscope = self.parts.renderer.fluoroscope
+        if self.native is not None:
+            try:
+                native = self.native()
+            except Exception as e:  # noqa: BLE001 - the image on screen is saved instead
+                log.warning("saving the live matrix: the native re-render failed (%s)", e)
+                native = None
+            if native is not None:
+                image, fluoroscope = native
+        png, dicom = save_image(image, state, fluoroscope, cfg.data_dir / "images",
                                 t_wall=time.time(), session_id=self.session_id or 0, operator=cfg.appliance.operator,
                                 case_title=cfg.case.title, patient=patient_of(cfg.case))
         self.saved.append((png, dicom))

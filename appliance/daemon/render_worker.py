@@ -11,6 +11,7 @@ renderer makes the image; the compositor lays the overlays over it.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable
@@ -18,6 +19,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..config import ApplianceConfig
+from ..config.fluoroscope import FluoroscopeProfile
 from ..console.state import ConsoleState
 from ..display.compositor import Overlay
 from ..errors import FluorosimError
@@ -48,7 +50,8 @@ def view_for(cfg: ApplianceConfig, state: ConsoleState) -> View:
     """What the renderer is asked for: the console's zoom, collimation and inversion."""
     # Live frames run through the recursive filter, so moving the C-arm leaves its trail.
     return View(zoom=state.zoom, collimation_mm=state.collimated_mm, invert=state.invert,
-                noise=cfg.fluoroscope.display.noise, temporal="live", mode=state.mode)
+                noise=cfg.fluoroscope.display.noise, temporal="live", mode=state.mode,
+                window_scale=state.window_scale, level_shift=state.level_shift)
 
 
 def overlay_for(cfg: ApplianceConfig, state: ConsoleState, *, live: bool, saved_flash: bool, warnings: list[str],
@@ -89,6 +92,7 @@ class RenderWorker(Worker):
         self._drawn: ConsoleState | None = None        # the console state it was rendered at
         self._last_compose = 0.0
         self._factor_sent = 1.0
+        self._request: tuple | None = None        # what the last live frame was rendered from
 
     def step(self) -> bool:
         state, _ = self.console_state.get()
@@ -139,19 +143,38 @@ class RenderWorker(Worker):
         T_xray_from_ct = (cfg.fluoroscope.T_xray_from_webcam() @ tracked.pose.T_webcam_from_phantom
                           @ np.asarray(cfg.case.T_phantom_from_ct, dtype=np.float64))
         blend = (phase.prepared_b, phase.weight) if phase.prepared_b is not None else None
+        view = view_for(cfg, state)
+        self._request = (phase.prepared_a, T_xray_from_ct, view, blend)
         grace = WARM_UP_GRACE_S if self.stats.frames < WARM_UP_FRAMES else cfg.appliance.daemon.stall_timeout_s
         try:
             with self.grace(grace):
-                return self.parts.renderer.render(phase.prepared_a, T_xray_from_ct, view_for(cfg, state), blend=blend)
+                return self.parts.renderer.render(phase.prepared_a, T_xray_from_ct, view, blend=blend)
         except FluorosimError:
             raise
         except Exception as e:  # noqa: BLE001 - an OpenCL fault must not end the appliance
             if is_cpu(self.parts.renderer):
                 raise
-            self.fault = f"{type(e).__name__}: {e}"[:FAULT_CHARS]
             log.error("renderer failed on %s (%s); falling back to the CPU device", self.parts.renderer_device, e)
             self.parts.fall_back_to_cpu(cfg)
+            # Reported once it is true: the banner says rendering is on the CPU.
+            self.fault = f"{type(e).__name__}: {e}"[:FAULT_CHARS]
             return None
+
+    def native_image(self) -> tuple[np.ndarray, FluoroscopeProfile] | None:
+        """The last live view again at the detector's native matrix, the C-arm still (the
+        recursive filter settled): a saved image as the unit stores it, 16-bit. With the
+        profile read out at that matrix, for the saved image's pixel spacing. None before any
+        live frame, if the live matrix is already the native one, or on PoCL's CPU device,
+        where a native frame takes seconds (the image on screen is saved there)."""
+        request = self._request
+        renderer = self.parts.renderer
+        fl = self.keeper.current.fluoroscope
+        if request is None or renderer.shape == (fl.detector.rows, fl.detector.columns) or is_cpu(renderer):
+            return None
+        volume, T, view, blend = request
+        native = renderer.at_matrix(fl.detector.columns, fl.detector.rows)
+        frame = native.render(volume, T, dataclasses.replace(view, temporal="settled"), blend=blend)
+        return np.rint(np.clip(frame.image, 0.0, 1.0) * 65535.0).astype(np.uint16), native.fluoroscope
 
     def _send_exposure_factor(self, factor: float) -> None:
         """The console doses at the tube output the renderer's brightness control set; tell it on change."""

@@ -24,6 +24,7 @@ import numpy as np
 
 from ..config.fluoroscope import FluoroscopeProfile
 from ..geometry import make_transform
+from ..patient.materials import mass_attenuation
 from ..patient.volume import Volume
 
 #: Clipped: the 8-bit grey the monitor shows is 0 or 255.
@@ -183,9 +184,15 @@ def _report(rows: list[Row]) -> None:
 
 
 def patients(adult_size: str):
-    """(name, volume, [(view name, centre in ct mm)]) of the built-in child and the adult chest."""
+    """(name, volume, [(view name, centre in ct mm)], materials, contrast) of the built-in child
+    (with its case's contrast-filled bladder) and the adult chest."""
+    from ..config.case import CaseProfile, Materials
+    from ..config.commands import default_config_dir
+    from ..config.loading import load_profile
     from ..patient import builtin
     from ..patient.adult_chest import SIZES, build_adult_chest
+
+    child_case = load_profile(default_config_dir() / "cases" / "child-torso-vcug.yaml", CaseProfile)
 
     b = builtin.Builder()
     child = Volume(hu=b.phase(builtin.PhaseSpec(12.0, 3, 0.0)), T_ct_from_voxel=builtin.grid().T_ct_from_voxel,
@@ -194,9 +201,10 @@ def patients(adult_size: str):
     T = np.diag([spacing[2], spacing[1], spacing[0], 1.0])
     T[:3, 3] = origin
     adult = Volume(hu=hu, T_ct_from_voxel=T, source=f"adult chest ({adult_size})")
-    return [("child", child, [("chest", (0.0, 0.0, 90.0)), ("abdomen", (0.0, 0.0, -30.0)), ("bladder", (0.0, 0.0, -140.0))]),
+    return [("child", child, [("chest", (0.0, 0.0, 90.0)), ("abdomen", (0.0, 0.0, -30.0)), ("bladder", (0.0, 0.0, -140.0))],
+             child_case.materials, child_case.contrast),
             ("adult chest", adult, [("mediastinum", (0.0, 0.0, 30.0)), ("r lung", (-90.0, 0.0, 60.0)),
-                                    ("upper abdo", (0.0, 0.0, -90.0))])]
+                                    ("upper abdo", (0.0, 0.0, -90.0))], Materials(), None)]
 
 
 def run(args) -> int:
@@ -209,13 +217,14 @@ def run(args) -> int:
     # The detail figure compares with the undistorted line integral: the same machine without pincushion.
     straight = _undistorted(fl)
     started = time.perf_counter()
-    renderer = Renderer(straight, Materials(), device=args.device)
     sod = fl.geometry.source_to_isocentre_mm
     zooms = [int(z) for z in args.zooms.split(",")]
     rows: list[Row] = []
     fails: list[str] = []
     timings: dict[str, tuple[float, float]] = {}
-    for name, volume, views in patients(args.adult):
+    for name, volume, views, materials, contrast in patients(args.adult):
+        renderer = Renderer(straight, materials, contrast, device=args.device)
+        mu_rho = mass_attenuation([renderer.spectrum.effective_kev], contrast)[0]
         prepared = renderer.prepare(volume)
         for where, centre in views:
             T = ap_pose(sod, centre)
@@ -225,7 +234,9 @@ def run(args) -> int:
                 mask = renderer.field_mask(zoom, None, fl.detector.kind == "image_intensifier")
                 inside = interior(mask, renderer.detector.edge(mask, zoom))
                 line = renderer.line_integral(prepared, T, zoom)
-                joseph = renderer.material_integrals(prepared, T, View(zoom=zoom), distorted=False).sum(-1)
+                # The same rays' attenuation at the effective energy: each material's density
+                # integral times its mass attenuation (cm^2/g x g/cm^3 x mm / 10 = ln units).
+                joseph = renderer.material_integrals(prepared, T, View(zoom=zoom), distorted=False) @ mu_rho / 10.0
                 rows.append(Row(name, where, zoom, clipped_fraction(noisy.image, inside), grey_span(noisy.image, inside),
                                 detail_correlation(clean.image, line, inside), detail_correlation(clean.image, joseph, inside),
                                 detail_correlation(noisy.image, line, inside, pre_blur_px=0.7),
@@ -235,7 +246,7 @@ def run(args) -> int:
         del prepared
     print(f"Display on {fl.name} at {args.size}x{args.size}, {time.perf_counter() - started:.0f} s. AP views; detail = "
           "|correlation| of band-passed (sigma 1 - 6 px) images inside the field: 'detail' noise-free display vs the exact "
-          "Siddon line integral, 'chain' vs the renderer's own (Joseph) line integral of the same rays, 'noisy' with "
+          "Siddon line integral, 'chain' vs the renderer's own (Joseph) attenuation of the same rays at the effective energy, 'noisy' with "
           "the profile's noise after a 0.7 px blur vs Siddon, 'ceiling' Joseph vs Siddon (what the CT's voxels allow); "
           "tube x = the exposure control's output factor")
     _report(rows)
@@ -255,6 +266,7 @@ def run(args) -> int:
             if not r.detail_noisy >= need:
                 fails.append(f"adult mediastinum zoom {r.zoom}: noisy detail {r.detail_noisy:.2f} (at least {need})")
 
+    renderer = Renderer(straight, Materials(), device=args.device)
     # Noise: a 150 mm water slab filling the beam, with the exposure control on.
     slab = _water_slab(150.0)
     prepared = renderer.prepare(slab)

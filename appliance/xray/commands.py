@@ -92,7 +92,7 @@ def run_render(args) -> int:
 
 
 def run_bench(args) -> int:
-    from .benchmark import run
+    from .bench import run
 
     return run(args)
 
@@ -104,7 +104,10 @@ def register(commands, benches) -> None:
                    help="DICOM series folder, .nii/.nii.gz, .mha/.mhd or .nrrd; or a case profile (.yaml) with phases")
     p.add_argument("--fluoroscope", required=True, metavar="PROFILE.yaml")
     p.add_argument("--pose", required=True, metavar="POSE.yaml", help="YAML with T_xray_from_ct: a 4x4 rigid transform (mm)")
-    p.add_argument("--quantity", required=True, choices=("line-integral", "intensity", "display"))
+    p.add_argument("--quantity", required=True, choices=("line-integral", "intensity", "display"),
+                   help="display: what the monitor shows once the C-arm has been still for a second (exposure "
+                        "control, detector, settled recursive filter, log display); intensity: the detector signal "
+                        "relative to the open beam; line-integral: exact water-equivalent line integrals")
     p.add_argument("--output", required=True, metavar="OUT.{npy,png}")
     p.add_argument("--zoom", type=int, default=1, choices=(1, 2, 3, 4))
     p.add_argument("--phase-time", type=float, default=None, metavar="SECONDS",

@@ -26,7 +26,7 @@ def bench_ct(name: str) -> Volume:
     """The benchmark's real-size CT: "chest", the adult chest of appliance/patient/adult_chest.py
     (512 x 512 x 136 voxels of 0.8 x 0.8 x 2.5 mm), or "torso", the quicker synthetic torso
     of the same size (0.98 x 0.98 x 2.5 mm)."""
-    from .benchmark import synthetic_torso
+    from .bench import synthetic_torso
 
     if name == "torso":
         return synthetic_torso()
@@ -127,7 +127,7 @@ def plastimatch_side_by_side(renderer, volume: Volume, rounds: int, frames: int)
     and their ratio (> 1: this renderer is faster)."""
     import SimpleITK as sitk
 
-    from .benchmark import pa_pose
+    from .bench import pa_pose
     from .renderer import View
 
     exe = plastimatch_binary()

@@ -13,7 +13,6 @@ It strings together the three jobs, each in its own module:
 
 from __future__ import annotations
 
-import copy
 import threading
 from dataclasses import dataclass
 
@@ -96,6 +95,8 @@ class Renderer:
         self.caster = Caster(self.dev, fluoroscope, materials, contrast, packet)
         self.packet = self.caster.packet
         self.materials, self.contrast = materials, contrast
+        self._owner_id = id(self)                # prepared volumes serve this renderer and its other matrices
+        self._matrices: dict[tuple[int, int], Renderer] = {}
         self._adopt(fluoroscope)
 
     # -- profile ---------------------------------------------------------------------
@@ -104,6 +105,7 @@ class Renderer:
         with self._lock:
             self.caster.set_fluoroscope(fluoroscope)
             self._adopt(fluoroscope)
+            self._matrices.clear()
 
     def _adopt(self, fluoroscope: FluoroscopeProfile) -> None:
         self.fluoroscope = fluoroscope
@@ -120,22 +122,12 @@ class Renderer:
     # -- volumes and casting -----------------------------------------------------------
     def prepare(self, volume: Volume) -> PreparedVolume:
         """Copy one phase to the device as padded int16 HU. Thread-safe (OpenCL calls are)."""
-        return self.caster.prepare(volume, id(self.dev))
+        return self.caster.prepare(volume, self._owner_id)
 
     def _check(self, *vols: PreparedVolume) -> None:
-        # Renderers of one device (`at_matrix`) share their prepared volumes.
         for vol in vols:
-            if vol._renderer_id != id(self.dev):
+            if vol._renderer_id != self._owner_id:
                 raise ValueError("this PreparedVolume was prepared by another Renderer")
-
-    def at_matrix(self, columns: int, rows: int) -> Renderer:
-        """A renderer of the same machine read out at another matrix, on the same OpenCL device,
-        programs and lock, with its own caster tables, detector and recursive filter: it renders
-        the volumes this one prepared."""
-        other = copy.copy(self)
-        other.caster = copy.copy(self.caster)
-        other.set_fluoroscope(at_resolution(self.fluoroscope, columns, rows))
-        return other
 
     def _circle(self, circle: bool | None) -> bool:
         return self.fluoroscope.detector.kind == "image_intensifier" if circle is None else circle
@@ -196,6 +188,22 @@ class Renderer:
                 self._edges.clear()
             self._edges[key] = self.detector.edge(mask, zoom)
         return self._edges[key]
+
+    def at_matrix(self, columns: int, rows: int) -> Renderer:
+        """This renderer read out at another matrix (the detector's native one for a saved image):
+        the same device, lock and prepared volumes, its own rays, masks and detector model."""
+        if (columns, rows) == (self.shape[1], self.shape[0]):
+            return self
+        key = (columns, rows)
+        if key not in self._matrices:
+            other = Renderer.__new__(Renderer)
+            other.__dict__.update({k: v for k, v in self.__dict__.items() if k != "_matrices"})
+            other._matrices = {}
+            fl = at_resolution(self.fluoroscope, columns, rows)
+            other.caster = Caster(self.dev, fl, self.materials, self.contrast, self.packet)
+            other._adopt(fl)
+            self._matrices[key] = other
+        return self._matrices[key]
 
     # -- rendering -------------------------------------------------------------------
     def render(self, volume: PreparedVolume, T_xray_from_ct: np.ndarray, view: View,
