@@ -9,8 +9,10 @@ BIN    := $(VENV)/bin
 # Debian packages: libsystemd-dev and pkg-config build systemd-python; dicom3tools gives
 # dciodvfy, which checks exported dose reports; systemd gives systemd-analyze for unit checks;
 # gcc and linux-libc-dev let a test check the framebuffer structs against <linux/fb.h>;
-# alsa-utils gives aplay, which sounds the fluoroscopy-time alarm.
-APT_PACKAGES := libsystemd-dev pkg-config dicom3tools systemd python3-venv gcc linux-libc-dev alsa-utils
+# alsa-utils gives aplay, which sounds the fluoroscopy-time alarm; dcmtk gives dsrdump and
+# dcentvfy, which check a session's dose report and images together, and orthanc is the real
+# PACS the DICOM sending tests store into.
+APT_PACKAGES := libsystemd-dev pkg-config dicom3tools systemd python3-venv gcc linux-libc-dev alsa-utils dcmtk orthanc
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 .PHONY: demo test setup system-packages bench clean

@@ -10,6 +10,7 @@ from typing import Literal
 from pydantic import Field
 
 from .base import Section
+from .dicom import Dicom
 
 
 class Camera(Section):
@@ -102,3 +103,5 @@ class ApplianceProfile(Section):
     tracking: Tracking = Field(default_factory=Tracking, description="How the phantom's pose is computed and smoothed.")
     data_dir: str = Field(description="Ledger, logs, saved images and caches live here; relative to this file unless absolute.")
     daemon: Daemon = Field(default_factory=Daemon, description="Supervisor, watchdog and logging settings.")
+    dicom: Dicom = Field(default_factory=Dicom, description="Identity on the DICOM network and where images and dose "
+                         "reports are sent.")

@@ -32,8 +32,10 @@ import numpy as np
 from ..config import ApplianceConfig
 from ..errors import FluorosimError
 from ..records.ledger import Ledger
-from ..records.rdsr import equipment_of, patient_of
+from ..records.identity import device_uid, equipment_of, identity_path
+from ..records.rdsr import patient_of
 from ..records.saved_images import save_image
+from ..records.study import saved_image_context
 from .clock import SimClock
 from .frame_stats import FrameStats
 from .handoff import LatestValue
@@ -379,7 +381,9 @@ class Appliance:
             fl = cfg.fluoroscope
             self.session_id = self.ledger.start_session(
                 cfg.appliance.operator, cfg.case.title, fl.name, time.time(), t_monotonic=self.clock(),
-                equipment=equipment_of(fl), patient=patient_of(cfg.case))
+                equipment=equipment_of(fl, cfg.appliance.dicom, device_uid(identity_path(cfg.path, cfg.data_dir,
+                                                                                         cfg.appliance.dicom))),
+                patient=patient_of(cfg.case))
             log.info("session %s started: operator %s, case %s, fluoroscope %s",
                      self.session_id, cfg.appliance.operator, cfg.case.title, fl.name)
 
@@ -430,9 +434,10 @@ class Appliance:
             return
         cfg = self.config
         # The fluoroscope as rendered: the DICOM pixel spacing is that of the saved matrix.
+        # The image joins its session's study and names the run it shows (records.study).
+        study, event_uid = saved_image_context(*self.ledger.session_rows(self.session_id), state.save_count)
         paths = save_image(image, state, self.parts.renderer.fluoroscope, cfg.data_dir / "images", t_wall=time.time(),
-                           session_id=self.session_id or 0, operator=cfg.appliance.operator,
-                           case_title=cfg.case.title, patient=patient_of(cfg.case))
+                           study=study, event_uid=event_uid)
         self.saved.append(paths)
         self._saved_flash_until = time.monotonic() + SAVED_FLASH_S
         log.info("saved %s and %s", *paths)

@@ -377,6 +377,14 @@ class Ledger:
             self._transaction(lambda: self._close_session(sid, last, "recovered"))
         return open_ids
 
+    def session_rows(self, session_id: int) -> tuple[dict, list[dict]]:
+        """A session's row and its events in order, to build its DICOM objects (records.study)."""
+        session = dict(self._conn.execute(f"SELECT {', '.join(SESSION_COLUMNS)} FROM sessions WHERE id = ?",
+                                          (session_id,)).fetchone())
+        events = [dict(r) for r in self._conn.execute(
+            f"SELECT {', '.join(EVENT_COLUMNS)} FROM events WHERE session_id = ? ORDER BY id", (session_id,))]
+        return session, events
+
     def close(self) -> None:
         if self._conn is not None:
             self._conn.close()
