@@ -11,8 +11,9 @@ BIN    := $(VENV)/bin
 # gcc and linux-libc-dev let a test check the framebuffer structs against <linux/fb.h>;
 # alsa-utils gives aplay, which sounds the fluoroscopy-time alarm; dcmtk gives dsrdump and
 # dcentvfy, which check a session's dose report and images together, and orthanc is the real
-# PACS the DICOM sending tests store into.
-APT_PACKAGES := libsystemd-dev pkg-config dicom3tools systemd python3-venv gcc linux-libc-dev alsa-utils dcmtk orthanc
+# PACS the DICOM sending tests store into, on loopback in a network namespace of their own
+# (iproute2 brings its lo up).
+APT_PACKAGES := libsystemd-dev pkg-config dicom3tools systemd python3-venv gcc linux-libc-dev alsa-utils dcmtk orthanc iproute2
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 .PHONY: demo test setup system-packages bench clean

@@ -75,6 +75,24 @@ def test_a_lease_keeps_a_second_sender_off_until_it_expires(ledger_path):
         assert [i.key for i in two.claim("pacs", now=T + 31, lease_s=30)] == ["k"]   # the first sender died
 
 
+CLAIMER = textwrap.dedent("""
+    import os, signal, sys
+    from appliance.records.outbox import Outbox
+    box = Outbox(sys.argv[1], "dicom")
+    assert len(box.claim("pacs", lease_s=3600)) == 1
+    os.kill(os.getpid(), signal.SIGKILL)
+""")
+
+
+def test_the_lease_of_a_killed_sender_is_taken_over_at_once(ledger_path):
+    with Outbox(ledger_path, "dicom") as box:
+        box.put("k", "k", b"k", ["pacs"])
+        child = subprocess.run([sys.executable, "-c", CLAIMER, str(ledger_path)], env={**os.environ, "PYTHONPATH": os.getcwd()})
+        assert child.returncode == -signal.SIGKILL
+        # Leased for an hour by a process that no longer exists: handed out again now.
+        assert [i.key for i in box.claim("pacs", lease_s=30)] == ["k"]
+
+
 WRITER = textwrap.dedent("""
     import hashlib, sys
     from appliance.records.outbox import Outbox

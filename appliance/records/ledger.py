@@ -88,6 +88,7 @@ MIGRATIONS = (
         last_try_wall REAL,
         last_error TEXT,
         lease_until REAL,
+        lease_owner INTEGER,
         PRIMARY KEY (item_id, destination)
     );
     CREATE INDEX outbox_due ON outbox_deliveries(sent_wall, next_try_wall);

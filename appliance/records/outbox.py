@@ -7,10 +7,11 @@ bytes, and one delivery row per destination. Guarantees:
 - Durable: `put` commits (WAL, synchronous=FULL) before it returns, so a queued object
   survives kill -9 and power loss; putting the same key again adds nothing.
 - Never twice after a success: a delivery marked sent is never handed out again.
-- One sender at a time per delivery: `claim` leases what it hands out until `lease_until`;
-  a sender killed mid-send leaves a lease that simply expires, and the delivery is handed
-  out again (the receiver may then see that one object a second time, under the same key,
-  which a DICOM store files as the same instance).
+- One sender at a time per delivery: `claim` leases what it hands out until `lease_until`
+  to its process. A lease whose process is gone (kill -9, power loss: the file is local, so
+  a process id means this machine) or that expired is handed out again at once; the
+  receiver may then see the object that was in flight a second time, under the same key,
+  which a DICOM store files as the same instance.
 - Backoff: each failure of a delivery doubles its wait, from `first_delay_s` up to
   `max_delay_s`.
 
@@ -20,6 +21,7 @@ running appliance) may use the same file: every change is one short transaction.
 
 from __future__ import annotations
 
+import os
 import sqlite3
 import time
 from dataclasses import dataclass
@@ -57,6 +59,28 @@ class Pending:
     next_try_wall: float
     last_error: str | None
     leased: bool
+
+
+def _alive(pid: int | None) -> bool:
+    if pid is None or pid == os.getpid():
+        return pid is not None
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True     # someone else's process: alive
+    return True
+
+
+def pending_in(conn: sqlite3.Connection, kind: str, now: float) -> list[Pending]:
+    """Every delivery of `kind` not yet made, oldest object first (any connection, read-only too)."""
+    rows = conn.execute(
+        "SELECT i.id, i.item_key, i.label, i.session_id, d.destination, d.attempts, d.next_try_wall, d.last_error, "
+        "d.lease_until, d.lease_owner FROM outbox_deliveries d JOIN outbox_items i ON i.id = d.item_id "
+        "WHERE i.kind = ? AND d.sent_wall IS NULL ORDER BY i.id, d.destination", (kind,)).fetchall()
+    return [Pending(r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7], r[8] is not None and r[8] >= now and _alive(r[9]))
+            for r in rows]
 
 
 def backoff_s(attempts: int, first_delay_s: float, max_delay_s: float) -> float:
@@ -114,13 +138,16 @@ class Outbox:
 
         def work() -> list[Item]:
             rows = self._conn.execute(
-                "SELECT i.id, i.item_key, i.label, i.payload, d.attempts FROM outbox_deliveries d "
+                "SELECT i.id, i.item_key, i.label, d.attempts, d.lease_until, d.lease_owner FROM outbox_deliveries d "
                 "JOIN outbox_items i ON i.id = d.item_id WHERE i.kind = ? AND d.destination = ? AND d.sent_wall IS NULL "
-                "AND (d.lease_until IS NULL OR d.lease_until < ?) AND (? OR d.next_try_wall <= ?) "
-                "ORDER BY i.id LIMIT ?", (self.kind, destination, now, int(ignore_backoff), now, limit)).fetchall()
-            self._conn.executemany("UPDATE outbox_deliveries SET lease_until = ? WHERE item_id = ? AND destination = ?",
-                                   [(now + lease_s, r[0], destination) for r in rows])
-            return [Item(r[0], r[1], r[2], destination, bytes(r[3]), r[4]) for r in rows]
+                "AND (? OR d.next_try_wall <= ?) ORDER BY i.id", (self.kind, destination, int(ignore_backoff), now))
+            free = [r for r in rows if r[4] is None or r[4] < now or not _alive(r[5])][:limit]
+            self._conn.executemany("UPDATE outbox_deliveries SET lease_until = ?, lease_owner = ? "
+                                   "WHERE item_id = ? AND destination = ?",
+                                   [(now + lease_s, os.getpid(), r[0], destination) for r in free])
+            payloads = {r[0]: bytes(r[1]) for r in self._conn.execute(
+                f"SELECT id, payload FROM outbox_items WHERE id IN ({', '.join('?' * len(free))})", [r[0] for r in free])}
+            return [Item(r[0], r[1], r[2], destination, payloads[r[0]], r[3]) for r in free]
         return self._write(work)
 
     def delivered(self, item: Item, *, now: float | None = None) -> None:
@@ -128,7 +155,7 @@ class Outbox:
         now = time.time() if now is None else now
         self._write(lambda: self._conn.execute(
             "UPDATE outbox_deliveries SET sent_wall = ?, last_try_wall = ?, attempts = attempts + 1, last_error = NULL, "
-            "lease_until = NULL WHERE item_id = ? AND destination = ? AND sent_wall IS NULL",
+            "lease_until = NULL, lease_owner = NULL WHERE item_id = ? AND destination = ? AND sent_wall IS NULL",
             (now, now, item.item_id, item.destination)))
 
     def failed(self, item: Item, error: str, *, first_delay_s: float, max_delay_s: float,
@@ -139,24 +166,19 @@ class Outbox:
         due = now + backoff_s(attempts, first_delay_s, max_delay_s)
         self._write(lambda: self._conn.execute(
             "UPDATE outbox_deliveries SET attempts = ?, next_try_wall = ?, last_try_wall = ?, last_error = ?, "
-            "lease_until = NULL WHERE item_id = ? AND destination = ? AND sent_wall IS NULL",
+            "lease_until = NULL, lease_owner = NULL WHERE item_id = ? AND destination = ? AND sent_wall IS NULL",
             (attempts, due, now, error, item.item_id, item.destination)))
         return due
 
     def release(self, item: Item) -> None:
         """Give back a claimed delivery that was not attempted (the sender is stopping)."""
         self._write(lambda: self._conn.execute(
-            "UPDATE outbox_deliveries SET lease_until = NULL WHERE item_id = ? AND destination = ? AND sent_wall IS NULL",
+            "UPDATE outbox_deliveries SET lease_until = NULL, lease_owner = NULL WHERE item_id = ? AND destination = ? AND sent_wall IS NULL",
             (item.item_id, item.destination)))
 
     def pending(self, *, now: float | None = None) -> list[Pending]:
         """Every delivery not yet made, oldest object first."""
-        now = time.time() if now is None else now
-        rows = self._conn.execute(
-            "SELECT i.id, i.item_key, i.label, i.session_id, d.destination, d.attempts, d.next_try_wall, d.last_error, "
-            "d.lease_until FROM outbox_deliveries d JOIN outbox_items i ON i.id = d.item_id "
-            "WHERE i.kind = ? AND d.sent_wall IS NULL ORDER BY i.id, d.destination", (self.kind,)).fetchall()
-        return [Pending(r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7], r[8] is not None and r[8] >= now) for r in rows]
+        return pending_in(self._conn, self.kind, time.time() if now is None else now)
 
     def sent_keys(self, destination: str) -> list[str]:
         """Keys delivered to `destination`, in the order they were confirmed."""

@@ -1,0 +1,113 @@
+"""The DICOM send queue: what to send where, and one round of sending it.
+
+Saved images go to the destinations that take images, each session's dose report to those
+that take dose reports, through the outbox (records.outbox, kind "dicom", keyed by SOP
+Instance UID). A round sends, per destination, what is due in one association and records
+each confirmation as it arrives, so a kill between two objects resends neither of the
+confirmed ones. A destination that fails `retry.warn_after_failures` rounds in a row counts
+as failing: `problems()` gives the banner line and one warning goes to the log; the line
+clears, and an info line is logged, when it answers again.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pydicom
+
+from ..config.dicom import Dicom
+from . import dicom_network
+from .dicom_network import DestinationError, StoreResult
+from .outbox import Outbox
+
+log = logging.getLogger(__name__)
+
+KIND = "dicom"
+BATCH = 32        # objects per association per round
+
+
+def queue_object(outbox: Outbox, dicom: Dicom, data: bytes, what: str, label: str, session_id: int | None) -> list[str]:
+    """Queue one Part 10 object (`what` is "image" or "dose_report") for the destinations that
+    take it; returns their names. Queueing one object twice changes nothing."""
+    names = [d.name for d in dicom.destinations if d.takes(what)]  # type: ignore[arg-type]
+    if names:
+        key = str(pydicom.dcmread(io.BytesIO(data), stop_before_pixels=True).SOPInstanceUID)
+        outbox.put(key, label, data, names, session_id=session_id)
+    return names
+
+
+@dataclass
+class RoundReport:
+    sent: dict[str, int] = field(default_factory=dict)          # destination -> objects confirmed
+    errors: list[str] = field(default_factory=list)              # one line each
+
+
+class DicomSender:
+    """Sends what the outbox holds for the destinations of `dicom`; `base` is the profile's folder."""
+
+    def __init__(self, outbox: Outbox, dicom: Dicom, base: Path):
+        self.outbox = outbox
+        self.dicom = dicom
+        self.base = base
+        self._failures: dict[str, int] = {}
+        self._last_error: dict[str, str] = {}
+
+    def run_round(self, *, ignore_backoff: bool = False) -> RoundReport:
+        report = RoundReport()
+        retry = self.dicom.retry
+        for dest in self.dicom.destinations:
+            items = self.outbox.claim(dest.name, lease_s=self.dicom.timeout_s * (BATCH + 3), limit=BATCH,
+                                      ignore_backoff=ignore_backoff)
+            if not items:
+                continue
+            by_key = {i.key: i for i in items}
+            done: set[str] = set()
+
+            def heard(result: StoreResult, by_key=by_key, done=done, dest=dest) -> None:
+                item = by_key[result.key]
+                done.add(result.key)
+                if result.ok:
+                    self.outbox.delivered(item)
+                    report.sent[dest.name] = report.sent.get(dest.name, 0) + 1
+                else:
+                    self.outbox.failed(item, result.message, first_delay_s=retry.first_delay_s,
+                                       max_delay_s=retry.max_delay_s)
+                    report.errors.append(f"{item.label}: {result.message}")
+            try:
+                dicom_network.store(self.dicom, dest, self.base, [(i.key, i.payload) for i in items], heard)
+            except DestinationError as e:
+                message = str(e)
+                for item in items:
+                    if item.key not in done:
+                        self.outbox.failed(item, message, first_delay_s=retry.first_delay_s, max_delay_s=retry.max_delay_s)
+                report.errors.append(message)
+                self._count_failure(dest.name, message)
+                continue
+            self._count_success(dest.name)
+        return report
+
+    def _count_failure(self, name: str, message: str) -> None:
+        n = self._failures.get(name, 0) + 1
+        self._failures[name] = n
+        self._last_error[name] = message
+        if n == self.dicom.retry.warn_after_failures:
+            log.warning("DICOM destination keeps failing (%d attempts in a row); objects stay queued: %s", n, message)
+
+    def _count_success(self, name: str) -> None:
+        if self._failures.get(name, 0) >= self.dicom.retry.warn_after_failures:
+            log.info("DICOM destination '%s' answers again; its queue is being sent", name)
+        self._failures[name] = 0
+        self._last_error.pop(name, None)
+
+    def problems(self) -> list[str]:
+        """One line per destination that keeps failing, for the on-screen banner."""
+        limit = self.dicom.retry.warn_after_failures
+        return [f"DICOM send to '{name}' failing ({n} tries): {self._last_error[name]}"
+                for name, n in sorted(self._failures.items()) if n >= limit]
+
+    def pending_count(self) -> int:
+        return len(self.outbox.pending(now=time.time()))

@@ -1,0 +1,227 @@
+"""Sending to real receivers in their own processes: pynetdicom storage SCPs on loopback.
+
+The objects of a recorded session go through `fluorosim dicom send` to a PACS (images and
+dose reports) and a dose registry (dose reports only); what each receiver wrote to disk is
+compared with what the appliance queued. Bad host, nothing listening and a wrong called AE
+each give one line naming the destination and lose nothing; a sender killed mid-queue
+resends nothing already confirmed and loses nothing."""
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pydicom
+import pytest
+
+from appliance.cli import main
+from appliance.records.outbox import Outbox
+
+from dicom_session import record_session
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+
+
+class Receiver:
+    def __init__(self, out: Path, ae_title: str, delay_s: float = 0.0):
+        self.out = out
+        self.ae_title = ae_title
+        self.proc = subprocess.Popen([sys.executable, str(HERE / "dicom_receiver.py"), ae_title, str(out),
+                                      "--delay", str(delay_s)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        line = self.proc.stdout.readline()
+        assert line.startswith("listening "), line
+        self.port = int(line.split()[1])
+
+    def received(self) -> list[str]:
+        path = self.out / "received.txt"
+        return path.read_text().split() if path.exists() else []
+
+    def stop(self) -> None:
+        self.proc.stdin.close()
+        try:
+            self.proc.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        self.proc.stdout.close()
+
+
+@pytest.fixture
+def receivers(tmp_path):
+    started = []
+
+    def start(name: str, ae_title: str, delay_s: float = 0.0) -> Receiver:
+        r = Receiver(tmp_path / f"received-{name}", ae_title, delay_s)
+        started.append(r)
+        return r
+    yield start
+    for r in started:
+        r.stop()
+
+
+def free_port() -> int:
+    """A loopback port nobody listens on."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def write_profile(config_copy: Path, destinations: list[dict], timeout_s: float = 3.0) -> Path:
+    path = config_copy / "appliance.yaml"
+    lines = ["dicom:", "  ae_title: FLUOROSIM3", "  institution: St Elsewhere Teaching Hospital",
+             "  station_name: FLUOROSIM-3", "  serial_number: FS-0042", f"  timeout_s: {timeout_s}",
+             "  retry:", "    first_delay_s: 30", "    max_delay_s: 600", "    warn_after_failures: 2",
+             "  destinations:"]
+    for d in destinations:
+        lines.append(f"    - name: {d['name']}")
+        lines += [f"      {k}: {v}" for k, v in d.items() if k != "name"]
+    path.write_text(path.read_text() + "\n" + "\n".join(lines) + "\n")
+    return path
+
+
+def cli(capsys, *args) -> tuple[int, str, str]:
+    code = main(list(args))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def uids_of(paths) -> list[str]:
+    return [str(pydicom.dcmread(p, stop_before_pixels=True).SOPInstanceUID) for p in paths]
+
+
+def test_a_session_reaches_the_pacs_and_the_registry_once(config_copy, receivers, capsys):
+    pacs, registry = receivers("pacs", "PACS"), receivers("registry", "DOSEREG")
+    profile = write_profile(config_copy, [
+        {"name": "pacs", "ae_title": "PACS", "host": "127.0.0.1", "port": pacs.port, "objects": "both"},
+        {"name": "registry", "ae_title": "DOSEREG", "host": "localhost", "port": registry.port, "objects": "dose_reports"},
+    ])
+    session = record_session(config_copy.parent / "var")
+    assert cli(capsys, "dicom", "echo", "--config", str(profile))[0] == 0
+    code, out, err = cli(capsys, "dicom", "send", "--config", str(profile), "--session", str(session.session_id))
+    assert code == 0, err
+    assert "session 1: 4 object(s) queued" in out and "'pacs': 4 object(s) sent" in out and "'registry': 1 object(s)" in out
+    images, report = uids_of(session.images), uids_of([session.report])
+    assert sorted(pacs.received()) == sorted(images + report)
+    assert registry.received() == report
+    # What arrived is what was written: the same bytes of pixel data, the same study.
+    for path in session.images:
+        sent = pydicom.dcmread(path)
+        got = pydicom.dcmread(pacs.out / f"{sent.SOPInstanceUID}.dcm")
+        assert got.PixelData == sent.PixelData and got.StudyInstanceUID == sent.StudyInstanceUID
+        assert got.IrradiationEventUID == sent.IrradiationEventUID
+    got_report = pydicom.dcmread(registry.out / f"{report[0]}.dcm")
+    assert got_report.StudyInstanceUID == pydicom.dcmread(session.images[0]).StudyInstanceUID
+    # Sending or queueing the session again sends nothing twice.
+    assert cli(capsys, "dicom", "send", "--config", str(profile))[1].strip() == "nothing queued; nothing sent"
+    assert cli(capsys, "dicom", "send", "--config", str(profile), "--session", "1")[0] == 0
+    assert len(pacs.received()) == 4 and len(registry.received()) == 1
+    assert cli(capsys, "dicom", "queue", "--config", str(profile))[1].strip() == "nothing queued"
+
+
+def test_unreachable_destinations_give_one_line_each_and_lose_nothing(config_copy, receivers, capsys):
+    pacs = receivers("pacs", "PACS")
+    closed = free_port()
+    profile = write_profile(config_copy, [
+        {"name": "nohost", "ae_title": "PACS", "host": "no-such-host.invalid", "port": 104},
+        {"name": "refused", "ae_title": "PACS", "host": "127.0.0.1", "port": closed},
+        {"name": "wrongae", "ae_title": "NOTPACS", "host": "127.0.0.1", "port": pacs.port},
+    ], timeout_s=2.0)
+    session = record_session(config_copy.parent / "var")
+    code, out, err = cli(capsys, "dicom", "echo", "--config", str(profile))
+    lines = err.strip().splitlines()
+    assert code == 1 and out == "" and len(lines) == 3, err
+    assert lines[0].startswith("fluorosim: destination 'nohost' (PACS@no-such-host.invalid:104): cannot resolve host")
+    assert lines[1].startswith(f"fluorosim: destination 'refused' (PACS@127.0.0.1:{closed}): no DICOM association (")
+    assert "Connection refused" in lines[1]
+    assert lines[2].startswith(f"fluorosim: destination 'wrongae' (NOTPACS@127.0.0.1:{pacs.port}): association rejected")
+    assert "Called AE title not recognised" in lines[2] and "check the destination's ae_title" in lines[2]
+    code, out, err = cli(capsys, "dicom", "send", "--config", str(profile), "--session", "1")
+    assert code == 1 and "Traceback" not in err
+    assert [line for line in err.splitlines() if line.startswith("fluorosim: destination")] == lines
+    assert pacs.received() == []
+    # All 4 objects stay queued for each of the 3 destinations, with the reason.
+    code, out, _ = cli(capsys, "dicom", "queue", "--config", str(profile))
+    rows = out.strip().splitlines()[1:]
+    assert code == 0 and len(rows) == 12
+    assert sum("association rejected" in r for r in rows) == 4 and sum("cannot resolve" in r for r in rows) == 4
+    # The admin corrects the AE title: the queued objects go, once.
+    fixed = profile.read_text().replace("ae_title: NOTPACS", "ae_title: PACS")
+    profile.write_text(fixed)
+    cli(capsys, "dicom", "send", "--config", str(profile))
+    assert sorted(pacs.received()) == sorted(uids_of(session.images + [session.report]))
+
+
+def test_a_destination_that_keeps_failing_is_reported_once_and_recovers(config_copy, receivers, caplog):
+    from appliance.config import ApplianceProfile, load_profile
+    from appliance.records.dicom_sender import DicomSender, queue_object
+
+    port = free_port()
+    profile = write_profile(config_copy, [{"name": "pacs", "ae_title": "PACS", "host": "127.0.0.1", "port": port}],
+                            timeout_s=1.0)
+    dicom = load_profile(profile, ApplianceProfile).dicom
+    session = record_session(config_copy.parent / "var")
+    with Outbox(config_copy.parent / "var/ledger.sqlite", "dicom") as box:
+        assert queue_object(box, dicom, session.report_bytes, "dose_report", "dose report of session 1", 1) == ["pacs"]
+        sender = DicomSender(box, dicom, profile.parent)
+        with caplog.at_level("INFO", logger="appliance.records.dicom_sender"):
+            for attempt in range(1, 4):
+                report = sender.run_round(ignore_backoff=True)
+                assert report.sent == {} and len(report.errors) == 1
+                # warn_after_failures is 2: a banner from the second failure on, one warning in the log.
+                assert len(sender.problems()) == (attempt >= 2)
+            assert "failing (3 tries)" in sender.problems()[0] and "'pacs'" in sender.problems()[0]
+            assert len([r for r in caplog.records if r.levelname == "WARNING"]) == 1
+            # Backoff: without ignoring it, nothing is due again yet (first delay 30 s).
+            assert sender.run_round().errors == []
+            # The PACS comes up on that port.
+            receiver_out = config_copy.parent / "received"
+            proc = subprocess.Popen([sys.executable, str(HERE / "dicom_receiver.py"), "PACS", str(receiver_out),
+                                     "--port", str(port)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+            try:
+                assert proc.stdout.readline().startswith("listening")
+                assert sender.run_round(ignore_backoff=True).sent == {"pacs": 1}
+                assert sender.problems() == []
+                assert "answers again" in caplog.text
+            finally:
+                proc.stdin.close()
+                proc.wait(timeout=5)
+                proc.stdout.close()
+    assert (receiver_out / "received.txt").read_text().split() == uids_of([session.report])
+
+
+def test_killing_the_sender_mid_queue_loses_and_repeats_nothing_confirmed(config_copy, receivers, capsys):
+    pacs = receivers("pacs", "PACS", delay_s=0.4)
+    profile = write_profile(config_copy, [
+        {"name": "pacs", "ae_title": "PACS", "host": "127.0.0.1", "port": pacs.port, "objects": "both"}])
+    first = record_session(config_copy.parent / "var")
+    ledger = config_copy.parent / "var/ledger.sqlite"
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    sender = subprocess.Popen([sys.executable, "-m", "appliance.cli", "dicom", "send", "--config", str(profile),
+                               "--session", str(first.session_id)], env=env, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 30
+    while len(pacs.received()) < 3 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    # The third object has arrived and its answer is held back: kill the sender now.
+    os.kill(sender.pid, signal.SIGKILL)
+    sender.wait()
+    sender.stderr.close()
+    with Outbox(ledger, "dicom") as box:
+        confirmed = box.sent_keys("pacs")
+        left = {p.key for p in box.pending()}
+    assert len(confirmed) == 2 and len(left) == 2, (confirmed, left)   # 4 objects: 2 confirmed, 1 in flight, 1 not begun
+    received_before = pacs.received()
+    assert received_before[:2] == confirmed
+    code, _, err = cli(capsys, "dicom", "send", "--config", str(profile))
+    assert code == 0, err
+    everything = uids_of(first.images + [first.report])
+    received = pacs.received()
+    assert sorted(set(received)) == sorted(everything)                  # nothing lost
+    assert all(received.count(k) == 1 for k in confirmed)               # nothing confirmed sent twice
+    # Only the object in flight at the kill (arrived, unconfirmed) came again, under its own UID.
+    assert [k for k in set(received) if received.count(k) > 1] == [received_before[2]]
+    assert len(received) == len(everything) + 1
