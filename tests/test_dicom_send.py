@@ -6,7 +6,9 @@ compared with what the appliance queued. Bad host, nothing listening and a wrong
 each give one line naming the destination and lose nothing; a sender killed mid-queue
 resends nothing already confirmed and loses nothing."""
 
+import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -225,3 +227,37 @@ def test_killing_the_sender_mid_queue_loses_and_repeats_nothing_confirmed(config
     # Only the object in flight at the kill (arrived, unconfirmed) came again, under its own UID.
     assert [k for k in set(received) if received.count(k) > 1] == [received_before[2]]
     assert len(received) == len(everything) + 1
+
+
+def _can_unshare_network() -> bool:
+    if shutil.which("unshare") is None or shutil.which("ip") is None:
+        return False
+    return subprocess.run(["unshare", "--net", "true"], capture_output=True).returncode == 0
+
+
+@pytest.mark.skipif(shutil.which("Orthanc") is None, reason="Orthanc (Debian package orthanc) is not installed; "
+                                                          "`make test` installs it")
+@pytest.mark.skipif(not _can_unshare_network(), reason="needs unshare --net (root or user namespaces) and ip (iproute2) "
+                                                       "to give Orthanc a loopback-only network of its own")
+def test_orthanc_stores_the_session_as_one_study(config_copy, tmp_path):
+    profile = write_profile(config_copy, [
+        {"name": "orthanc", "ae_title": "ORTHANC", "host": "127.0.0.1", "port": 4242, "objects": "both"}])
+    session = record_session(config_copy.parent / "var")
+    work = tmp_path / "orthanc"
+    work.mkdir()
+    run = subprocess.run(["unshare", "--net", sys.executable, str(HERE / "orthanc_netns.py"), str(profile), str(work),
+                          str(session.session_id)], capture_output=True, text=True, timeout=240)
+    assert run.returncode == 0, run.stderr
+    result = json.loads(run.stdout)
+    assert result["echo"]["rc"] == 0 and "answered C-ECHO" in result["echo"]["out"], result["echo"]
+    assert result["send"]["rc"] == 0, result["send"]
+    images = [pydicom.dcmread(p, stop_before_pixels=True) for p in session.images]
+    report = pydicom.dcmread(session.report, stop_before_pixels=True)
+    # Read back over Orthanc's REST API: one study, with the images' series and the report's.
+    (study,) = result["studies"]
+    assert study["StudyInstanceUID"] == report.StudyInstanceUID and study["PatientID"] == report.PatientID
+    series = {s["Modality"]: s for s in study["series"]}
+    assert sorted(series) == ["RF", "SR"]
+    assert series["RF"]["SeriesInstanceUID"] == images[0].SeriesInstanceUID
+    assert series["RF"]["instances"] == sorted(str(ds.SOPInstanceUID) for ds in images)
+    assert series["SR"]["instances"] == [str(report.SOPInstanceUID)]
