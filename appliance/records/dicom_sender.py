@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import io
 import logging
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -49,12 +48,12 @@ class RoundReport:
 class DicomSender:
     """Sends what the outbox holds for the destinations of `dicom`; `base` is the profile's folder."""
 
-    def __init__(self, outbox: Outbox, dicom: Dicom, base: Path):
+    def __init__(self, outbox: Outbox, dicom: Dicom, base: Path, *, failures: dict[str, tuple[int, str]] | None = None):
         self.outbox = outbox
         self.dicom = dicom
         self.base = base
-        self._failures: dict[str, int] = {}
-        self._last_error: dict[str, str] = {}
+        #: Destination -> (failed rounds in a row, the last error); kept across a profile reload.
+        self.failures: dict[str, tuple[int, str]] = dict(failures or {})
 
     def run_round(self, *, ignore_backoff: bool = False) -> RoundReport:
         report = RoundReport()
@@ -91,23 +90,18 @@ class DicomSender:
         return report
 
     def _count_failure(self, name: str, message: str) -> None:
-        n = self._failures.get(name, 0) + 1
-        self._failures[name] = n
-        self._last_error[name] = message
+        n = self.failures.get(name, (0, ""))[0] + 1
+        self.failures[name] = (n, message)
         if n == self.dicom.retry.warn_after_failures:
             log.warning("DICOM destination keeps failing (%d attempts in a row); objects stay queued: %s", n, message)
 
     def _count_success(self, name: str) -> None:
-        if self._failures.get(name, 0) >= self.dicom.retry.warn_after_failures:
+        if self.failures.get(name, (0, ""))[0] >= self.dicom.retry.warn_after_failures:
             log.info("DICOM destination '%s' answers again; its queue is being sent", name)
-        self._failures[name] = 0
-        self._last_error.pop(name, None)
+        self.failures.pop(name, None)
 
     def problems(self) -> list[str]:
         """One line per destination that keeps failing, for the on-screen banner."""
         limit = self.dicom.retry.warn_after_failures
-        return [f"DICOM send to '{name}' failing ({n} tries): {self._last_error[name]}"
-                for name, n in sorted(self._failures.items()) if n >= limit]
-
-    def pending_count(self) -> int:
-        return len(self.outbox.pending(now=time.time()))
+        return [f"DICOM send to '{name}' failing ({n} tries): {error}"
+                for name, (n, error) in sorted(self.failures.items()) if n >= limit]
