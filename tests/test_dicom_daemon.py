@@ -1,0 +1,110 @@
+"""The running appliance sends what it saves: images as they are saved, the dose report when the
+session ends, to a real storage SCP in its own process; a destination that is down gives a
+banner and keeps its objects queued."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pydicom
+from ruamel.yaml import YAML
+
+from appliance.cli import main
+from appliance.daemon.notify import Notifier
+from appliance.daemon.pipeline import Appliance
+from appliance.daemon.reload import ProfileKeeper
+from appliance.records.outbox import Outbox
+from appliance_setup import make_appliance
+from test_dicom_send import free_port, receivers  # noqa: F401 - the fixture
+
+SCRIPT = ['{"t": 0.3, "hold": "pedal", "for_s": 1.5}',
+          '{"t": 1.2, "tap": "KEY_KPPLUS"}',          # live, in the run
+          '{"t": 2.4, "tap": "KEY_KPPLUS"}']          # held, after it
+
+
+def _wait(predicate, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.05)
+    return bool(predicate())
+
+
+def test_the_appliance_queues_and_sends_its_images_and_dose_report(tmp_path, receivers, capsys):  # noqa: F811
+    pacs = receivers("pacs", "PACS")
+    config = make_appliance(tmp_path, script=SCRIPT)
+    yaml = YAML(typ="rt")
+    data = yaml.load(config.read_text())
+    data["dicom"] = {"ae_title": "FLUOROSIM", "station_name": "FS-TEST", "serial_number": "FS-0001", "timeout_s": 2,
+                     "retry": {"first_delay_s": 0.2, "max_delay_s": 1, "warn_after_failures": 1, "poll_period_s": 0.2},
+                     "destinations": [
+                         {"name": "pacs", "ae_title": "PACS", "host": "127.0.0.1", "port": pacs.port, "objects": "both"},
+                         {"name": "down", "ae_title": "REG", "host": "127.0.0.1", "port": free_port(),
+                          "objects": "dose_reports"}]}
+    with open(config, "w") as f:
+        yaml.dump(data, f)
+    app = Appliance(ProfileKeeper(config), Notifier({}))
+    stop = threading.Event()
+    runner = threading.Thread(target=app.run, kwargs={"until": stop.is_set, "signals": False})
+    runner.start()
+    try:
+        # Each saved image reaches the PACS while the session goes on.
+        assert _wait(lambda: len(app.saved) == 2 and len(pacs.received()) == 2, 60), (app.saved, pacs.received())
+    finally:
+        stop.set()
+        runner.join(15)
+    assert not runner.is_alive()
+    images = [pydicom.dcmread(dcm) for _, dcm in app.saved]
+    assert sorted(pacs.received()) == sorted(str(ds.SOPInstanceUID) for ds in images)
+    # The session ended at shutdown: its dose report is queued for both destinations.
+    ledger = tmp_path / "data" / "ledger.sqlite"
+    with Outbox(ledger, "dicom") as box:
+        pending = box.pending()
+    assert sorted(p.destination for p in pending) == ["down", "pacs"]
+    assert {p.label for p in pending} == {f"dose report of session {app.session_id}"}
+    # The next send delivers it to the PACS; the registry that is down keeps it, with the reason.
+    code, out, err = main(["dicom", "send", "--config", str(config)]), *capsys.readouterr()
+    assert code == 1 and "'pacs': 1 object(s) sent" in out and "destination 'down'" in err
+    report = pydicom.dcmread(pacs.out / f"{pacs.received()[-1]}.dcm")
+    assert report.Modality == "SR" and report.StationName == "FS-TEST" and report.DeviceSerialNumber == "FS-0001"
+    assert {ds.StudyInstanceUID for ds in images} == {report.StudyInstanceUID}
+    events = [i for i in report.ContentSequence if i.ConceptNameCodeSequence[0].CodeMeaning ==
+              "Irradiation Event X-Ray Data"]
+    assert len(events) == 1
+    run_uid = next(c.UID for c in events[0].ContentSequence if c.ConceptNameCodeSequence[0].CodeMeaning ==
+                   "Irradiation Event UID")
+    assert [ds.IrradiationEventUID for ds in images] == [run_uid, run_uid]   # both show the one run
+
+
+def test_a_destination_that_is_down_shows_a_banner(tmp_path):
+    config = make_appliance(tmp_path)
+    yaml = YAML(typ="rt")
+    data = yaml.load(config.read_text())
+    port = free_port()
+    data["dicom"] = {"timeout_s": 1, "retry": {"first_delay_s": 0.1, "max_delay_s": 0.2, "warn_after_failures": 2,
+                                               "poll_period_s": 0.1},
+                     "destinations": [{"name": "pacs", "ae_title": "PACS", "host": "127.0.0.1", "port": port}]}
+    with open(config, "w") as f:
+        yaml.dump(data, f)
+    # Something to send: an object queued by an earlier run.
+    with Outbox(tmp_path / "data" / "ledger.sqlite", "dicom") as box:
+        box.put("1.2.826.0.1.3680043.2.1", "image 1 of session 0", b"not sent", ["pacs"])
+    app = Appliance(ProfileKeeper(config), Notifier({}))
+    stop = threading.Event()
+    runner = threading.Thread(target=app.run, kwargs={"until": stop.is_set, "signals": False})
+    runner.start()
+    try:
+        assert _wait(lambda: any(b.startswith("DICOM send to 'pacs' failing") and f"127.0.0.1:{port}" in b
+                                 and "stay queued" in b for b in app.supervisor.banners()), 30), app.supervisor.banners()
+        assert app.supervisor.worker_problems == []
+    finally:
+        stop.set()
+        runner.join(15)
+    with Outbox(tmp_path / "data" / "ledger.sqlite", "dicom") as box:
+        pending = {p.label: p for p in box.pending()}
+    # The earlier object was tried and kept; the session's dose report joined it in the queue.
+    assert sorted(pending) == ["dose report of session 1", "image 1 of session 0"]
+    tried = pending["image 1 of session 0"]
+    assert tried.attempts >= 2 and "Connection refused" in tried.last_error
