@@ -12,8 +12,8 @@ BIN    := $(VENV)/bin
 # alsa-utils gives aplay, which sounds the fluoroscopy-time alarm; dcmtk gives dsrdump and
 # dcentvfy, which check a session's dose report and images together, and orthanc is the real
 # PACS the DICOM sending tests store into, on loopback in a network namespace of their own
-# (iproute2 brings its lo up).
-APT_PACKAGES := libsystemd-dev pkg-config dicom3tools systemd python3-venv gcc linux-libc-dev alsa-utils dcmtk orthanc iproute2
+# (iproute2 brings its lo up); openssl makes the certificates of the DICOM-over-TLS test.
+APT_PACKAGES := libsystemd-dev pkg-config dicom3tools systemd python3-venv gcc linux-libc-dev alsa-utils dcmtk orthanc iproute2 openssl
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 .PHONY: demo test setup system-packages bench clean

@@ -1,16 +1,18 @@
 """A DICOM storage SCP in its own process (pynetdicom), standing in for a PACS or a dose registry.
 
-    python tests/dicom_receiver.py AE_TITLE OUT_DIR [--delay S] [--port P]
+    python tests/dicom_receiver.py AE_TITLE OUT_DIR [--delay S] [--port P] [--tls CERT KEY]
 
 Listens on 127.0.0.1 at port P (default: a free one) and prints "listening PORT". Only its own AE title is
 accepted as the called AE. Each C-STORE is written to OUT_DIR/<SOP Instance UID>.dcm and its
 UID appended to OUT_DIR/received.txt (flushed and fsynced) as soon as it arrives, then the
-answer is held back --delay seconds, so a test can kill the sender while it waits.
+answer is held back --delay seconds, so a test can kill the sender while it waits. With
+--tls it speaks DICOM over TLS with that certificate and key (PEM).
 """
 
 import argparse
 import logging
 import os
+import ssl
 import sys
 import time
 
@@ -24,6 +26,7 @@ def main() -> None:
     parser.add_argument("out_dir")
     parser.add_argument("--delay", type=float, default=0.0)
     parser.add_argument("--port", type=int, default=0)
+    parser.add_argument("--tls", nargs=2, metavar=("CERT", "KEY"))
     args = parser.parse_args()
     logging.getLogger("pynetdicom").setLevel(logging.CRITICAL)
     os.makedirs(args.out_dir, exist_ok=True)
@@ -44,7 +47,12 @@ def main() -> None:
     ae.require_called_aet = True
     ae.supported_contexts = AllStoragePresentationContexts
     ae.add_supported_context(Verification)
-    server = ae.start_server(("127.0.0.1", args.port), block=False, evt_handlers=[(evt.EVT_C_STORE, on_store)])
+    context = None
+    if args.tls:
+        context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+        context.load_cert_chain(*args.tls)
+    server = ae.start_server(("127.0.0.1", args.port), block=False, evt_handlers=[(evt.EVT_C_STORE, on_store)],
+                             ssl_context=context)
     print(f"listening {server.server_address[1]}", flush=True)
     try:
         sys.stdin.read()      # until the test closes our stdin (or kills us)

@@ -7,8 +7,9 @@ Prints one JSON object: the send's exit status and stderr, the echo's, and what 
 stored as read back over its REST API (studies, their series and instances).
 """
 
+import contextlib
+import io
 import json
-import os
 import subprocess
 import sys
 import time
@@ -17,6 +18,7 @@ from pathlib import Path
 
 DICOM_PORT, HTTP_PORT = 4242, 8042
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
 
 
 def rest(path: str):
@@ -24,9 +26,13 @@ def rest(path: str):
         return json.load(answer)
 
 
-def fluorosim(*args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "appliance.cli", *args], capture_output=True, text=True,
-                          env={**os.environ, "PYTHONPATH": str(REPO)}, timeout=120)
+def fluorosim(*args) -> dict:
+    """The `fluorosim` command, run in this process (inside the namespace): exit status and output."""
+    from appliance.cli import main
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        rc = main(list(args))
+    return {"rc": rc, "out": out.getvalue(), "err": err.getvalue()}
 
 
 def main() -> None:
@@ -51,10 +57,8 @@ def main() -> None:
                     raise SystemExit(f"Orthanc did not start: see {work / 'orthanc.log'}")
                 time.sleep(0.1)
         result["startup_s"] = round(time.monotonic() - started, 2)
-        echo = fluorosim("dicom", "echo", "--config", str(profile))
-        result["echo"] = {"rc": echo.returncode, "out": echo.stdout, "err": echo.stderr}
-        send = fluorosim("dicom", "send", "--config", str(profile), "--session", session)
-        result["send"] = {"rc": send.returncode, "out": send.stdout, "err": send.stderr}
+        result["echo"] = fluorosim("dicom", "echo", "--config", str(profile))
+        result["send"] = fluorosim("dicom", "send", "--config", str(profile), "--session", session)
         studies = []
         for study in rest("/studies?expand"):
             series = []

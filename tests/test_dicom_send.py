@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pydicom
 import pytest
+from ruamel.yaml import YAML
 
 from appliance.cli import main
 from appliance.records.outbox import Outbox
@@ -29,11 +30,12 @@ REPO = HERE.parent
 
 
 class Receiver:
-    def __init__(self, out: Path, ae_title: str, delay_s: float = 0.0):
+    def __init__(self, out: Path, ae_title: str, delay_s: float = 0.0, tls: tuple[Path, Path] | None = None):
         self.out = out
         self.ae_title = ae_title
         self.proc = subprocess.Popen([sys.executable, str(HERE / "dicom_receiver.py"), ae_title, str(out),
-                                      "--delay", str(delay_s)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+                                      "--delay", str(delay_s), *(["--tls", *map(str, tls)] if tls else [])],
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         line = self.proc.stdout.readline()
         assert line.startswith("listening "), line
         self.port = int(line.split()[1])
@@ -56,8 +58,8 @@ class Receiver:
 def receivers(tmp_path):
     started = []
 
-    def start(name: str, ae_title: str, delay_s: float = 0.0) -> Receiver:
-        r = Receiver(tmp_path / f"received-{name}", ae_title, delay_s)
+    def start(name: str, ae_title: str, delay_s: float = 0.0, tls: tuple[Path, Path] | None = None) -> Receiver:
+        r = Receiver(tmp_path / f"received-{name}", ae_title, delay_s, tls)
         started.append(r)
         return r
     yield start
@@ -73,15 +75,16 @@ def free_port() -> int:
 
 
 def write_profile(config_copy: Path, destinations: list[dict], timeout_s: float = 3.0) -> Path:
+    """The copied appliance profile with its dicom: section set for the test."""
     path = config_copy / "appliance.yaml"
-    lines = ["dicom:", "  ae_title: FLUOROSIM3", "  institution: St Elsewhere Teaching Hospital",
-             "  station_name: FLUOROSIM-3", "  serial_number: FS-0042", f"  timeout_s: {timeout_s}",
-             "  retry:", "    first_delay_s: 30", "    max_delay_s: 600", "    warn_after_failures: 2",
-             "  destinations:"]
-    for d in destinations:
-        lines.append(f"    - name: {d['name']}")
-        lines += [f"      {k}: {v}" for k, v in d.items() if k != "name"]
-    path.write_text(path.read_text() + "\n" + "\n".join(lines) + "\n")
+    yaml = YAML(typ="rt")
+    data = yaml.load(path.read_text())
+    data["dicom"] = {"ae_title": "FLUOROSIM3", "institution": "St Elsewhere Teaching Hospital",
+                     "station_name": "FLUOROSIM-3", "serial_number": "FS-0042", "timeout_s": timeout_s,
+                     "retry": {"first_delay_s": 30, "max_delay_s": 600, "warn_after_failures": 2},
+                     "destinations": destinations}
+    with open(path, "w") as f:
+        yaml.dump(data, f)
     return path
 
 
@@ -202,9 +205,11 @@ def test_killing_the_sender_mid_queue_loses_and_repeats_nothing_confirmed(config
     first = record_session(config_copy.parent / "var")
     ledger = config_copy.parent / "var/ledger.sqlite"
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    sender = subprocess.Popen([sys.executable, "-m", "appliance.cli", "dicom", "send", "--config", str(profile),
-                               "--session", str(first.session_id)], env=env, stdout=subprocess.DEVNULL,
-                              stderr=subprocess.PIPE, text=True)
+    # `fluorosim dicom send --session 1` in a process of its own (without the whole CLI's imports).
+    send = ("import sys, types; from appliance.records.dicom_commands import run_send; "
+            "run_send(types.SimpleNamespace(config=sys.argv[1], session=int(sys.argv[2])))")
+    sender = subprocess.Popen([sys.executable, "-c", send, str(profile), str(first.session_id)], env=env,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 30
     while len(pacs.received()) < 3 and time.monotonic() < deadline:
         time.sleep(0.02)
@@ -261,3 +266,36 @@ def test_orthanc_stores_the_session_as_one_study(config_copy, tmp_path):
     assert series["RF"]["SeriesInstanceUID"] == images[0].SeriesInstanceUID
     assert series["RF"]["instances"] == sorted(str(ds.SOPInstanceUID) for ds in images)
     assert series["SR"]["instances"] == [str(report.SOPInstanceUID)]
+
+
+def self_signed(folder: Path, name: str) -> tuple[Path, Path]:
+    """A certificate for 127.0.0.1 and localhost, and its key (PEM), made with openssl."""
+    cert, key = folder / f"{name}-cert.pem", folder / f"{name}-key.pem"
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes",
+                    "-keyout", str(key), "-out", str(cert), "-days", "2", "-subj", f"/CN={name}",
+                    "-addext", "subjectAltName=DNS:localhost,IP:127.0.0.1"], check=True, capture_output=True)
+    return cert, key
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl (Debian package openssl) makes the test certificates")
+def test_dicom_over_tls_checks_the_destinations_certificate(config_copy, receivers, capsys, tmp_path):
+    cert, key = self_signed(tmp_path, "pacs")
+    other, _ = self_signed(tmp_path, "someone-else")
+    pacs = receivers("pacs", "PACS", tls=(cert, key))
+    profile = write_profile(config_copy, [
+        {"name": "pacs", "ae_title": "PACS", "host": "127.0.0.1", "port": pacs.port, "tls": {"ca_file": str(cert)}},
+        {"name": "impostor", "ae_title": "PACS", "host": "127.0.0.1", "port": pacs.port, "tls": {"ca_file": str(other)},
+         "objects": "dose_reports"},
+    ])
+    session = record_session(config_copy.parent / "var")
+    code, out, err = cli(capsys, "dicom", "echo", "--config", str(profile))
+    assert code == 1 and "destination 'pacs'" in out and "answered C-ECHO" in out, err
+    (line,) = err.strip().splitlines()
+    assert line.startswith("fluorosim: destination 'impostor'") and "CERTIFICATE_VERIFY_FAILED" in line
+    code, out, err = cli(capsys, "dicom", "send", "--config", str(profile), "--session", "1")
+    assert code == 1 and "'pacs': 4 object(s) sent" in out
+    assert sorted(pacs.received()) == sorted(uids_of(session.images + [session.report]))
+    # The report stays queued for the destination whose certificate did not verify.
+    code, out, _ = cli(capsys, "dicom", "queue", "--config", str(profile))
+    (row,) = out.strip().splitlines()[1:]
+    assert "impostor" in row and "CERTIFICATE_VERIFY_FAILED" in row
