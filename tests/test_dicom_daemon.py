@@ -16,6 +16,7 @@ from appliance.daemon.pipeline import Appliance
 from appliance.daemon.reload import ProfileKeeper
 from appliance.records.outbox import Outbox
 from appliance_setup import make_appliance
+from dicom_session import record_session
 from test_dicom_send import free_port, receivers  # noqa: F401 - the fixture
 
 SCRIPT = ['{"t": 0.3, "hold": "pedal", "for_s": 1.5}',
@@ -88,9 +89,8 @@ def test_a_destination_that_is_down_shows_a_banner(tmp_path):
                      "destinations": [{"name": "pacs", "ae_title": "PACS", "host": "127.0.0.1", "port": port}]}
     with open(config, "w") as f:
         yaml.dump(data, f)
-    # Something to send: an object queued by an earlier run.
-    with Outbox(tmp_path / "data" / "ledger.sqlite", "dicom") as box:
-        box.put("1.2.826.0.1.3680043.2.1", "image 1 of session 0", b"not sent", ["pacs"])
+    # An earlier run's session, ended, whose dose report was never queued (cut off at shutdown).
+    previous = record_session(tmp_path / "data")
     app = Appliance(ProfileKeeper(config), Notifier({}))
     stop = threading.Event()
     runner = threading.Thread(target=app.run, kwargs={"until": stop.is_set, "signals": False})
@@ -104,7 +104,8 @@ def test_a_destination_that_is_down_shows_a_banner(tmp_path):
         runner.join(15)
     with Outbox(tmp_path / "data" / "ledger.sqlite", "dicom") as box:
         pending = {p.label: p for p in box.pending()}
-    # The earlier object was tried and kept; the session's dose report joined it in the queue.
-    assert sorted(pending) == ["dose report of session 1", "image 1 of session 0"]
-    tried = pending["image 1 of session 0"]
+    # The earlier session's report was queued at start, tried and kept; this session's joined it.
+    assert sorted(pending) == ["dose report of session 1", "dose report of session 2"]
+    tried = pending["dose report of session 1"]
+    assert tried.key == str(pydicom.dcmread(previous.report).SOPInstanceUID)
     assert tried.attempts >= 2 and "Connection refused" in tried.last_error

@@ -123,8 +123,9 @@ class Appliance:
         self.sender = DicomSendWorker(self.ledger.path, keeper)
         self.stats = self.render.stats
         self.supervisor = Supervisor(
-            # In this order: at shutdown the input worker ends its exposure before records flushes.
-            [self.capture, self.phase, self.render, self.input, self.records, self.sender], notifier,
+            # In this order: at shutdown the input worker ends its exposure before records flushes,
+            # and the ledger's writer, last, gets whatever time the others leave.
+            [self.capture, self.phase, self.render, self.input, self.sender, self.records], notifier,
             stall_timeout_s=daemon.stall_timeout_s, restart_limit=daemon.restart_limit,
             restart_window_s=daemon.restart_window_s, health_period_s=daemon.health_period_s,
             status_period_s=daemon.status_period_s, status=self.status_text,

@@ -16,7 +16,7 @@ from ..errors import FluorosimError
 from ..records import rdsr
 from ..records.dicom_sender import KIND, queue_object
 from ..records.identity import device_uid, equipment_of, identity_path
-from ..records.ledger import Ledger
+from ..records.ledger import Ledger, open_readonly
 from ..records.outbox import Outbox
 from ..records.rdsr import patient_of
 from ..records.saved_images import save_image
@@ -60,9 +60,9 @@ class RecordsWorker(Worker):
         if self._outbox is None:
             # Its own connection to the ledger's file: the send queue is outside the event chain.
             self._outbox = Outbox(self.ledger.path, KIND)
-            # Sessions a crash or power loss left open were closed when the ledger opened: their
-            # dose reports were never queued.
-            for sid in self.ledger.recovered:
+            # Sessions a crash or power loss left open were closed when the ledger opened, and the
+            # last run may have been cut off before it queued its report: queue what is missing.
+            for sid in sorted(set(self.ledger.recovered) | set(self._last_ended())):
                 self._queue_report(sid)
         if self.session_id is not None:
             return  # restarted after a crash: the session goes on
@@ -138,6 +138,14 @@ class RecordsWorker(Worker):
                 raise FluorosimError(f"{dicom}: cannot read the saved image back to queue it ({e.strerror or e})") from None
             queue_object(self._outbox, cfg.appliance.dicom, data, "image",
                          f"image {state.save_count} of session {self.session_id}", self.session_id)
+
+    def _last_ended(self) -> list[int]:
+        conn = open_readonly(self.ledger.path)
+        try:
+            last = conn.execute("SELECT max(id) FROM sessions WHERE ended_wall IS NOT NULL").fetchone()[0]
+        finally:
+            conn.close()
+        return [] if last is None else [last]
 
     def _queue_report(self, session_id: int) -> None:
         """Queue an ended session's dose report for the destinations that take dose reports."""

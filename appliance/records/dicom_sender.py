@@ -31,12 +31,13 @@ BATCH = 32        # objects per association per round
 
 def queue_object(outbox: Outbox, dicom: Dicom, data: bytes, what: str, label: str, session_id: int | None) -> list[str]:
     """Queue one Part 10 object (`what` is "image" or "dose_report") for the destinations that
-    take it; returns their names. Queueing one object twice changes nothing."""
+    take it; returns the names it was newly queued for (none if it was already queued there:
+    queueing one object twice changes nothing)."""
     names = [d.name for d in dicom.destinations if d.takes(what)]  # type: ignore[arg-type]
-    if names:
-        key = str(pydicom.dcmread(io.BytesIO(data), stop_before_pixels=True).SOPInstanceUID)
-        outbox.put(key, label, data, names, session_id=session_id)
-    return names
+    if not names:
+        return []
+    key = str(pydicom.dcmread(io.BytesIO(data), stop_before_pixels=True).SOPInstanceUID)
+    return names if outbox.put(key, label, data, names, session_id=session_id) else []
 
 
 @dataclass
