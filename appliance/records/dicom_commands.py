@@ -107,7 +107,8 @@ def run_send(args) -> int:
             print(f"fluorosim: {line}", file=sys.stderr)
         left = outbox.pending()
         if left:
-            print(f"{len(left)} deliver(y/ies) still queued; see 'fluorosim dicom queue'", file=sys.stderr)
+            what = "1 delivery" if len(left) == 1 else f"{len(left)} deliveries"
+            print(f"{what} still queued, tried again later; see 'fluorosim dicom queue'", file=sys.stderr)
             return 1
         if not totals:
             print("nothing queued; nothing sent")
