@@ -11,7 +11,7 @@ import numpy as np
 from appliance.config import FluoroscopeProfile, KeymapProfile, load_profile
 from appliance.config.dicom import Dicom
 from appliance.console.state import Console
-from appliance.records import rdsr
+from appliance.records import dicom, rdsr
 from appliance.records.identity import device_uid, equipment_of
 from appliance.records.ledger import Ledger
 from appliance.records.saved_images import save_image
@@ -74,7 +74,7 @@ def record_session(tmp: Path, operator: str = "Jane Q Trainee", rng_seed: int = 
                 images.append(dcm)
         ledger.end_session(T0 + 20.0)
         session, events = ledger.session_rows(sid)
-    report_bytes = rdsr.encode(rdsr.session_report(session, events))
+    report_bytes = dicom.encode(rdsr.session_report(session, events))
     report = tmp / "images" / f"session-{sid:06d}.dcm"
     report.write_bytes(report_bytes)
     on_hashes = [e["hash"] for e in events if e["kind"] == "fluoro_on"]

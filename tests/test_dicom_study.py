@@ -4,7 +4,6 @@ of a session's dose report and images together."""
 import re
 import shutil
 import subprocess
-from pathlib import Path
 
 import pydicom
 import pytest
@@ -119,10 +118,10 @@ def test_uids_are_stable_for_a_session_and_differ_between_appliances(tmp_path, s
     # Another appliance (its own identity file) recording the same script at the same instant.
     assert pydicom.dcmread(again.report).StudyInstanceUID != pydicom.dcmread(session.report).StudyInstanceUID
     # Rebuilding one session's report from its ledger gives the same bytes (same UIDs on every retry).
-    from appliance.records import rdsr
+    from appliance.records import dicom, rdsr
     from appliance.records.ledger import Ledger
     with Ledger(session.ledger) as ledger:
-        rebuilt = rdsr.encode(rdsr.session_report(*ledger.session_rows(session.session_id)))
+        rebuilt = dicom.encode(rdsr.session_report(*ledger.session_rows(session.session_id)))
     assert rebuilt == session.report_bytes
 
 

@@ -14,6 +14,7 @@ import numpy as np
 from ..console.state import ConsoleState
 from ..errors import FluorosimError
 from ..records import rdsr
+from ..records.dicom import encode as encode_dicom
 from ..records.dicom_sender import KIND, queue_object
 from ..records.identity import device_uid, equipment_of, identity_path
 from ..records.ledger import Ledger, open_readonly
@@ -153,7 +154,7 @@ class RecordsWorker(Worker):
         if self._outbox is None or not any(d.takes("dose_report") for d in dicom.destinations):
             return
         try:
-            report = rdsr.encode(rdsr.session_report(*self.ledger.session_rows(session_id)))
+            report = encode_dicom(rdsr.session_report(*self.ledger.session_rows(session_id)))
             names = queue_object(self._outbox, dicom, report, "dose_report",
                                  f"dose report of session {session_id}", session_id)
         except FluorosimError as e:

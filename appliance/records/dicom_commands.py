@@ -9,7 +9,7 @@ from pathlib import Path
 
 from ..config import ApplianceProfile, load_profile, resolve
 from ..errors import FluorosimError
-from . import dicom_network, rdsr
+from . import dicom, dicom_network, rdsr
 from .dicom_sender import KIND, DicomSender, queue_object
 from .export import events_of
 from .identity import device_uid, identity_path
@@ -78,7 +78,7 @@ def _queue_session(outbox: Outbox, appliance: ApplianceProfile, data_dir: Path, 
     if session["ended_wall"] is None:
         print(f"note: session {session_id} is still open; its dose report is queued when it ends", file=sys.stderr)
     else:
-        report = rdsr.encode(rdsr.session_report(session, events))
+        report = dicom.encode(rdsr.session_report(session, events))
         queue_object(outbox, appliance.dicom, report, "dose_report", f"dose report of session {session_id}", session_id)
         found += 1
     return found

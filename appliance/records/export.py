@@ -20,7 +20,7 @@ from pathlib import Path
 
 from ..atomic_file import write_atomic
 from ..errors import FluorosimError
-from . import rdsr
+from . import dicom, rdsr
 from .ledger import EVENT_COLUMNS, SESSION_COLUMNS, verify
 
 FORMATS = ("csv", "json", "rdsr")
@@ -112,7 +112,7 @@ def build_files(conn: sqlite3.Connection, sessions: list[dict], fmt: str) -> tup
             if s["ended_wall"] is None:
                 notes.append(f"session {s['id']} is still open; no dose report until it ends")
                 continue
-            files[f"session-{s['id']:06d}.dcm"] = rdsr.encode(rdsr.session_report(s, events_of(conn, s["id"])))
+            files[f"session-{s['id']:06d}.dcm"] = dicom.encode(rdsr.session_report(s, events_of(conn, s["id"])))
         return files, notes
     raise FluorosimError(f"unknown export format '{fmt}'; choose one of {', '.join(FORMATS)}")
 

@@ -15,13 +15,12 @@ ms, mm, m2. The ledger records mGy and Gy cm^2; they are converted here.
 from __future__ import annotations
 
 import datetime as dt
-import io
 
-from pydicom.dataset import Dataset, FileMetaDataset
+from pydicom.dataset import Dataset
 from pydicom.sequence import Sequence
-from pydicom.uid import ExplicitVRLittleEndian, PYDICOM_IMPLEMENTATION_UID
 
-from .study import (LOCAL_SCHEME, TRAINING_PROCEDURE, SessionStudy, apply_common, code, ds_number, person_name,
+from .dicom import ds_number
+from .study import (LOCAL_SCHEME, TRAINING_PROCEDURE, SessionStudy, apply_common, code, person_name,
                     procedure_step_reference, runs_of, session_study)
 
 XRAY_RADIATION_DOSE_SR = "1.2.840.10008.5.1.4.1.1.88.67"
@@ -320,19 +319,6 @@ def session_report(session: dict, events: list[dict]) -> Dataset:
     ds.ContentTemplateSequence = Sequence([template])
     ds.ContentSequence = Sequence(content)
     return ds
-
-
-def encode(ds: Dataset) -> bytes:
-    """The dataset as a DICOM Part 10 file."""
-    meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = ds.SOPClassUID
-    meta.MediaStorageSOPInstanceUID = ds.SOPInstanceUID
-    meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    meta.ImplementationClassUID = PYDICOM_IMPLEMENTATION_UID
-    ds.file_meta = meta
-    buffer = io.BytesIO()
-    ds.save_as(buffer, enforce_file_format=True)
-    return buffer.getvalue()
 
 
 def patient_of(case) -> dict:

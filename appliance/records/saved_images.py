@@ -26,9 +26,9 @@ from ..atomic_file import write_atomic
 from ..config.fluoroscope import FluoroscopeProfile
 from ..console.state import ConsoleState
 from ..errors import FluorosimError
-from .rdsr import encode
+from .dicom import ds_number as _ds_number
+from .dicom import encode
 from .study import SessionStudy, apply_common, person_name, procedure_step_reference
-from .study import ds_number as _ds_number
 
 
 def _as_display(image: np.ndarray) -> np.ndarray:

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import datetime as dt
 import json
-import uuid
 from dataclasses import dataclass
 
 from pydicom.dataset import Dataset
@@ -24,9 +23,7 @@ from pydicom.sequence import Sequence
 
 from .. import __version__
 from ..config.case import Patient
-
-#: Name-based UUIDs in this namespace give the 2.25 UIDs of PS3.5 B.2.
-UID_NAMESPACE = uuid.UUID("6f1b9d3e-4a57-5c1e-9f0b-3c6d2a8e7b41")
+from .dicom import set_simulated_patient, uid
 
 # The training procedure, coded where importers read it (Procedure Code Sequence of the
 # General Study module, which OpenREM reads as the study's procedure).
@@ -35,24 +32,10 @@ TRAINING_PROCEDURE = ("TRAINING", LOCAL_SCHEME, "Simulated fluoroscopy training 
 STUDY_DESCRIPTION = "Fluoroscopy training (simulated)"
 
 
-def derived_uid(*parts) -> str:
-    """A UID derived from ledger content: the same parts give the same UID."""
-    return "2.25." + str(uuid.uuid5(UID_NAMESPACE, "\x1f".join(str(p) for p in parts)).int)
-
-
 def code(c: tuple[str, str, str]) -> Dataset:
     ds = Dataset()
     ds.CodeValue, ds.CodingSchemeDesignator, ds.CodeMeaning = c
     return ds
-
-
-def ds_number(value: float) -> str:
-    """A Decimal String of at most 16 characters that keeps as many digits as fit."""
-    for digits in range(12, 0, -1):
-        text = f"{value:.{digits}g}"
-        if len(text) <= 16:
-            return text
-    return "0"
 
 
 def person_name(operator: str) -> str:
@@ -98,38 +81,38 @@ class SessionStudy:
 
     @property
     def study_uid(self) -> str:
-        return derived_uid("study", self.start_hash)
+        return uid("study", self.start_hash)
 
     @property
     def report_series_uid(self) -> str:
-        return derived_uid("series", self.start_hash)
+        return uid("series", self.start_hash)
 
     @property
     def report_uid(self) -> str:
-        return derived_uid("rdsr", self.start_hash, self.session_id)
+        return uid("rdsr", self.start_hash, self.session_id)
 
     @property
     def image_series_uid(self) -> str:
-        return derived_uid("saved images series", self.start_hash)
+        return uid("saved images series", self.start_hash)
 
     def image_uid(self, number: int) -> str:
-        return derived_uid("saved image", self.start_hash, number)
+        return uid("saved image", self.start_hash, number)
 
     @property
     def procedure_step_uid(self) -> str:
         """The session as a performed procedure step, which the report and the images reference
         (IHE REM requires the reference; no MPPS message is sent for it)."""
-        return derived_uid("performed procedure step", self.start_hash)
+        return uid("performed procedure step", self.start_hash)
 
     @staticmethod
     def event_uid(fluoro_on_hash: str) -> str:
         """The Irradiation Event UID of the run that began with this fluoro_on event."""
-        return derived_uid("irradiation event", fluoro_on_hash)
+        return uid("irradiation event", fluoro_on_hash)
 
     @property
     def device_uid(self) -> str:
         # Sessions recorded before appliances had an identity of their own.
-        return self.equipment.get("device_uid") or derived_uid("device", self.manufacturer, self.model, self.serial)
+        return self.equipment.get("device_uid") or uid("device", self.manufacturer, self.model, self.serial)
 
     @property
     def manufacturer(self) -> str:
@@ -192,24 +175,17 @@ def procedure_step_reference(study: SessionStudy) -> Sequence:
 def apply_common(ds: Dataset, study: SessionStudy) -> None:
     """Patient, study and equipment attributes, the same in every object of the session (so a
     PACS files them as one patient and one study, and dcentvfy finds them consistent)."""
-    p = study.patient
     eq = study.equipment
     ds.SpecificCharacterSet = "ISO_IR 192"
     ds.TimezoneOffsetFromUTC = "+0000"
     # Patient: a virtual patient per session; the ID is unique per appliance, so its issuer is
     # qualified by the Device Observer UID and a registry never adds two sessions' doses.
-    ds.PatientName = "SIMULATED^TRAINING"
-    ds.PatientID = study.patient_id
+    set_simulated_patient(ds, study.patient.model_dump(), study.session_id)
     ds.IssuerOfPatientID = (eq.get("patient_id_issuer") or "FLUOROSIM")[:64]
     issuer = Dataset()
     issuer.UniversalEntityID = study.device_uid
     issuer.UniversalEntityIDType = "ISO"
     ds.IssuerOfPatientIDQualifiersSequence = Sequence([issuer])
-    ds.PatientBirthDate = ""
-    ds.PatientSex = p.sex
-    ds.PatientAge = f"{p.age_years:03d}Y"
-    ds.PatientWeight = ds_number(p.weight_kg)
-    ds.PatientSize = ds_number(p.height_m)
     # Study.
     ds.StudyInstanceUID = study.study_uid
     ds.StudyDate = study.started.strftime("%Y%m%d")
@@ -221,7 +197,7 @@ def apply_common(ds: Dataset, study: SessionStudy) -> None:
     ds.ProcedureCodeSequence = Sequence([code(TRAINING_PROCEDURE)])
     case_title = study.case_title
     ds.AdmittingDiagnosesDescription = f"Training case: {case_title}"[:64]
-    ds.AdmittingDiagnosesCodeSequence = Sequence([code((f"CASE-{derived_uid('case', case_title)[-10:]}", LOCAL_SCHEME,
+    ds.AdmittingDiagnosesCodeSequence = Sequence([code((f"CASE-{uid('case', case_title)[-10:]}", LOCAL_SCHEME,
                                                         case_title[:64] or "training case"))])
     # Equipment: this appliance.
     ds.Manufacturer = study.manufacturer[:64]
