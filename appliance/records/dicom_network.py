@@ -41,7 +41,12 @@ _pynetdicom_log.setLevel(logging.ERROR)
 
 
 class DestinationError(FluorosimError):
-    """A destination could not be reached or refused the association."""
+    """A destination could not be reached or refused the association. `short` is the reason in
+    a few words, for the on-screen banner (the message itself is for the log and the admin)."""
+
+    def __init__(self, message: str, short: str = "no answer"):
+        super().__init__(message)
+        self.short = short
 
 
 class _SocketReasons(logging.Handler):
@@ -74,7 +79,7 @@ def _tls_context(dest: Destination, base: Path) -> tuple[ssl.SSLContext, str] | 
             context.load_cert_chain(path(dest.tls.cert_file), path(dest.tls.key_file))
     except (OSError, ssl.SSLError) as e:
         raise DestinationError(f"destination {dest.label()}: cannot load its TLS files ({e}); check dicom.destinations "
-                               f"tls: in the appliance profile") from None
+                               f"tls: in the appliance profile", "TLS files unreadable") from None
     return context, dest.tls.server_name or dest.host
 
 
@@ -90,7 +95,7 @@ def association(dicom: Dicom, dest: Destination, base: Path, contexts: list[tupl
         socket.getaddrinfo(dest.host, dest.port, type=socket.SOCK_STREAM)
     except (socket.gaierror, UnicodeError) as e:
         raise DestinationError(f"destination {dest.label()}: cannot resolve host '{dest.host}' ({e}); check host in "
-                               "the dicom: section and the appliance's name service") from None
+                               "the dicom: section and the appliance's name service", "unknown host") from None
     rejection: list = []
 
     def on_acse(event) -> None:
@@ -110,10 +115,12 @@ def association(dicom: Dicom, dest: Destination, base: Path, contexts: list[tupl
                     "Calling AE title not recognised": f"ask the destination's admin to accept AE title {dicom.ae_title}"}
             reason = r.reason_str
             raise DestinationError(f"destination {dest.label()}: association rejected ({r.result_str.lower()}, "
-                                   f"{reason}); {hint.get(reason, 'check ae_title with the destination admin')}")
+                                   f"{reason}); {hint.get(reason, 'check ae_title with the destination admin')}",
+                                   f"rejected: {reason}")
         why = reasons[0] if reasons else "no answer"
+        short = "certificate not verified" if "CERTIFICATE_VERIFY_FAILED" in why else why.split("] ")[-1]
         raise DestinationError(f"destination {dest.label()}: no DICOM association ({why}); check host and port, and that "
-                               "the destination's DICOM service is running and reachable")
+                               "the destination's DICOM service is running and reachable", short)
     try:
         yield assoc
     finally:
@@ -128,7 +135,8 @@ def echo(dicom: Dicom, dest: Destination, base: Path) -> float:
         status = assoc.send_c_echo()
     if not status or status.Status != 0x0000:
         code = f"0x{status.Status:04X}" if status else "no response"
-        raise DestinationError(f"destination {dest.label()}: C-ECHO failed ({code}); check the destination's logs")
+        raise DestinationError(f"destination {dest.label()}: C-ECHO failed ({code}); check the destination's logs",
+                               "C-ECHO failed")
     return (time.monotonic() - started) * 1000.0
 
 
@@ -156,11 +164,11 @@ def store(dicom: Dicom, dest: Destination, base: Path, objects: list[tuple[str, 
             status = assoc.send_c_store(ds)
             if not assoc.is_established:
                 raise DestinationError(f"destination {dest.label()}: the association was lost while storing; "
-                                       "check the destination's logs")
+                                       "check the destination's logs", "connection lost")
             code = getattr(status, "Status", None)
             if code is None:
                 raise DestinationError(f"destination {dest.label()}: no answer to C-STORE within {dicom.timeout_s:g} s; "
-                                       "check the destination's load and logs")
+                                       "check the destination's load and logs", "no answer to C-STORE")
             # 0x0000 success; 0xB000, 0xB006, 0xB007 warnings (stored, with coercion or elements dropped).
             if code == 0x0000 or code in (0xB000, 0xB006, 0xB007):
                 on_result(StoreResult(key, True, "stored" if code == 0 else f"stored with warning 0x{code:04X}"))

@@ -53,7 +53,7 @@ class DicomSender:
         self.outbox = outbox
         self.dicom = dicom
         self.base = base
-        #: Destination -> (failed rounds in a row, the last error); kept across a profile reload.
+        #: Destination -> (failed rounds in a row, the last error's short reason); kept across a reload.
         self.failures: dict[str, tuple[int, str]] = dict(failures or {})
 
     def run_round(self, *, ignore_backoff: bool = False) -> RoundReport:
@@ -85,14 +85,14 @@ class DicomSender:
                     if item.key not in done:
                         self.outbox.failed(item, message, first_delay_s=retry.first_delay_s, max_delay_s=retry.max_delay_s)
                 report.errors.append(message)
-                self._count_failure(dest.name, message)
+                self._count_failure(dest.name, message, e.short)
                 continue
             self._count_success(dest.name)
         return report
 
-    def _count_failure(self, name: str, message: str) -> None:
+    def _count_failure(self, name: str, message: str, short: str) -> None:
         n = self.failures.get(name, (0, ""))[0] + 1
-        self.failures[name] = (n, message)
+        self.failures[name] = (n, short)
         if n == self.dicom.retry.warn_after_failures:
             log.warning("DICOM destination keeps failing (%d attempts in a row); objects stay queued: %s", n, message)
 
@@ -102,7 +102,8 @@ class DicomSender:
         self.failures.pop(name, None)
 
     def problems(self) -> list[str]:
-        """One line per destination that keeps failing, for the on-screen banner."""
+        """A few words per destination that keeps failing, for the on-screen banner; they stay
+        the same while it keeps failing the same way (the log has the full line once)."""
         limit = self.dicom.retry.warn_after_failures
-        return [f"DICOM send to '{name}' failing ({n} tries): {error}"
-                for name, (n, error) in sorted(self.failures.items()) if n >= limit]
+        return [f"DICOM send to '{name}' failing ({short})" for name, (n, short) in sorted(self.failures.items())
+                if n >= limit]
