@@ -8,16 +8,16 @@ import threading
 import time
 
 import pydicom
+from appliance_setup import make_appliance
+from dicom_session import record_session
 from ruamel.yaml import YAML
+from test_dicom_send import free_port, receivers  # noqa: F401 - the fixture
 
 from appliance.cli import main
 from appliance.daemon.notify import Notifier
 from appliance.daemon.pipeline import Appliance
 from appliance.daemon.reload import ProfileKeeper
 from appliance.records.outbox import Outbox
-from appliance_setup import make_appliance
-from dicom_session import record_session
-from test_dicom_send import free_port, receivers  # noqa: F401 - the fixture
 
 SCRIPT = ['{"t": 0.3, "hold": "pedal", "for_s": 1.5}',
           '{"t": 1.2, "tap": "KEY_KPPLUS"}',          # live, in the run

@@ -18,12 +18,11 @@ from pathlib import Path
 
 import pydicom
 import pytest
+from dicom_session import record_session
 from ruamel.yaml import YAML
 
 from appliance.cli import main
 from appliance.records.outbox import Outbox
-
-from dicom_session import record_session
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent

@@ -7,12 +7,11 @@ import subprocess
 
 import pydicom
 import pytest
+from dicom_session import IDENTITY, II, record_session
 
 from appliance.errors import FluorosimError
 from appliance.records.identity import device_uid, read_device_uid
 from appliance.records.study import person_name
-
-from dicom_session import II, IDENTITY, record_session
 
 UID = re.compile(r"^(0|[1-9][0-9]*)(\.(0|[1-9][0-9]*))+$")
 needs_dcmtk = pytest.mark.skipif(shutil.which("dsrdump") is None or shutil.which("dcentvfy") is None,

@@ -15,13 +15,17 @@ import socket
 import ssl
 import threading
 import time
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
 
 import pydicom
-from pydicom.uid import ExplicitVRLittleEndian, ImplicitVRLittleEndian, XRayRadiofluoroscopicImageStorage
+from pydicom.uid import (
+    ExplicitVRLittleEndian,
+    ImplicitVRLittleEndian,
+    XRayRadiofluoroscopicImageStorage,
+)
 from pynetdicom import AE, evt
 from pynetdicom.sop_class import Verification, XRayRadiationDoseSRStorage  # type: ignore[attr-defined]
 
@@ -84,11 +88,11 @@ def _tls_context(dest: Destination, base: Path) -> tuple[ssl.SSLContext, str] | 
 
 
 @contextmanager
-def association(dicom: Dicom, dest: Destination, base: Path, contexts: list[tuple[str, list[str]]]) -> Iterator:
+def association(dicom: Dicom, dest: Destination, base: Path, contexts: Sequence[tuple[str, Sequence[str]]]) -> Iterator:
     """An established association with `dest`, released on exit; `base` is the profile's folder."""
     ae = AE(ae_title=dicom.ae_title)
     for sop_class, syntaxes in contexts:
-        ae.add_requested_context(sop_class, syntaxes)
+        ae.add_requested_context(sop_class, list(syntaxes))
     ae.connection_timeout = ae.acse_timeout = ae.dimse_timeout = ae.network_timeout = dicom.timeout_s
     tls = _tls_context(dest, base)
     try:
