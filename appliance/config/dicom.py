@@ -89,13 +89,14 @@ class Dicom(Section):
 
     _strip = field_validator("ae_title")(_ae_title)
 
-    @model_validator(mode="after")
-    def _unique_names(self):
-        names = [d.name for d in self.destinations]
+    @field_validator("destinations")
+    @classmethod
+    def _unique_names(cls, destinations: list[Destination]) -> list[Destination]:
+        names = [d.name for d in destinations]
         for name in names:
             if names.count(name) > 1:
                 raise ValueError(f"destination name '{name}' is used twice; names must be unique")
-        return self
+        return destinations
 
     def destination(self, name: str) -> Destination | None:
         return next((d for d in self.destinations if d.name == name), None)
