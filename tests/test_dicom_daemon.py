@@ -109,3 +109,25 @@ def test_a_destination_that_is_down_shows_a_banner(tmp_path):
     tried = pending["dose report of session 1"]
     assert tried.key == str(pydicom.dcmread(previous.report).SOPInstanceUID)
     assert tried.attempts >= 2 and "Connection refused" in tried.last_error
+
+
+def test_an_unwritable_identity_file_does_not_stop_the_session(tmp_path):
+    config = make_appliance(tmp_path)
+    yaml = YAML(typ="rt")
+    data = yaml.load(config.read_text())
+    blocked = tmp_path / "not-a-folder"
+    blocked.write_text("a file where the identity's folder should be\n")
+    data["dicom"] = {"identity_file": str(blocked / "device-identity")}
+    with open(config, "w") as f:
+        yaml.dump(data, f)
+    app = Appliance(ProfileKeeper(config), Notifier({}))
+    stop = threading.Event()
+    runner = threading.Thread(target=app.run, kwargs={"until": stop.is_set, "signals": False})
+    runner.start()
+    try:
+        assert _wait(lambda: app.session_id is not None and app.stats.frames > 0, 30)
+        assert app.supervisor.worker_problems == []
+    finally:
+        stop.set()
+        runner.join(15)
+    assert not runner.is_alive()

@@ -70,7 +70,12 @@ class RecordsWorker(Worker):
         cfg = self.keeper.current
         fl = cfg.fluoroscope
         dicom = cfg.appliance.dicom
-        identity = device_uid(identity_path(cfg.path, cfg.data_dir, dicom))
+        try:
+            identity = device_uid(identity_path(cfg.path, cfg.data_dir, dicom))
+        except FluorosimError as e:
+            # Training goes on; the session's objects then name the device by its profile only.
+            log.error("no Device Observer UID: %s", e)
+            identity = ""
         self.session_id = self.ledger.start_session(
             cfg.appliance.operator, cfg.case.title, fl.name, time.time(), t_monotonic=self.console_clock(),
             equipment=equipment_of(fl, dicom, identity), patient=patient_of(cfg.case))

@@ -62,7 +62,8 @@ def device_uid(path: Path, *, create: bool = True) -> str:
 
 
 def equipment_of(fluoroscope, dicom: Dicom, uid: str) -> dict:
-    """What a session records about its machine and appliance, for images and dose reports."""
+    """What a session records about its machine and appliance, for images and dose reports
+    (`uid` empty when the appliance has none: the objects then fall back to a profile-derived one)."""
     return {"manufacturer": fluoroscope.manufacturer, "model": fluoroscope.model, "serial": dicom.serial_number,
-            "device_uid": uid, "institution": dicom.institution, "department": dicom.department,
+            "device_uid": uid or None, "institution": dicom.institution, "department": dicom.department,
             "station_name": dicom.station_name, "patient_id_issuer": dicom.patient_id_issuer}
