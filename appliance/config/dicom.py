@@ -84,6 +84,10 @@ class Dicom(Section):
                                       "once (`fluorosim dicom identity`); relative to this profile unless absolute; "
                                       "default: device-identity in data_dir.")
     timeout_s: float = Field(10.0, gt=0, le=300, description="Connection, association and response time-out for one destination (s).")
+    send_at_shutdown_s: float = Field(0.5, ge=0, le=1, description="When the session ends at shutdown, how long its dose "
+                                      "report may take to send at once, over all destinations (s); what does not go "
+                                      "in time stays queued for the next start. 0: always leave it queued. The service "
+                                      "has 2 s to stop in all.")
     retry: Retry = Field(default_factory=Retry, description="Retry and warning policy of the send queue.")
     destinations: list[Destination] = Field(default_factory=list, description="Where images and dose reports are sent; empty: nowhere.")
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import queue
+import threading
 import time
 from pathlib import Path
 from typing import Callable
@@ -15,7 +16,7 @@ from ..console.state import ConsoleState
 from ..errors import FluorosimError
 from ..records import rdsr
 from ..records.dicom import encode as encode_dicom
-from ..records.dicom_sender import KIND, queue_object
+from ..records.dicom_sender import KIND, DicomSender, queue_object, sop_instance_uid
 from ..records.identity import device_uid, equipment_of, identity_path
 from ..records.ledger import Ledger, open_readonly
 from ..records.outbox import Outbox
@@ -56,6 +57,7 @@ class RecordsWorker(Worker):
         self.saved: list[tuple[Path, Path]] = []
         self._unwritten: list[Recorded] = []
         self._outbox: Outbox | None = None
+        self._last_report: bytes | None = None
 
     def setup(self) -> None:
         if self._outbox is None:
@@ -145,6 +147,30 @@ class RecordsWorker(Worker):
             queue_object(self._outbox, cfg.appliance.dicom, data, "image",
                          f"image {state.save_count} of session {self.session_id}", self.session_id)
 
+    def _send_report_now(self, report: bytes) -> None:
+        """At shutdown, try to send the session's dose report within dicom.send_at_shutdown_s
+        (the sender worker has stopped); what does not go in time stays queued for the next start."""
+        cfg = self.keeper.current
+        dicom = cfg.appliance.dicom
+        budget = dicom.send_at_shutdown_s
+        if budget <= 0 or not any(d.takes("dose_report") for d in dicom.destinations):
+            return
+        key, sent = sop_instance_uid(report), {}
+
+        def send() -> None:
+            # Its own connection: if the time runs out, this thread is left behind at exit.
+            with Outbox(self.ledger.path, KIND) as box:
+                quick = dicom.model_copy(update={"timeout_s": budget})
+                sent.update(DicomSender(box, quick, cfg.path.parent).run_round(ignore_backoff=True, key=key).sent)
+        sender = threading.Thread(target=send, name="fluorosim-dicom-shutdown", daemon=True)
+        sender.start()
+        sender.join(budget)
+        for name in sent:
+            log.info("dose report of session %s sent to '%s'", self.session_id, name)
+        if sender.is_alive():
+            log.warning("dose report of session %s not confirmed within %.1f s of shutdown; it stays queued",
+                        self.session_id, budget)
+
     def _last_ended(self) -> list[int]:
         conn = open_readonly(self.ledger.path)
         try:
@@ -162,6 +188,7 @@ class RecordsWorker(Worker):
             report = encode_dicom(rdsr.session_report(*self.ledger.session_rows(session_id)))
             names = queue_object(self._outbox, dicom, report, "dose_report",
                                  f"dose report of session {session_id}", session_id)
+            self._last_report = report
         except FluorosimError as e:
             log.error("dose report of session %s not queued: %s; 'fluorosim dicom send --session %s' queues it",
                       session_id, e, session_id)
@@ -192,7 +219,10 @@ class RecordsWorker(Worker):
             return
         log.info("session %s ended; ledger flushed", self.session_id)
         if self.session_id is not None:
+            self._last_report = None
             self._queue_report(self.session_id)
+            if self._last_report is not None:
+                self._send_report_now(self._last_report)
         if self._outbox is not None:
             self._outbox.close()
             self._outbox = None

@@ -36,8 +36,12 @@ def queue_object(outbox: Outbox, dicom: Dicom, data: bytes, what: str, label: st
     names = [d.name for d in dicom.destinations if d.takes(what)]  # type: ignore[arg-type]
     if not names:
         return []
-    key = str(pydicom.dcmread(io.BytesIO(data), stop_before_pixels=True).SOPInstanceUID)
-    return names if outbox.put(key, label, data, names, session_id=session_id) else []
+    return names if outbox.put(sop_instance_uid(data), label, data, names, session_id=session_id) else []
+
+
+def sop_instance_uid(data: bytes) -> str:
+    """The key an object is queued under."""
+    return str(pydicom.dcmread(io.BytesIO(data), stop_before_pixels=True).SOPInstanceUID)
 
 
 @dataclass
@@ -56,12 +60,13 @@ class DicomSender:
         #: Destination -> (failed rounds in a row, the last error's short reason); kept across a reload.
         self.failures: dict[str, tuple[int, str]] = dict(failures or {})
 
-    def run_round(self, *, ignore_backoff: bool = False) -> RoundReport:
+    def run_round(self, *, ignore_backoff: bool = False, key: str | None = None) -> RoundReport:
+        """Send what is due (or only the object `key`) to each destination, one association each."""
         report = RoundReport()
         retry = self.dicom.retry
         for dest in self.dicom.destinations:
             items = self.outbox.claim(dest.name, lease_s=self.dicom.timeout_s * (BATCH + 3), limit=BATCH,
-                                      ignore_backoff=ignore_backoff)
+                                      ignore_backoff=ignore_backoff, key=key)
             if not items:
                 continue
             by_key = {i.key: i for i in items}

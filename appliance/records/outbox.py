@@ -133,15 +133,17 @@ class Outbox:
         return self._write(work)
 
     def claim(self, destination: str, *, now: float | None = None, lease_s: float, limit: int = 16,
-              ignore_backoff: bool = False) -> list[Item]:
-        """Hand out up to `limit` due deliveries to `destination`, oldest first, leased for `lease_s`."""
+              ignore_backoff: bool = False, key: str | None = None) -> list[Item]:
+        """Hand out up to `limit` due deliveries to `destination`, oldest first, leased for `lease_s`
+        (only the object `key`, if given)."""
         now = time.time() if now is None else now
 
         def work() -> list[Item]:
             rows = self._conn.execute(
                 "SELECT i.id, i.item_key, i.label, d.attempts, d.lease_until, d.lease_owner FROM outbox_deliveries d "
                 "JOIN outbox_items i ON i.id = d.item_id WHERE i.kind = ? AND d.destination = ? AND d.sent_wall IS NULL "
-                "AND (? OR d.next_try_wall <= ?) ORDER BY i.id", (self.kind, destination, int(ignore_backoff), now))
+                "AND (? OR d.next_try_wall <= ?) AND (? IS NULL OR i.item_key = ?) ORDER BY i.id",
+                (self.kind, destination, int(ignore_backoff), now, key, key))
             free = [r for r in rows if r[4] is None or r[4] < now or not _alive(r[5])][:limit]
             self._conn.executemany("UPDATE outbox_deliveries SET lease_until = ?, lease_owner = ? "
                                    "WHERE item_id = ? AND destination = ?",
