@@ -19,9 +19,20 @@ import datetime as dt
 from pydicom.dataset import Dataset
 from pydicom.sequence import Sequence
 
+from ..config.case import CaseProfile
+from ..config.fluoroscope import FluoroscopeProfile
 from .dicom import ds_number
-from .study import (LOCAL_SCHEME, TRAINING_PROCEDURE, SessionStudy, apply_common, code, person_name,
-                    procedure_step_reference, runs_of, session_study)
+from .study import (
+    LOCAL_SCHEME,
+    TRAINING_PROCEDURE,
+    SessionStudy,
+    apply_common,
+    code,
+    person_name,
+    procedure_step_reference,
+    runs_of,
+    session_study,
+)
 
 XRAY_RADIATION_DOSE_SR = "1.2.840.10008.5.1.4.1.1.88.67"
 
@@ -175,7 +186,7 @@ def pname_item(relationship: str, concept: tuple, name: str, children: list[Data
 
 
 def utc(t_wall: float) -> dt.datetime:
-    return dt.datetime.fromtimestamp(t_wall, tz=dt.timezone.utc)
+    return dt.datetime.fromtimestamp(t_wall, tz=dt.UTC)
 
 
 def dicom_datetime(when: dt.datetime) -> str:
@@ -321,12 +332,12 @@ def session_report(session: dict, events: list[dict]) -> Dataset:
     return ds
 
 
-def patient_of(case) -> dict:
+def patient_of(case: CaseProfile) -> dict:
     """What a session records about its virtual patient (CaseProfile -> dict) for the reports."""
-    return case.patient.model_dump()
+    return dict(case.patient.model_dump())
 
 
-def equipment_of(fluoroscope) -> dict:
+def equipment_of(fluoroscope: FluoroscopeProfile) -> dict:
     """The machine alone, for a session without an appliance profile (tests, benchmarks); the
     appliance records its identity too (records.identity.equipment_of)."""
     return {"manufacturer": fluoroscope.manufacturer, "model": fluoroscope.model, "serial": fluoroscope.name}

@@ -41,7 +41,7 @@ def _as_display(image: np.ndarray) -> np.ndarray:
     if a.dtype == np.uint8 or a.dtype == np.uint16:
         return a
     if np.issubdtype(a.dtype, np.floating):
-        return np.round(np.clip(np.nan_to_num(a), 0.0, 1.0) * 255.0).astype(np.uint8)
+        return np.asarray(np.round(np.clip(np.nan_to_num(a), 0.0, 1.0) * 255.0), dtype=np.uint8)
     raise ValueError(f"unsupported image type {a.dtype}; give uint8, uint16 or float in 0..1")
 
 
@@ -49,7 +49,7 @@ def dicom_image(pixels: np.ndarray, state: ConsoleState, fl: FluoroscopeProfile,
                 study: SessionStudy, event_uid: str | None) -> Dataset:
     """The RF image of one save; `event_uid` is the Irradiation Event UID of the run it shows."""
     rows, cols = pixels.shape
-    when = dt.datetime.fromtimestamp(t_wall, tz=dt.timezone.utc)
+    when = dt.datetime.fromtimestamp(t_wall, tz=dt.UTC)
     # The field of view fills the image: this zoom's pixel size at the detector plane.
     pitch = state.fov_mm / max(rows, cols)
     h_px = min(state.collimation_mm[0], state.fov_mm) / pitch
