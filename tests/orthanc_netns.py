@@ -54,7 +54,7 @@ def main() -> None:
                 break
             except OSError:
                 if orthanc.poll() is not None or time.monotonic() - started > 60:
-                    raise SystemExit(f"Orthanc did not start: see {work / 'orthanc.log'}")
+                    raise SystemExit(f"Orthanc did not start: see {work / 'orthanc.log'}") from None
                 time.sleep(0.1)
         result["startup_s"] = round(time.monotonic() - started, 2)
         result["echo"] = fluorosim("dicom", "echo", "--config", str(profile))

@@ -35,7 +35,7 @@ class Tls(Section):
     server_name: str | None = Field(None, description="Name to check the destination's certificate against; default: host.")
 
     @model_validator(mode="after")
-    def _pair(self):
+    def _pair(self) -> Tls:
         if (self.cert_file is None) != (self.key_file is None):
             raise ValueError("give cert_file and key_file together, or neither")
         return self
@@ -63,7 +63,8 @@ class Destination(Section):
 class Retry(Section):
     """How a destination that does not answer is tried again; the queue keeps everything meanwhile."""
 
-    first_delay_s: float = Field(10.0, gt=0, le=3600, description="Wait after the first failed attempt (s); doubled after each further failure.")
+    first_delay_s: float = Field(10.0, gt=0, le=3600, description="Wait after the first failed attempt (s); doubled "
+                                                                  "after each further failure.")
     max_delay_s: float = Field(900.0, gt=0, le=86400, description="Longest wait between two attempts (s).")
     warn_after_failures: int = Field(3, ge=1, le=1000, description="Consecutive failed attempts after which a destination "
                                      "counts as failing: banner on screen and a log line (attempts).")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import datetime as dt
 import sys
 import time
@@ -19,7 +20,7 @@ from .outbox import Outbox, pending_in
 DEFAULT_CONFIG = "configs/appliance.yaml"
 
 
-def _profile(args) -> tuple[Path, ApplianceProfile, Path]:
+def _profile(args: argparse.Namespace) -> tuple[Path, ApplianceProfile, Path]:
     config = Path(args.config)
     if not config.is_file():
         raise FluorosimError(f"{config}: no appliance profile there; give --config PATH")
@@ -33,14 +34,14 @@ def _destinations(config: Path, appliance: ApplianceProfile) -> None:
                              "dose registry (name, ae_title, host, port, objects)")
 
 
-def run_identity(args) -> int:
+def run_identity(args: argparse.Namespace) -> int:
     config, appliance, data_dir = _profile(args)
     path = identity_path(config, data_dir, appliance.dicom)
     print(f"{path}: Device Observer UID {device_uid(path)}")
     return 0
 
 
-def run_echo(args) -> int:
+def run_echo(args: argparse.Namespace) -> int:
     config, appliance, _ = _profile(args)
     _destinations(config, appliance)
     failed = 0
@@ -84,7 +85,7 @@ def _queue_session(outbox: Outbox, appliance: ApplianceProfile, data_dir: Path, 
     return found
 
 
-def run_send(args) -> int:
+def run_send(args: argparse.Namespace) -> int:
     config, appliance, data_dir = _profile(args)
     _destinations(config, appliance)
     with Outbox(data_dir / "ledger.sqlite", KIND) as outbox:
@@ -116,10 +117,10 @@ def run_send(args) -> int:
 
 
 def _when(t: float) -> str:
-    return dt.datetime.fromtimestamp(t, tz=dt.timezone.utc).strftime("%Y-%m-%d %H:%M:%SZ")
+    return dt.datetime.fromtimestamp(t, tz=dt.UTC).strftime("%Y-%m-%d %H:%M:%SZ")
 
 
-def run_queue(args) -> int:
+def run_queue(args: argparse.Namespace) -> int:
     config, appliance, data_dir = _profile(args)
     conn = open_readonly(data_dir / "ledger.sqlite")
     try:
@@ -137,12 +138,12 @@ def run_queue(args) -> int:
     return 0
 
 
-def register(commands) -> None:
+def register(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     from ..cli import command_group
 
     group = command_group(commands, "dicom", "send images and dose reports to the PACS and the dose registry")
 
-    def options(p) -> None:
+    def options(p: argparse.ArgumentParser) -> None:
         p.add_argument("--config", default=DEFAULT_CONFIG, metavar="PATH",
                        help=f"appliance profile with the dicom: section (default {DEFAULT_CONFIG})")
 

@@ -27,6 +27,7 @@ from pydicom.uid import (
     XRayRadiofluoroscopicImageStorage,
 )
 from pynetdicom import AE, evt
+from pynetdicom.association import Association
 from pynetdicom.sop_class import Verification, XRayRadiationDoseSRStorage  # type: ignore[attr-defined]
 
 from ..config.dicom import Destination, Dicom
@@ -54,9 +55,8 @@ class DestinationError(FluorosimError):
 
 
 class _SocketReasons(logging.Handler):
-    def __init__(self):
+    def __init__(self) -> None:
         super().__init__(logging.ERROR)
-        self.lock = threading.Lock()
         self.reasons: list[str] = []
 
     def emit(self, record: logging.LogRecord) -> None:
@@ -88,7 +88,8 @@ def _tls_context(dest: Destination, base: Path) -> tuple[ssl.SSLContext, str] | 
 
 
 @contextmanager
-def association(dicom: Dicom, dest: Destination, base: Path, contexts: Sequence[tuple[str, Sequence[str]]]) -> Iterator:
+def association(dicom: Dicom, dest: Destination, base: Path,
+                contexts: Sequence[tuple[str, Sequence[str]]]) -> Iterator[Association]:
     """An established association with `dest`, released on exit; `base` is the profile's folder."""
     ae = AE(ae_title=dicom.ae_title)
     for sop_class, syntaxes in contexts:
@@ -102,8 +103,8 @@ def association(dicom: Dicom, dest: Destination, base: Path, contexts: Sequence[
                                "the dicom: section and the appliance's name service", "unknown host") from None
     rejection: list = []
 
-    def on_acse(event) -> None:
-        primitive = event.primitive
+    def on_acse(event: evt.Event) -> None:
+        primitive = getattr(event, "primitive", None)   # the A-ASSOCIATE primitive of EVT_ACSE_RECV
         if getattr(primitive, "result", None) not in (None, 0x00):
             rejection.append(primitive)
 

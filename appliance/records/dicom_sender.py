@@ -18,10 +18,10 @@ from pathlib import Path
 
 import pydicom
 
-from ..config.dicom import Dicom
+from ..config.dicom import Destination, Dicom
 from . import dicom_network
 from .dicom_network import DestinationError, StoreResult
-from .outbox import Outbox
+from .outbox import Item, Outbox
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +72,8 @@ class DicomSender:
             by_key = {i.key: i for i in items}
             done: set[str] = set()
 
-            def heard(result: StoreResult, by_key=by_key, done=done, dest=dest) -> None:
+            def heard(result: StoreResult, by_key: dict[str, Item] = by_key, done: set[str] = done,
+                      dest: Destination = dest) -> None:
                 item = by_key[result.key]
                 done.add(result.key)
                 if result.ok:

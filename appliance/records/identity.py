@@ -16,6 +16,7 @@ from pathlib import Path
 
 from ..atomic_file import write_atomic
 from ..config.dicom import Dicom
+from ..config.fluoroscope import FluoroscopeProfile
 from ..errors import FluorosimError
 
 _UID = re.compile(r"^(0|[1-9][0-9]*)(\.(0|[1-9][0-9]*))+$")
@@ -61,7 +62,7 @@ def device_uid(path: Path, *, create: bool = True) -> str:
     return uid
 
 
-def equipment_of(fluoroscope, dicom: Dicom, uid: str) -> dict:
+def equipment_of(fluoroscope: FluoroscopeProfile, dicom: Dicom, uid: str) -> dict:
     """What a session records about its machine and appliance, for images and dose reports
     (`uid` empty when the appliance has none: the objects then fall back to a profile-derived one)."""
     return {"manufacturer": fluoroscope.manufacturer, "model": fluoroscope.model, "serial": dicom.serial_number,

@@ -176,7 +176,8 @@ class Outbox:
     def release(self, item: Item) -> None:
         """Give back a claimed delivery that was not attempted (the sender is stopping)."""
         self._write(lambda: self._conn.execute(
-            "UPDATE outbox_deliveries SET lease_until = NULL, lease_owner = NULL WHERE item_id = ? AND destination = ? AND sent_wall IS NULL",
+            "UPDATE outbox_deliveries SET lease_until = NULL, lease_owner = NULL "
+            "WHERE item_id = ? AND destination = ? AND sent_wall IS NULL",
             (item.item_id, item.destination)))
 
     def pending(self, *, now: float | None = None) -> list[Pending]:
@@ -193,8 +194,8 @@ class Outbox:
     def close(self) -> None:
         self._conn.close()
 
-    def __enter__(self):
+    def __enter__(self) -> Outbox:
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.close()

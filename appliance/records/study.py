@@ -137,7 +137,7 @@ def session_study(session: dict, events: list[dict]) -> SessionStudy:
     detail = json.loads(start["detail"])
     patient = Patient(**{k: v for k, v in (detail.get("patient") or {}).items() if k in Patient.model_fields})
     return SessionStudy(session_id=session["id"], start_hash=start["hash"],
-                        started=dt.datetime.fromtimestamp(session["started_wall"], tz=dt.timezone.utc),
+                        started=dt.datetime.fromtimestamp(session["started_wall"], tz=dt.UTC),
                         operator=session["operator"], case_title=session["case_title"],
                         equipment=detail.get("equipment") or {}, patient=patient, fluoroscope=session["fluoroscope"])
 
