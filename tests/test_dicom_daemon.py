@@ -6,6 +6,9 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
 
 import pydicom
 from appliance_setup import make_appliance
@@ -33,31 +36,43 @@ def _wait(predicate, timeout_s: float) -> bool:
     return bool(predicate())
 
 
-def test_the_appliance_queues_and_sends_its_images_and_dose_report(tmp_path, receivers, capsys):  # noqa: F811
-    pacs = receivers("pacs", "PACS")
-    config = make_appliance(tmp_path, script=SCRIPT)
+def with_dicom(config: Path, section: dict) -> Path:
+    """The test appliance's profile with this dicom: section."""
     yaml = YAML(typ="rt")
     data = yaml.load(config.read_text())
-    data["dicom"] = {"ae_title": "FLUOROSIM", "station_name": "FS-TEST", "serial_number": "FS-0001", "timeout_s": 2,
-                     "send_at_shutdown_s": 1,
-                     "retry": {"first_delay_s": 0.2, "max_delay_s": 1, "warn_after_failures": 1, "poll_period_s": 0.2},
-                     "destinations": [
-                         {"name": "pacs", "ae_title": "PACS", "host": "127.0.0.1", "port": pacs.port, "objects": "both"},
-                         {"name": "down", "ae_title": "REG", "host": "127.0.0.1", "port": free_port(),
-                          "objects": "dose_reports"}]}
+    data["dicom"] = section
     with open(config, "w") as f:
         yaml.dump(data, f)
+    return config
+
+
+@contextmanager
+def running(config: Path) -> Iterator[Appliance]:
+    """The appliance of `config` running in a thread; stopped (and its session ended) on exit."""
     app = Appliance(ProfileKeeper(config), Notifier({}))
     stop = threading.Event()
     runner = threading.Thread(target=app.run, kwargs={"until": stop.is_set, "signals": False})
     runner.start()
     try:
-        # Each saved image reaches the PACS while the session goes on (the report is sent at the end).
-        assert _wait(lambda: len(app.saved) == 2 and len(pacs.received()) == 2, 60), (app.saved, pacs.received())
+        yield app
     finally:
         stop.set()
         runner.join(15)
     assert not runner.is_alive()
+
+
+def test_the_appliance_queues_and_sends_its_images_and_dose_report(tmp_path, receivers, capsys):  # noqa: F811
+    pacs = receivers("pacs", "PACS")
+    config = with_dicom(make_appliance(tmp_path, script=SCRIPT), {
+        "ae_title": "FLUOROSIM", "station_name": "FS-TEST", "serial_number": "FS-0001", "timeout_s": 2,
+        "send_at_shutdown_s": 1,
+        "retry": {"first_delay_s": 0.2, "max_delay_s": 1, "warn_after_failures": 1, "poll_period_s": 0.2},
+        "destinations": [
+            {"name": "pacs", "ae_title": "PACS", "host": "127.0.0.1", "port": pacs.port, "objects": "both"},
+            {"name": "down", "ae_title": "REG", "host": "127.0.0.1", "port": free_port(), "objects": "dose_reports"}]})
+    with running(config) as app:
+        # Each saved image reaches the PACS while the session goes on (the report is sent at the end).
+        assert _wait(lambda: len(app.saved) == 2 and len(pacs.received()) == 2, 60), (app.saved, pacs.received())
     images = [pydicom.dcmread(dcm) for _, dcm in app.saved]
     # The session ended at shutdown and its dose report went to the PACS at once; the registry,
     # which is down, keeps it queued, with the reason.
@@ -83,28 +98,16 @@ def test_the_appliance_queues_and_sends_its_images_and_dose_report(tmp_path, rec
 
 
 def test_a_destination_that_is_down_shows_a_banner(tmp_path):
-    config = make_appliance(tmp_path)
-    yaml = YAML(typ="rt")
-    data = yaml.load(config.read_text())
     port = free_port()
-    data["dicom"] = {"timeout_s": 1, "retry": {"first_delay_s": 0.1, "max_delay_s": 0.2, "warn_after_failures": 2,
-                                               "poll_period_s": 0.1},
-                     "destinations": [{"name": "pacs", "ae_title": "PACS", "host": "127.0.0.1", "port": port}]}
-    with open(config, "w") as f:
-        yaml.dump(data, f)
+    config = with_dicom(make_appliance(tmp_path), {
+        "timeout_s": 1, "retry": {"first_delay_s": 0.1, "max_delay_s": 0.2, "warn_after_failures": 2, "poll_period_s": 0.1},
+        "destinations": [{"name": "pacs", "ae_title": "PACS", "host": "127.0.0.1", "port": port}]})
     # An earlier run's session, ended, whose dose report was never queued (cut off at shutdown).
     previous = record_session(tmp_path / "data")
-    app = Appliance(ProfileKeeper(config), Notifier({}))
-    stop = threading.Event()
-    runner = threading.Thread(target=app.run, kwargs={"until": stop.is_set, "signals": False})
-    runner.start()
-    try:
+    with running(config) as app:
         banner = "DICOM send to 'pacs' failing (Connection refused); images and dose reports stay queued"
         assert _wait(lambda: any(b.startswith(banner) for b in app.supervisor.banners()), 30), app.supervisor.banners()
         assert app.supervisor.worker_problems == []
-    finally:
-        stop.set()
-        runner.join(15)
     with Outbox(tmp_path / "data" / "ledger.sqlite", "dicom") as box:
         pending = {p.label: p for p in box.pending()}
     # The earlier session's report was queued at start, tried and kept; this session's joined it.
@@ -115,22 +118,9 @@ def test_a_destination_that_is_down_shows_a_banner(tmp_path):
 
 
 def test_an_unwritable_identity_file_does_not_stop_the_session(tmp_path):
-    config = make_appliance(tmp_path)
-    yaml = YAML(typ="rt")
-    data = yaml.load(config.read_text())
     blocked = tmp_path / "not-a-folder"
     blocked.write_text("a file where the identity's folder should be\n")
-    data["dicom"] = {"identity_file": str(blocked / "device-identity")}
-    with open(config, "w") as f:
-        yaml.dump(data, f)
-    app = Appliance(ProfileKeeper(config), Notifier({}))
-    stop = threading.Event()
-    runner = threading.Thread(target=app.run, kwargs={"until": stop.is_set, "signals": False})
-    runner.start()
-    try:
+    config = with_dicom(make_appliance(tmp_path), {"identity_file": str(blocked / "device-identity")})
+    with running(config) as app:
         assert _wait(lambda: app.session_id is not None and app.stats.frames > 0, 30)
         assert app.supervisor.worker_problems == []
-    finally:
-        stop.set()
-        runner.join(15)
-    assert not runner.is_alive()
