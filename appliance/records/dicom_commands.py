@@ -122,6 +122,9 @@ def _when(t: float) -> str:
 
 def run_queue(args: argparse.Namespace) -> int:
     config, appliance, data_dir = _profile(args)
+    if not (data_dir / "ledger.sqlite").is_file():
+        print(f"nothing queued (no ledger yet in {data_dir})")
+        return 0
     conn = open_readonly(data_dir / "ledger.sqlite")
     try:
         pending = pending_in(conn, KIND, time.time())
