@@ -192,7 +192,6 @@ class RecordsWorker(Worker):
         except FluorosimError as e:
             log.error("dose report of session %s not queued: %s; 'fluorosim dicom send --session %s' queues it",
                       session_id, e, session_id)
-            self.problem = str(e)
             return
         if names:
             log.info("dose report of session %s queued for %s", session_id, ", ".join(names))
