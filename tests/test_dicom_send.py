@@ -29,11 +29,11 @@ REPO = HERE.parent
 
 
 class Receiver:
-    def __init__(self, out: Path, ae_title: str, delay_s: float = 0.0, tls: tuple[Path, Path] | None = None):
+    def __init__(self, out: Path, ae_title: str, hold: tuple[int, float] = (0, 0.0), tls: tuple[Path, Path] | None = None):
         self.out = out
         self.ae_title = ae_title
         self.proc = subprocess.Popen([sys.executable, str(HERE / "dicom_receiver.py"), ae_title, str(out),
-                                      "--delay", str(delay_s), *(["--tls", *map(str, tls)] if tls else [])],
+                                      "--hold", *map(str, hold), *(["--tls", *map(str, tls)] if tls else [])],
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         line = self.proc.stdout.readline()
         assert line.startswith("listening "), line
@@ -57,8 +57,9 @@ class Receiver:
 def receivers(tmp_path):
     started = []
 
-    def start(name: str, ae_title: str, delay_s: float = 0.0, tls: tuple[Path, Path] | None = None) -> Receiver:
-        r = Receiver(tmp_path / f"received-{name}", ae_title, delay_s, tls)
+    def start(name: str, ae_title: str, hold: tuple[int, float] = (0, 0.0),
+              tls: tuple[Path, Path] | None = None) -> Receiver:
+        r = Receiver(tmp_path / f"received-{name}", ae_title, hold, tls)
         started.append(r)
         return r
     yield start
@@ -198,7 +199,7 @@ def test_a_destination_that_keeps_failing_is_reported_once_and_recovers(config_c
 
 
 def test_killing_the_sender_mid_queue_loses_and_repeats_nothing_confirmed(config_copy, receivers, capsys):
-    pacs = receivers("pacs", "PACS", delay_s=0.4)
+    pacs = receivers("pacs", "PACS", hold=(3, 5.0))    # the answer to the third object waits 5 s
     profile = write_profile(config_copy, [
         {"name": "pacs", "ae_title": "PACS", "host": "127.0.0.1", "port": pacs.port, "objects": "both"}])
     first = record_session(config_copy.parent / "var")
