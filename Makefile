@@ -9,8 +9,11 @@ BIN    := $(VENV)/bin
 # Debian packages: libsystemd-dev and pkg-config build systemd-python; dicom3tools gives
 # dciodvfy, which checks exported dose reports; systemd gives systemd-analyze for unit checks;
 # gcc and linux-libc-dev let a test check the framebuffer structs against <linux/fb.h>;
-# alsa-utils gives aplay, which sounds the fluoroscopy-time alarm.
-APT_PACKAGES := libsystemd-dev pkg-config dicom3tools systemd python3-venv gcc linux-libc-dev alsa-utils
+# alsa-utils gives aplay, which sounds the fluoroscopy-time alarm; dcmtk gives dsrdump and
+# dcentvfy, which check a session's dose report and images together, and orthanc is the real
+# PACS the DICOM sending tests store into, on loopback in a network namespace of their own
+# (iproute2 brings its lo up); openssl makes the certificates of the DICOM-over-TLS test.
+APT_PACKAGES := libsystemd-dev pkg-config dicom3tools systemd python3-venv gcc linux-libc-dev alsa-utils dcmtk orthanc iproute2 openssl
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 .PHONY: demo test lint setup system-packages bench clean

@@ -141,6 +141,15 @@ install_profiles() {
     fi
 }
 
+make_identity() {   # the Device Observer UID (records/identity.py), never replaced: a new one is a new device
+    local f="$ROOT/etc/fluorosim/device-identity"
+    if [ ! -e "$f" ]; then
+        python3 -c 'import uuid; print(f"2.25.{uuid.uuid4().int}")' > "$f.tmp"
+        chmod 0644 "$f.tmp"
+        mv "$f.tmp" "$f"
+    fi
+}
+
 make_state_dirs() {
     install -d -m 0750 "$ROOT/var/lib/fluorosim" "$ROOT/var/log/fluorosim" "$ROOT/var/cache/fluorosim"
 }
@@ -204,6 +213,7 @@ file_step "copy the code to /opt/fluorosim/src" install_code
 system_step "create the virtualenv /opt/fluorosim/venv and install fluorosim into it (pip)" make_venv
 file_step "install profiles into /etc/fluorosim (existing files are kept) with appliance.yaml for the real devices" \
     install_profiles
+file_step "make the appliance's Device Observer UID once (/etc/fluorosim/device-identity)" make_identity
 file_step "create /var/lib/fluorosim, /var/log/fluorosim and /var/cache/fluorosim" make_state_dirs
 system_step "give the state folders to user fluorosim (chown)" own_state_dirs
 file_step "install the unit /etc/systemd/system/fluorosim.service" \

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from appliance.config import ApplianceProfile, load_profile, validate_paths
+from appliance.records.identity import read_device_uid
 
 REPO = Path(__file__).resolve().parents[1]
 INSTALL = REPO / "provisioning" / "install.sh"
@@ -83,6 +84,8 @@ def test_profiles_in_etc_name_the_real_devices_and_validate(installed):
     assert profile.devices.pedal.source == "/dev/fluorosim/pedal"
     assert profile.devices.display.target == "/dev/fb0"
     assert profile.data_dir == "/var/lib/fluorosim"
+    # The Device Observer UID, made once at provisioning, where the profile looks for it.
+    assert read_device_uid(etc / profile.dicom.identity_file).startswith("2.25.")
 
 
 def test_code_state_journal_and_boot_settings(installed):

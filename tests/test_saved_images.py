@@ -12,7 +12,9 @@ import pytest
 from appliance.config import FluoroscopeProfile, KeymapProfile, load_profile
 from appliance.console.state import Console
 from appliance.errors import FluorosimError
+from appliance.records.ledger import Ledger
 from appliance.records.saved_images import save_image
+from appliance.records.study import saved_image_context
 from drivers.input_event import InputEvent
 
 REPO = Path(__file__).resolve().parents[1]
@@ -30,13 +32,25 @@ def console_after_pulsed_run():
     return c.snapshot()
 
 
+def study_of_session(tmp_path, session_id=1, operator="Trainee"):
+    """A real ledger session (for the study UIDs and the patient); `session_id` sessions are started."""
+    with Ledger(tmp_path / "ledger.sqlite") as ledger:
+        for _ in range(session_id):
+            if ledger.session_id is not None:
+                ledger.end_session(1.7e9)
+            sid = ledger.start_session(operator, "Child torso", II.name, t_wall=1.7e9, t_monotonic=0.0,
+                                       patient={"sex": "O", "age_years": 6, "weight_kg": 21, "height_m": 1.16})
+        study, _ = saved_image_context(*ledger.session_rows(sid), 1)
+    return study
+
+
 def test_png_and_dicom_carry_pixels_geometry_and_exposure(tmp_path):
     state = console_after_pulsed_run()
     assert state.zoom == 2 and state.collimation_mm == (150.0, 160.0) and state.held
     rng = np.random.default_rng(0)
     image = rng.integers(0, 256, size=(400, 500), dtype=np.uint8)
-    png, dcm = save_image(image, state, II, tmp_path, t_wall=1_700_000_000.0, session_id=12, operator="Trainee",
-                          case_title="Child torso", patient={"sex": "O", "age_years": 6, "weight_kg": 21, "height_m": 1.16})
+    png, dcm = save_image(image, state, II, tmp_path, t_wall=1_700_000_000.0, study=study_of_session(tmp_path, 12),
+                          event_uid=None)
     assert png.name == "image-000012-0001.png" and dcm.name == "image-000012-0001.dcm"
     assert np.array_equal(cv2.imread(str(png), cv2.IMREAD_UNCHANGED), image)
     ds = pydicom.dcmread(dcm)
@@ -64,17 +78,19 @@ def test_png_and_dicom_carry_pixels_geometry_and_exposure(tmp_path):
 def test_float_and_16_bit_images(tmp_path):
     state = console_after_pulsed_run()
     ramp = np.linspace(0.0, 1.0, 256)[None, :].repeat(4, axis=0)
-    png, dcm = save_image(ramp, state, II, tmp_path, t_wall=1.7e9)
+    png, dcm = save_image(ramp, state, II, tmp_path, t_wall=1.7e9, study=study_of_session(tmp_path), event_uid=None)
     assert np.array_equal(pydicom.dcmread(dcm).pixel_array[0], np.arange(256, dtype=np.uint8))
     deep = (np.arange(64 * 64, dtype=np.uint16) * 16).reshape(64, 64)
-    png, dcm = save_image(deep, state, II, tmp_path / "deep", t_wall=1.7e9)
+    png, dcm = save_image(deep, state, II, tmp_path / "deep", t_wall=1.7e9, study=study_of_session(tmp_path / "deep"),
+                          event_uid=None)
     assert pydicom.dcmread(dcm).BitsStored == 16 and np.array_equal(pydicom.dcmread(dcm).pixel_array, deep)
     assert np.array_equal(cv2.imread(str(png), cv2.IMREAD_UNCHANGED), deep)
 
 
 def test_never_overwrites(tmp_path):
     state = console_after_pulsed_run()
-    save_image(np.zeros((8, 8), np.uint8), state, II, tmp_path, t_wall=1.7e9)
+    study = study_of_session(tmp_path)
+    save_image(np.zeros((8, 8), np.uint8), state, II, tmp_path, t_wall=1.7e9, study=study, event_uid=None)
     with pytest.raises(FluorosimError, match="refusing to overwrite"):
-        save_image(np.ones((8, 8), np.uint8), state, II, tmp_path, t_wall=1.7e9)
-    assert cv2.imread(str(tmp_path / "image-000000-0001.png"), cv2.IMREAD_UNCHANGED).max() == 0
+        save_image(np.ones((8, 8), np.uint8), state, II, tmp_path, t_wall=1.7e9, study=study, event_uid=None)
+    assert cv2.imread(str(tmp_path / "image-000001-0001.png"), cv2.IMREAD_UNCHANGED).max() == 0

@@ -11,6 +11,7 @@ from pydantic import Field
 
 from .base import Section
 from .rendering import Rendering
+from .dicom import Dicom
 
 
 class Camera(Section):
@@ -104,3 +105,5 @@ class ApplianceProfile(Section):
     data_dir: str = Field(description="Ledger, logs, saved images and caches live here; relative to this file unless absolute.")
     daemon: Daemon = Field(default_factory=Daemon, description="Supervisor, watchdog and logging settings.")
     rendering: Rendering = Field(default_factory=Rendering, description="Projection cache and progressive resolution.")
+    dicom: Dicom = Field(default_factory=Dicom, description="Identity on the DICOM network and where images and dose "
+                         "reports are sent.")

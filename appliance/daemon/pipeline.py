@@ -8,6 +8,8 @@ wired into supervised workers, one class each, handing each other typed values.
     render   RenderWorker   poses + phases + console_state -> Renderer.render
                             -> Compositor.compose -> Display.show         -> shown, exposure_factor
     records  RecordsWorker  events -> Ledger.record(); saves -> PNG + DICOM -> saves
+                            saved images, ended sessions' dose reports    -> DICOM send queue (ledger file)
+    dicom-send DicomSendWorker  DICOM send queue -> C-STORE to the PACS and the dose registry
 
 Each worker owns its state; this module only opens the parts, makes the slots between the
 workers and hands them out. Only console events travel through a queue (each is a dose
@@ -56,6 +58,7 @@ from .phase_worker import PhaseWorker
 from .records_worker import RecordsWorker
 from .reload import ProfileKeeper
 from .render_worker import RenderWorker
+from .send_worker import DicomSendWorker, dicom_send_check
 from .supervisor import Supervisor
 
 log = logging.getLogger(__name__)
@@ -119,10 +122,12 @@ class Appliance:
                                  fluoroscope=self._new_fluoroscope, exposure_factor=exposure_factor)
         self.records = RecordsWorker(self.ledger, keeper, parts, self.clock, events=self.events, shown=self.shown,
                                      saves=saves, native=self.render.native_image)
+        self.sender = DicomSendWorker(self.ledger.path, keeper)
         self.stats = self.render.stats
         self.supervisor = Supervisor(
-            # In this order: at shutdown the input worker ends its exposure before records flushes.
-            [self.capture, self.phase, self.render, self.input, self.records], notifier,
+            # In this order: at shutdown the input worker ends its exposure before records flushes,
+            # and the ledger's writer, last, gets whatever time the others leave.
+            [self.capture, self.phase, self.render, self.input, self.sender, self.records], notifier,
             stall_timeout_s=daemon.stall_timeout_s, restart_limit=daemon.restart_limit,
             restart_window_s=daemon.restart_window_s, health_period_s=daemon.health_period_s,
             status_period_s=daemon.status_period_s, status=self.status_text,
@@ -135,6 +140,7 @@ class Appliance:
                 renderer_fault_check(lambda: self.render.fault),
                 profile_reload_check(lambda: self.keeper.problem),
                 records_check(lambda: self.records.problem),
+                dicom_send_check(lambda: self.sender.problem),
             ])
 
     # --- what the demo, the benchmarks and the tests read --------------------------------------

@@ -1,9 +1,11 @@
-"""The records worker: console events -> the ledger (SQLite); save presses -> PNG + DICOM images."""
+"""The records worker: console events -> the ledger (SQLite); save presses -> PNG + DICOM images;
+each saved image, and the session's dose report when it ends, into the DICOM send queue."""
 
 from __future__ import annotations
 
 import logging
 import queue
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -13,9 +15,15 @@ import numpy as np
 from ..config.fluoroscope import FluoroscopeProfile
 from ..console.state import ConsoleState
 from ..errors import FluorosimError
-from ..records.ledger import Ledger
-from ..records.rdsr import equipment_of, patient_of
+from ..records import rdsr
+from ..records.dicom import encode as encode_dicom
+from ..records.dicom_sender import KIND, DicomSender, queue_object, sop_instance_uid
+from ..records.identity import device_uid, equipment_of, identity_path
+from ..records.ledger import Ledger, open_readonly
+from ..records.outbox import Outbox
+from ..records.rdsr import patient_of
 from ..records.saved_images import save_image
+from ..records.study import saved_image_context
 from .handoff import LatestValue, Recorded, SavedImage
 from .parts import Parts
 from .reload import ProfileKeeper
@@ -52,15 +60,31 @@ class RecordsWorker(Worker):
         #: (png, dicom) of every image saved this session.
         self.saved: list[tuple[Path, Path]] = []
         self._unwritten: list[Recorded] = []
+        self._outbox: Outbox | None = None
+        self._last_report: bytes | None = None
 
     def setup(self) -> None:
+        if self._outbox is None:
+            # Its own connection to the ledger's file: the send queue is outside the event chain.
+            self._outbox = Outbox(self.ledger.path, KIND)
+            # Sessions a crash or power loss left open were closed when the ledger opened, and the
+            # last run may have been cut off before it queued its report: queue what is missing.
+            for sid in sorted(set(self.ledger.recovered) | set(self._last_ended())):
+                self._queue_report(sid)
         if self.session_id is not None:
             return  # restarted after a crash: the session goes on
         cfg = self.keeper.current
         fl = cfg.fluoroscope
+        dicom = cfg.appliance.dicom
+        try:
+            identity = device_uid(identity_path(cfg.path, cfg.data_dir, dicom))
+        except FluorosimError as e:
+            # Training goes on; the session's objects then name the device by its profile only.
+            log.error("no Device Observer UID: %s", e)
+            identity = ""
         self.session_id = self.ledger.start_session(
             cfg.appliance.operator, cfg.case.title, fl.name, time.time(), t_monotonic=self.console_clock(),
-            equipment=equipment_of(fl), patient=patient_of(cfg.case))
+            equipment=equipment_of(fl, dicom, identity), patient=patient_of(cfg.case))
         log.info("session %s started: operator %s, case %s, fluoroscope %s",
                  self.session_id, cfg.appliance.operator, cfg.case.title, fl.name)
 
@@ -110,6 +134,9 @@ class RecordsWorker(Worker):
             log.warning("save pressed before any image was shown; nothing saved")
             return
         cfg = self.keeper.current
+        assert self.session_id is not None   # setup() opened it before any event is recorded
+        # The image joins its session's study and names the run it shows (records.study).
+        study, event_uid = saved_image_context(*self.ledger.session_rows(self.session_id), state.save_count)
         # The fluoroscope as rendered: the DICOM pixel spacing is that of the saved matrix.
         fluoroscope = self.parts.renderer.fluoroscope
         if self.native is not None:
@@ -121,11 +148,66 @@ class RecordsWorker(Worker):
             if native is not None:
                 image, fluoroscope = native
         png, dicom = save_image(image, state, fluoroscope, cfg.data_dir / "images",
-                                t_wall=time.time(), session_id=self.session_id or 0, operator=cfg.appliance.operator,
-                                case_title=cfg.case.title, patient=patient_of(cfg.case))
+                                t_wall=time.time(), study=study, event_uid=event_uid)
         self.saved.append((png, dicom))
         self.saves.put(SavedImage(png, dicom, time.monotonic()))
         log.info("saved %s and %s", png, dicom)
+        if self._outbox is not None and any(d.takes("image") for d in cfg.appliance.dicom.destinations):
+            try:
+                data = dicom.read_bytes()
+            except OSError as e:
+                raise FluorosimError(f"{dicom}: cannot read the saved image back to queue it ({e.strerror or e})") from None
+            queue_object(self._outbox, cfg.appliance.dicom, data, "image",
+                         f"image {state.save_count} of session {self.session_id}", self.session_id)
+
+    def _send_report_now(self, report: bytes) -> None:
+        """At shutdown, try to send the session's dose report within dicom.send_at_shutdown_s
+        (the sender worker has stopped); what does not go in time stays queued for the next start."""
+        cfg = self.keeper.current
+        dicom = cfg.appliance.dicom
+        budget = dicom.send_at_shutdown_s
+        if budget <= 0 or not any(d.takes("dose_report") for d in dicom.destinations):
+            return
+        key, sent = sop_instance_uid(report), {}
+
+        def send() -> None:
+            # Its own connection: if the time runs out, this thread is left behind at exit.
+            with Outbox(self.ledger.path, KIND) as box:
+                quick = dicom.model_copy(update={"timeout_s": budget})
+                sent.update(DicomSender(box, quick, cfg.path.parent).run_round(ignore_backoff=True, key=key).sent)
+        sender = threading.Thread(target=send, name="fluorosim-dicom-shutdown", daemon=True)
+        sender.start()
+        sender.join(budget)
+        for name in sent:
+            log.info("dose report of session %s sent to '%s'", self.session_id, name)
+        if sender.is_alive():
+            log.warning("dose report of session %s not confirmed within %.1f s of shutdown; it stays queued",
+                        self.session_id, budget)
+
+    def _last_ended(self) -> list[int]:
+        conn = open_readonly(self.ledger.path)
+        try:
+            last = conn.execute("SELECT max(id) FROM sessions WHERE ended_wall IS NOT NULL").fetchone()[0]
+        finally:
+            conn.close()
+        return [] if last is None else [last]
+
+    def _queue_report(self, session_id: int) -> None:
+        """Queue an ended session's dose report for the destinations that take dose reports."""
+        dicom = self.keeper.current.appliance.dicom
+        if self._outbox is None or not any(d.takes("dose_report") for d in dicom.destinations):
+            return
+        try:
+            report = encode_dicom(rdsr.session_report(*self.ledger.session_rows(session_id)))
+            names = queue_object(self._outbox, dicom, report, "dose_report",
+                                 f"dose report of session {session_id}", session_id)
+            self._last_report = report
+        except FluorosimError as e:
+            log.error("dose report of session %s not queued: %s; 'fluorosim dicom send --session %s' queues it",
+                      session_id, e, session_id)
+            return
+        if names:
+            log.info("dose report of session %s queued for %s", session_id, ", ".join(names))
 
     def teardown(self) -> None:
         # The input worker has stopped before this one: what is queued is all there is.
@@ -148,3 +230,11 @@ class RecordsWorker(Worker):
             log.error("session %s not closed: %s", self.session_id, e)
             return
         log.info("session %s ended; ledger flushed", self.session_id)
+        if self.session_id is not None:
+            self._last_report = None
+            self._queue_report(self.session_id)
+            if self._last_report is not None:
+                self._send_report_now(self._last_report)
+        if self._outbox is not None:
+            self._outbox.close()
+            self._outbox = None

@@ -88,6 +88,7 @@ def register(commands: argparse._SubParsersAction[argparse.ArgumentParser],
              benches: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     from ..cli import command_group
     from .bench import register_bench
+    from .dicom_commands import register as register_dicom
 
     logs = command_group(commands, "logs", "read, verify and export the dose and session ledger")
     ls = logs.add_parser("list", help="list sessions with their fluoroscopy time and dose",
@@ -114,3 +115,4 @@ def register(commands: argparse._SubParsersAction[argparse.ArgumentParser],
     e.add_argument("--out", required=True, metavar="DIR", help="folder to write into (created if missing)")
     e.set_defaults(run=run_export)
     register_bench(benches)
+    register_dicom(commands)

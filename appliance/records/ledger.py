@@ -68,6 +68,34 @@ MIGRATIONS = (
     CREATE INDEX events_by_session ON events(session_id, id);
     CREATE INDEX sessions_by_start ON sessions(started_wall);
     """,
+    # Outbox (DICOM network sending, reused for xAPI): objects to deliver and one delivery row
+    # per destination, kept in the ledger's file so a queued object survives kill -9 and power
+    # loss together with the session it belongs to. See records.outbox.
+    """
+    CREATE TABLE outbox_items (
+        id INTEGER PRIMARY KEY,
+        kind TEXT NOT NULL,
+        item_key TEXT NOT NULL,
+        session_id INTEGER,
+        label TEXT NOT NULL,
+        payload BLOB NOT NULL,
+        created_wall REAL NOT NULL,
+        UNIQUE (kind, item_key)
+    );
+    CREATE TABLE outbox_deliveries (
+        item_id INTEGER NOT NULL REFERENCES outbox_items(id),
+        destination TEXT NOT NULL,
+        sent_wall REAL,
+        attempts INTEGER NOT NULL DEFAULT 0,
+        next_try_wall REAL NOT NULL,
+        last_try_wall REAL,
+        last_error TEXT,
+        lease_until REAL,
+        lease_owner INTEGER,
+        PRIMARY KEY (item_id, destination)
+    );
+    CREATE INDEX outbox_due ON outbox_deliveries(sent_wall, next_try_wall);
+    """,
 )
 
 EVENT_COLUMNS = ("id", "session_id", "t_wall", "t_monotonic", "kind", "fluoro_time_s", "air_kerma_mgy", "dap_gy_cm2",
@@ -119,6 +147,19 @@ def _connect(path: Path, readonly: bool) -> sqlite3.Connection:
         raise FluorosimError(f"{path}: cannot open the ledger ({e}); check the file and its folder's permissions") from None
     except OSError as e:
         raise FluorosimError(f"{path}: cannot create the ledger's folder ({e.strerror or e})") from None
+
+
+def open_writer(path: str | Path) -> sqlite3.Connection:
+    """A writing connection with the schema brought up to date, for tables outside the event
+    chain (the outbox) that another process may write beside the one Ledger."""
+    path = Path(path)
+    conn = _connect(path, readonly=False)
+    try:
+        _migrate(conn, path)
+    except BaseException:
+        conn.close()
+        raise
+    return conn
 
 
 def open_readonly(path: str | Path) -> sqlite3.Connection:
@@ -343,6 +384,14 @@ class Ledger:
                 continue
             self._transaction(partial(self._close_session, sid, last, "recovered"))
         return open_ids
+
+    def session_rows(self, session_id: int) -> tuple[dict, list[dict]]:
+        """A session's row and its events in order, to build its DICOM objects (records.study)."""
+        session = dict(self._conn.execute(f"SELECT {', '.join(SESSION_COLUMNS)} FROM sessions WHERE id = ?",
+                                          (session_id,)).fetchone())
+        events = [dict(r) for r in self._conn.execute(
+            f"SELECT {', '.join(EVENT_COLUMNS)} FROM events WHERE session_id = ? ORDER BY id", (session_id,))]
+        return session, events
 
     def close(self) -> None:
         if self._conn is not None:

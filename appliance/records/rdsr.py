@@ -15,17 +15,24 @@ ms, mm, m2. The ledger records mGy and Gy cm^2; they are converted here.
 from __future__ import annotations
 
 import datetime as dt
-import json
 
 from pydicom.dataset import Dataset
 from pydicom.sequence import Sequence
 
-from .. import __version__
 from ..config.case import CaseProfile
 from ..config.fluoroscope import FluoroscopeProfile
-from .dicom import ds_number as _ds_number
-from .dicom import set_simulated_patient
-from .dicom import uid as _uid
+from .dicom import ds_number
+from .study import (
+    LOCAL_SCHEME,
+    TRAINING_PROCEDURE,
+    SessionStudy,
+    apply_common,
+    code,
+    person_name,
+    procedure_step_reference,
+    runs_of,
+    session_study,
+)
 
 XRAY_RADIATION_DOSE_SR = "1.2.840.10008.5.1.4.1.1.88.67"
 
@@ -87,11 +94,13 @@ PULSE_WIDTH = ("113793", "DCM", "Pulse Width")
 FOCAL_SPOT_SIZE = ("113766", "DCM", "Focal Spot Size")
 COLLIMATED_FIELD_AREA = ("113790", "DCM", "Collimated Field Area")
 COMMENT = ("121106", "DCM", "Comment")
+# TID 1020 Person Participant: the trainee at the pedal is the one administering the irradiation.
+PERSON_NAME = ("113870", "DCM", "Person Name")
+PERSON_ROLE_IN_PROCEDURE = ("113875", "DCM", "Person Role in Procedure")
+IRRADIATION_ADMINISTERING = ("113851", "DCM", "Irradiation Administering")
+ORGANIZATION_NAME = ("113873", "DCM", "Organization Name")
 # Local codes (a "99" scheme, as PS3.16 8.2 allows): a training session has no real diagnosis
-# or requested procedure, but IHE REM requires both to be coded.
-LOCAL_SCHEME = "99FLUOROSIM"
-TRAINING_PROCEDURE = ("TRAINING", LOCAL_SCHEME, "Simulated fluoroscopy training session")
-MPPS_SOP_CLASS = "1.2.840.10008.3.1.2.3.3"
+# or requested procedure, but IHE REM requires both to be coded (see records.study).
 SOURCE_OF_DOSE_INFORMATION = ("113854", "DCM", "Source of Dose Information")
 AUTOMATED_DATA_COLLECTION = ("113856", "DCM", "Automated Data Collection")
 
@@ -107,12 +116,6 @@ U_M2 = ("m2", "UCUM", "m2")
 U_PULSE_RATE = ("{pulse}/s", "UCUM", "pulse/s")
 U_PULSES = ("{pulses}", "UCUM", "pulses")
 U_NONE = ("1", "UCUM", "no units")
-
-
-def code(c: tuple[str, str, str]) -> Dataset:
-    ds = Dataset()
-    ds.CodeValue, ds.CodingSchemeDesignator, ds.CodeMeaning = c
-    return ds
 
 
 def _item(relationship: str | None, value_type: str, concept: tuple) -> Dataset:
@@ -147,7 +150,7 @@ def code_item(relationship: str, concept: tuple, value: tuple, children: list[Da
 def num_item(relationship: str, concept: tuple, value: float, unit: tuple) -> Dataset:
     ds = _item(relationship, "NUM", concept)
     measured = Dataset()
-    measured.NumericValue = _ds_number(value)
+    measured.NumericValue = ds_number(value)
     measured.FloatingPointValue = float(value)
     measured.MeasurementUnitsCodeSequence = Sequence([code(unit)])
     ds.MeasuredValueSequence = Sequence([measured])
@@ -174,34 +177,50 @@ def datetime_item(relationship: str, concept: tuple, when: dt.datetime) -> Datas
     return ds
 
 
+def pname_item(relationship: str, concept: tuple, name: str, children: list[Dataset] | None = None) -> Dataset:
+    ds = _item(relationship, "PNAME", concept)
+    ds.PersonName = name
+    if children:
+        ds.ContentSequence = Sequence(children)
+    return ds
+
+
 def utc(t_wall: float) -> dt.datetime:
     return dt.datetime.fromtimestamp(t_wall, tz=dt.UTC)
 
 
 def dicom_datetime(when: dt.datetime) -> str:
-    return when.strftime("%Y%m%d%H%M%S.%f") + "+0000"
+    """DT without an offset: the header's Timezone Offset From UTC applies (and DCMTK refuses
+    an offset in a content item's DateTime)."""
+    return when.strftime("%Y%m%d%H%M%S.%f")
 
 
-def _observer(equipment: dict, fluoroscope: str) -> list[Dataset]:
-    manufacturer = equipment.get("manufacturer") or "fluorosim"
-    model = equipment.get("model") or fluoroscope
-    serial = equipment.get("serial") or fluoroscope
+def _observer(study: SessionStudy) -> list[Dataset]:
+    name = study.equipment.get("station_name") or study.fluoroscope or "fluorosim"
     return [
         code_item("HAS OBS CONTEXT", OBSERVER_TYPE, DEVICE),
-        uid_item("HAS OBS CONTEXT", DEVICE_OBSERVER_UID, _uid("device", manufacturer, model, serial)),
-        text_item("HAS OBS CONTEXT", DEVICE_OBSERVER_NAME, fluoroscope[:64] or "fluorosim"),
-        text_item("HAS OBS CONTEXT", DEVICE_OBSERVER_MANUFACTURER, manufacturer[:64]),
-        text_item("HAS OBS CONTEXT", DEVICE_OBSERVER_MODEL, model[:64]),
-        text_item("HAS OBS CONTEXT", DEVICE_OBSERVER_SERIAL, serial[:64]),
+        uid_item("HAS OBS CONTEXT", DEVICE_OBSERVER_UID, study.device_uid),
+        text_item("HAS OBS CONTEXT", DEVICE_OBSERVER_NAME, name[:64]),
+        text_item("HAS OBS CONTEXT", DEVICE_OBSERVER_MANUFACTURER, study.manufacturer[:64]),
+        text_item("HAS OBS CONTEXT", DEVICE_OBSERVER_MODEL, study.model[:64]),
+        text_item("HAS OBS CONTEXT", DEVICE_OBSERVER_SERIAL, study.serial[:64]),
     ]
 
 
-def _irradiation_event(run: dict, event_hash: str) -> Dataset:
+def _person_participant(study: SessionStudy) -> Dataset:
+    properties = [code_item("HAS PROPERTIES", PERSON_ROLE_IN_PROCEDURE, IRRADIATION_ADMINISTERING)]
+    institution = study.equipment.get("institution")
+    if institution:
+        properties.append(text_item("HAS PROPERTIES", ORGANIZATION_NAME, institution[:64]))
+    return pname_item("CONTAINS", PERSON_NAME, person_name(study.operator), properties)
+
+
+def _irradiation_event(run: dict, event_uid: str, study: SessionStudy) -> Dataset:
     pulsed = run.get("pulse_rate_per_s") is not None
     kerma_gy = run["air_kerma_mgy"] / 1000.0
     children = [
         code_item("HAS CONCEPT MOD", ACQUISITION_PLANE, SINGLE_PLANE),
-        uid_item("CONTAINS", IRRADIATION_EVENT_UID, _uid("irradiation event", event_hash)),
+        uid_item("CONTAINS", IRRADIATION_EVENT_UID, event_uid),
         datetime_item("CONTAINS", DATETIME_STARTED, utc(run["start_wall"])),
         code_item("CONTAINS", IRRADIATION_EVENT_TYPE, FLUOROSCOPY),
     ]
@@ -211,8 +230,11 @@ def _irradiation_event(run: dict, event_hash: str) -> Dataset:
         num_item("CONTAINS", DAP, run["dap_gy_cm2"] / 1e4, U_GY_M2),
         num_item("CONTAINS", DOSE_RP, kerma_gy, U_GY),
         code_item("CONTAINS", REFERENCE_POINT_DEFINITION, RP_15CM_FROM_ISOCENTER),
-        code_item("CONTAINS", FLUORO_MODE, PULSED if pulsed else CONTINUOUS),
     ]
+    # OpenREM and TID 10003 read the distance per irradiation event.
+    if run.get("source_to_reference_mm"):
+        children.append(num_item("CONTAINS", DISTANCE_SOURCE_TO_RP, run["source_to_reference_mm"], U_MM))
+    children.append(code_item("CONTAINS", FLUORO_MODE, PULSED if pulsed else CONTINUOUS))
     if pulsed:
         children += [num_item("CONTAINS", PULSE_RATE, run["pulse_rate_per_s"], U_PULSE_RATE),
                      num_item("CONTAINS", NUMBER_OF_PULSES, run.get("pulses", 0), U_PULSES)]
@@ -230,21 +252,17 @@ def _irradiation_event(run: dict, event_hash: str) -> Dataset:
     if run.get("reason") == "recovered":
         children.append(text_item("CONTAINS", COMMENT, "Run cut off by a power loss or crash; "
                                                        "values cover the exposure recorded before it."))
+    children.append(_person_participant(study))
     return container("CONTAINS", IRRADIATION_EVENT, children, "10003")
 
 
 def session_report(session: dict, events: list[dict]) -> Dataset:
     """The RDSR dataset of one ended session; `session` and `events` are ledger rows."""
-    start = next(e for e in events if e["kind"] == "session_start")
-    start_detail = json.loads(start["detail"])
-    equipment = start_detail.get("equipment") or {}
-    runs = [(json.loads(e["detail"]), e["hash"]) for e in events if e["kind"] == "fluoro_off"]
-    fluoroscope = session["fluoroscope"]
-    study_uid = _uid("study", start["hash"])
+    study = session_study(session, events)
+    runs = runs_of(events)
     started, ended = utc(session["started_wall"]), utc(session["ended_wall"] or session["started_wall"])
     dap_gy_m2 = session["dap_gy_cm2"] / 1e4
     kerma_gy = session["air_kerma_mgy"] / 1000.0
-    source_to_rp = next((r["source_to_reference_mm"] for r, _ in runs if r.get("source_to_reference_mm")), None)
 
     accumulated = [
         code_item("HAS CONCEPT MOD", ACQUISITION_PLANE, SINGLE_PLANE),
@@ -259,66 +277,47 @@ def session_report(session: dict, events: list[dict]) -> Dataset:
         num_item("CONTAINS", DAP_TOTAL, dap_gy_m2, U_GY_M2),
         num_item("CONTAINS", DOSE_RP_TOTAL, kerma_gy, U_GY),
         num_item("CONTAINS", RADIOGRAPHIC_FRAMES, 0, U_NONE),
+        code_item("CONTAINS", REFERENCE_POINT_DEFINITION, RP_15CM_FROM_ISOCENTER),
     ]
-    if source_to_rp is not None:
-        accumulated.append(num_item("CONTAINS", DISTANCE_SOURCE_TO_RP, source_to_rp, U_MM))
-    accumulated.append(code_item("CONTAINS", REFERENCE_POINT_DEFINITION, RP_15CM_FROM_ISOCENTER))
 
     content = [
         code_item("HAS CONCEPT MOD", PROCEDURE_REPORTED, PROJECTION_XRAY,
                   [code_item("HAS CONCEPT MOD", HAS_INTENT, DIAGNOSTIC_INTENT)]),
         code_item("CONTAINS", ACQUISITION_DEVICE_TYPE, FLUORO_GUIDED_SYSTEM),
-        *_observer(equipment, fluoroscope),
+        *_observer(study),
         code_item("HAS OBS CONTEXT", SCOPE_OF_ACCUMULATION, STUDY,
-                  [uid_item("HAS PROPERTIES", STUDY_INSTANCE_UID, study_uid)]),
+                  [uid_item("HAS PROPERTIES", STUDY_INSTANCE_UID, study.study_uid)]),
         code_item("CONTAINS", DETECTOR_DATA_AVAILABLE, NO),
         code_item("CONTAINS", SOURCE_DATA_AVAILABLE, YES),
         # Positioner angles and table positions (TID 10003C) are not modelled; the fixed source
-        # to reference point distance is given once with the totals (TID 10007).
+        # to reference point distance is given with each irradiation event.
         code_item("CONTAINS", MECHANICAL_DATA_AVAILABLE, NO),
         container("CONTAINS", ACCUMULATED, accumulated, "10002"),
-        *[_irradiation_event(run, h) for run, h in runs],
+        *[_irradiation_event(detail, study.event_uid(on["hash"]), study) for on, _, detail in runs],
         text_item("CONTAINS", COMMENT, f"Simulated fluoroscopy (fluorosim training session {session['id']}, "
                                        f"case '{session['case_title']}'); no patient was exposed."),
         code_item("CONTAINS", SOURCE_OF_DOSE_INFORMATION, AUTOMATED_DATA_COLLECTION),
     ]
 
     ds = Dataset()
-    ds.SpecificCharacterSet = "ISO_IR 192"
+    apply_common(ds, study)
     scheme = Dataset()
     scheme.CodingSchemeDesignator = LOCAL_SCHEME
     scheme.CodingSchemeName = "fluorosim local codes"
     scheme.CodingSchemeResponsibleOrganization = "fluorosim"
     ds.CodingSchemeIdentificationSequence = Sequence([scheme])
     ds.SOPClassUID = XRAY_RADIATION_DOSE_SR
-    ds.SOPInstanceUID = _uid("rdsr", start["hash"], session["id"])
-    ds.StudyDate, ds.StudyTime = started.strftime("%Y%m%d"), started.strftime("%H%M%S")
-    ds.ContentDate, ds.ContentTime = ended.strftime("%Y%m%d"), ended.strftime("%H%M%S")
-    ds.TimezoneOffsetFromUTC = "+0000"
-    ds.AccessionNumber = ""
+    ds.SOPInstanceUID = study.report_uid
+    ds.InstanceCreationDate, ds.InstanceCreationTime = ended.strftime("%Y%m%d"), ended.strftime("%H%M%S.%f")
+    ds.SeriesDate, ds.SeriesTime = started.strftime("%Y%m%d"), started.strftime("%H%M%S.%f")
+    ds.ContentDate, ds.ContentTime = ended.strftime("%Y%m%d"), ended.strftime("%H%M%S.%f")
     ds.Modality = "SR"
-    ds.Manufacturer = equipment.get("manufacturer") or "fluorosim"
-    ds.ReferringPhysicianName = ""
-    ds.StudyDescription = "Fluoroscopy training (simulated)"
     ds.SeriesDescription = "Radiation Dose Information"
-    ds.ManufacturerModelName = equipment.get("model") or fluoroscope
-    ds.DeviceSerialNumber = equipment.get("serial") or fluoroscope
-    ds.SoftwareVersions = f"fluorosim {__version__}"
-    ds.InstitutionName = equipment.get("institution") or "fluorosim training appliance"
-    set_simulated_patient(ds, start_detail.get("patient"), session["id"])
-    case_title = session["case_title"]
-    ds.AdmittingDiagnosesDescription = f"Training case: {case_title}"[:64]
-    ds.AdmittingDiagnosesCodeSequence = Sequence([code((f"CASE-{_uid('case', case_title)[-10:]}", LOCAL_SCHEME,
-                                                        case_title[:64] or "training case"))])
-    ds.StudyInstanceUID = study_uid
-    ds.SeriesInstanceUID = _uid("series", start["hash"])
-    ds.StudyID = str(session["id"])[:16]
+    ds.OperatorsName = person_name(study.operator)
+    ds.SeriesInstanceUID = study.report_series_uid
     ds.SeriesNumber = 999
     ds.InstanceNumber = 1
-    pps = Dataset()
-    pps.ReferencedSOPClassUID = MPPS_SOP_CLASS
-    pps.ReferencedSOPInstanceUID = _uid("performed procedure step", start["hash"])
-    ds.ReferencedPerformedProcedureStepSequence = Sequence([pps])
+    ds.ReferencedPerformedProcedureStepSequence = procedure_step_reference(study)
     ds.PerformedProcedureCodeSequence = Sequence([code(TRAINING_PROCEDURE)])
     ds.CompletionFlag = "COMPLETE"
     ds.VerificationFlag = "UNVERIFIED"
@@ -339,5 +338,6 @@ def patient_of(case: CaseProfile) -> dict:
 
 
 def equipment_of(fluoroscope: FluoroscopeProfile) -> dict:
-    """What a session records about its machine (FluoroscopeProfile -> dict) for the reports."""
+    """The machine alone, for a session without an appliance profile (tests, benchmarks); the
+    appliance records its identity too (records.identity.equipment_of)."""
     return {"manufacturer": fluoroscope.manufacturer, "model": fluoroscope.model, "serial": fluoroscope.name}

@@ -6,6 +6,10 @@ source-to-detector and source-to-isocentre distances, the intensifier field of v
 shape, the imager pixel spacing at that zoom, the collimator blades in image pixels, and the
 session's cumulative fluoroscopy time and dose-area product. Pixels are display values
 (after window, level and invert), so Pixel Intensity Relationship is DISP.
+
+Every image belongs to its session's study (records.study): the same Study Instance UID,
+patient and equipment as the session's dose report, and the Irradiation Event UID of the run
+it shows.
 """
 
 from __future__ import annotations
@@ -18,12 +22,13 @@ import numpy as np
 from pydicom.dataset import Dataset
 from pydicom.uid import XRayRadiofluoroscopicImageStorage
 
-from .. import __version__
 from ..atomic_file import write_atomic
 from ..config.fluoroscope import FluoroscopeProfile
 from ..console.state import ConsoleState
 from ..errors import FluorosimError
-from .dicom import ds_number, encode, set_simulated_patient, uid
+from .dicom import ds_number as _ds_number
+from .dicom import encode
+from .study import SessionStudy, apply_common, person_name, procedure_step_reference
 
 
 def _as_display(image: np.ndarray) -> np.ndarray:
@@ -41,7 +46,8 @@ def _as_display(image: np.ndarray) -> np.ndarray:
 
 
 def dicom_image(pixels: np.ndarray, state: ConsoleState, fl: FluoroscopeProfile, *, t_wall: float,
-                session_id: int, operator: str, case_title: str, patient: dict | None = None) -> Dataset:
+                study: SessionStudy, event_uid: str | None) -> Dataset:
+    """The RF image of one save; `event_uid` is the Irradiation Event UID of the run it shows."""
     rows, cols = pixels.shape
     when = dt.datetime.fromtimestamp(t_wall, tz=dt.UTC)
     # The field of view fills the image: this zoom's pixel size at the detector plane.
@@ -49,60 +55,55 @@ def dicom_image(pixels: np.ndarray, state: ConsoleState, fl: FluoroscopeProfile,
     h_px = min(state.collimation_mm[0], state.fov_mm) / pitch
     v_px = min(state.collimation_mm[1], state.fov_mm) / pitch
     ds = Dataset()
-    ds.SpecificCharacterSet = "ISO_IR 192"
+    apply_common(ds, study)
     ds.ImageType = ["ORIGINAL", "PRIMARY", "SINGLE PLANE"]
     ds.SOPClassUID = XRayRadiofluoroscopicImageStorage
-    ds.SOPInstanceUID = uid("saved image", session_id, state.save_count, t_wall)
-    ds.StudyDate = ds.SeriesDate = ds.ContentDate = ds.AcquisitionDate = when.strftime("%Y%m%d")
-    ds.StudyTime = ds.SeriesTime = ds.ContentTime = ds.AcquisitionTime = when.strftime("%H%M%S.%f")
-    ds.TimezoneOffsetFromUTC = "+0000"
-    ds.AccessionNumber = ""
+    ds.SOPInstanceUID = study.image_uid(state.save_count)
+    # The series of saved images begins with the session, so every image of it has one series time.
+    ds.SeriesDate, ds.SeriesTime = ds.StudyDate, ds.StudyTime
+    ds.ContentDate = ds.AcquisitionDate = when.strftime("%Y%m%d")
+    ds.ContentTime = ds.AcquisitionTime = when.strftime("%H%M%S.%f")
     ds.Modality = "RF"
-    ds.Manufacturer = fl.manufacturer or "fluorosim"
-    ds.ManufacturerModelName = fl.model or fl.name
-    ds.SoftwareVersions = f"fluorosim {__version__}"
-    ds.ReferringPhysicianName = ""
-    ds.StudyDescription = "Fluoroscopy training (simulated)"
-    ds.SeriesDescription = f"Saved images, {case_title}"[:64]
-    ds.OperatorsName = operator[:64]
-    set_simulated_patient(ds, patient, session_id)
-    ds.StudyInstanceUID = uid("saved images study", session_id, operator, case_title)
-    ds.SeriesInstanceUID = uid("saved images series", session_id, operator, case_title)
-    ds.StudyID = str(session_id)[:16]
+    ds.SeriesDescription = f"Saved images, {study.case_title}"[:64]
+    ds.OperatorsName = person_name(study.operator)
+    ds.SeriesInstanceUID = study.image_series_uid
     ds.SeriesNumber = 1
-    ds.Laterality = ""
     ds.InstanceNumber = state.save_count
     ds.PatientOrientation = ""
+    ds.ImageLaterality = "U"      # the trunk: an unpaired body part
+    ds.ReferencedPerformedProcedureStepSequence = procedure_step_reference(study)
+    if event_uid is not None:
+        ds.IrradiationEventUID = event_uid
     ds.ImageComments = f"{'Held' if state.image == 'held' else 'Live'} image; fluoroscopy time {state.fluoro_time_display} min"
     # Exposure.
-    ds.KVP = ds_number(state.kvp)
+    ds.KVP = _ds_number(state.kvp)
     ds.RadiationSetting = "SC"       # low-dose fluoroscopic setting, not a radiographic acquisition
     ds.XRayTubeCurrent = int(round(state.ma))
-    ds.XRayTubeCurrentInuA = ds_number(state.ma * 1000.0)
+    ds.XRayTubeCurrentInuA = _ds_number(state.ma * 1000.0)
     ds.RadiationMode = "PULSED" if state.pulse_rate_per_s else "CONTINUOUS"
     if state.pulse_rate_per_s:
-        ds.AveragePulseWidth = ds_number(fl.tube.pulse_width_ms)
+        ds.AveragePulseWidth = _ds_number(fl.tube.pulse_width_ms)
         ds.ExposureTime = int(round(fl.tube.pulse_width_ms))   # ms: this image is one pulse
     else:
         ds.ExposureTime = None    # continuous: the frame's exposure is not a defined pulse (Type 2, empty)
-    ds.FocalSpots = ds_number(fl.tube.focal_spot_mm)
+    ds.FocalSpots = _ds_number(fl.tube.focal_spot_mm)
     # Geometry.
-    ds.DistanceSourceToDetector = ds_number(fl.geometry.source_to_image_mm)
-    ds.DistanceSourceToPatient = ds_number(fl.geometry.source_to_isocentre_mm)
-    ds.EstimatedRadiographicMagnificationFactor = ds_number(fl.geometry.source_to_image_mm / fl.geometry.source_to_isocentre_mm)
-    ds.ImagerPixelSpacing = [ds_number(pitch), ds_number(pitch)]
+    ds.DistanceSourceToDetector = _ds_number(fl.geometry.source_to_image_mm)
+    ds.DistanceSourceToPatient = _ds_number(fl.geometry.source_to_isocentre_mm)
+    ds.EstimatedRadiographicMagnificationFactor = _ds_number(fl.geometry.source_to_image_mm / fl.geometry.source_to_isocentre_mm)
+    ds.ImagerPixelSpacing = [_ds_number(pitch), _ds_number(pitch)]
     round_field = fl.detector.kind == "image_intensifier"
     ds.FieldOfViewShape = "ROUND" if round_field else "RECTANGLE"
     ds.FieldOfViewDimensions = [int(round(state.fov_mm))] if round_field else [int(round(state.fov_mm))] * 2
     if round_field:
-        ds.IntensifierSize = ds_number(fl.zoom_levels[0].fov_mm)
+        ds.IntensifierSize = _ds_number(fl.zoom_levels[0].fov_mm)
     ds.CollimatorShape = "RECTANGULAR"
     ds.CollimatorLeftVerticalEdge = int(round((cols - h_px) / 2))
     ds.CollimatorRightVerticalEdge = int(round((cols + h_px) / 2))
     ds.CollimatorUpperHorizontalEdge = int(round((rows - v_px) / 2))
     ds.CollimatorLowerHorizontalEdge = int(round((rows + v_px) / 2))
     # Dose so far in the session (dGy cm^2).
-    ds.ImageAndFluoroscopyAreaDoseProduct = ds_number(state.dap_gy_cm2 * 10.0)
+    ds.ImageAndFluoroscopyAreaDoseProduct = _ds_number(state.dap_gy_cm2 * 10.0)
     # Pixels.
     ds.SamplesPerPixel = 1
     ds.PhotometricInterpretation = "MONOCHROME2"
@@ -123,8 +124,7 @@ def dicom_image(pixels: np.ndarray, state: ConsoleState, fl: FluoroscopeProfile,
 
 
 def save_image(image: np.ndarray, state: ConsoleState, fluoroscope: FluoroscopeProfile, out_dir: Path, *,
-               t_wall: float, session_id: int = 0, operator: str = "", case_title: str = "",
-               patient: dict | None = None) -> tuple[Path, Path]:
+               t_wall: float, study: SessionStudy, event_uid: str | None) -> tuple[Path, Path]:
     """Write image-<session>-<n>.png and .dcm into `out_dir`; never overwrites. Returns both paths."""
     pixels = _as_display(image)
     out_dir = Path(out_dir)
@@ -133,12 +133,11 @@ def save_image(image: np.ndarray, state: ConsoleState, fluoroscope: FluoroscopeP
     except OSError as e:
         raise FluorosimError(f"{out_dir}: cannot create the saved-images folder ({e.strerror or e}); "
                              "check data_dir in the appliance profile") from None
-    stem = f"image-{session_id:06d}-{state.save_count:04d}"
+    stem = f"image-{study.session_id:06d}-{state.save_count:04d}"
     ok, png = cv2.imencode(".png", pixels)
     if not ok:
         raise FluorosimError(f"{out_dir / stem}.png: the image could not be encoded as PNG")
-    dicom = encode(dicom_image(pixels, state, fluoroscope, t_wall=t_wall, session_id=session_id, operator=operator,
-                                case_title=case_title, patient=patient))
+    dicom = encode(dicom_image(pixels, state, fluoroscope, t_wall=t_wall, study=study, event_uid=event_uid))
     png_path = write_atomic(out_dir / f"{stem}.png", png.tobytes(), overwrite=False)
     try:
         dcm_path = write_atomic(out_dir / f"{stem}.dcm", dicom, overwrite=False)
