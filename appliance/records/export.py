@@ -31,6 +31,11 @@ EVENT_CSV_COLUMNS = ("event_id", "session_id", "time_utc", "kind", "fluoro_time_
                      "d_fluoro_time_s", "d_air_kerma_mgy", "d_dap_gy_cm2", "detail", "hash")
 
 
+#: Dates a ledger can hold: the appliance did not exist before 1970 (Unix time 0), and
+#: datetime ends with year 9999, which must leave room for the day after an --until date.
+MIN_YEAR, MAX_YEAR = 1970, 9998
+
+
 def parse_when(text: str, *, end: bool = False) -> float:
     """Unix time of an ISO date or date-time. A bare date as `end` means the end of that day;
     a time without an offset is the appliance's local time."""
@@ -42,9 +47,18 @@ def parse_when(text: str, *, end: bool = False) -> float:
             when = dt.datetime.fromisoformat(text)
     except ValueError:
         raise FluorosimError(f"'{text}' is not a date; write it as YYYY-MM-DD or YYYY-MM-DDTHH:MM[:SS][+HH:MM]") from None
-    if when.tzinfo is None:
-        when = when.astimezone()  # local time
-    return when.timestamp()
+    except OverflowError:
+        stamp = float("inf")
+    else:
+        try:
+            stamp = (when if when.tzinfo is not None else when.astimezone()).timestamp()  # naive: local time
+        except (ValueError, OverflowError):
+            stamp = float("inf")
+    if not dt.datetime(MIN_YEAR, 1, 1, tzinfo=dt.timezone.utc).timestamp() <= stamp < \
+            dt.datetime(MAX_YEAR + 1, 1, 1, tzinfo=dt.timezone.utc).timestamp():
+        raise FluorosimError(f"'{text}' is outside {MIN_YEAR}..{MAX_YEAR}; the ledger holds no sessions then "
+                             "(leave the option out for no limit)")
+    return stamp
 
 
 def iso(t_wall: float | None) -> str:
