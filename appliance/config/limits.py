@@ -41,6 +41,10 @@ MAX_CORNER_TANGENTIAL = 0.05
 #: The webcam rides on the intensifier housing: its offset from the focal spot is at most
 #: the SID plus the housing's reach (mm).
 WEBCAM_HOUSING_REACH_MM = 500.0
+#: A webcam's focal length in pixels, from fisheye (0.2) to telephoto (20), per pixel of image width.
+WEBCAM_FOCAL_PER_WIDTH = (0.2, 20.0)
+#: Barrel or pincushion of a webcam lens at the image corner, beyond which it is not a webcam (fraction).
+MAX_WEBCAM_CORNER_DISTORTION = 0.6
 #: The phantom box and the CT placed in it lie within this distance of their frames' origin (mm).
 MAX_PLACEMENT_OFFSET_MM = 2000.0
 #: A phantom seen by the webcam is within this distance of it (mm).

@@ -130,12 +130,40 @@ def validate_located(located: Located, model: type[M]) -> tuple[M | None, list[P
     return (obj if not problems else None), problems
 
 
+def _kind_name(model: type[BaseModel]) -> str:
+    for name, m in KINDS.items():
+        if m is model:
+            return f"{name} profile"
+    return (model.__doc__ or model.__name__).strip().splitlines()[0].rstrip(".").removeprefix("A ").removeprefix("The ")
+
+
+def wrong_kind(located: Located, model: type[BaseModel], problems: list[Problem]) -> Problem | None:
+    """One line for a file of another kind than `model` (a fluoroscope given as a pose), instead
+    of a line per key it does not share with the expected kind."""
+    kind = kind_of(located)
+    if kind is not None and KINDS[kind] is not model and kind_of_folder_ok(located, kind):
+        return Problem(located.display, 1, "", f"is a {kind} profile, not a {_kind_name(model)}; check which file "
+                                               "the command or profile names here")
+    strange = [p for p in problems if p.message.startswith(("unknown key", "is required but missing"))]
+    if len(problems) >= 3 and len(strange) * 2 > len(problems):
+        return Problem(located.display, 1, "", f"is not a {_kind_name(model)}: {len(strange)} of its keys are unknown "
+                                               "or missing (is this the right file?)")
+    return None
+
+
+def kind_of_folder_ok(located: Located, kind: str) -> bool:
+    """Whether the file really is of `kind` by its own keys (not only by the folder it sits in)."""
+    obj, problems = validate_located(located, KINDS[kind])
+    return obj is not None
+
+
 def load_profile(path: str | Path, model: type[M]) -> M:
     """Load and validate one profile, or raise ProfileProblems naming file, line and field."""
     located = load(path)
     obj, problems = validate_located(located, model)
     if problems:
-        raise ProfileProblems(problems)
+        other = wrong_kind(located, model, problems)
+        raise ProfileProblems([other] if other else problems)
     return obj
 
 

@@ -9,6 +9,7 @@ being stacked into a distorted patient.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import sys
 import tempfile
@@ -18,6 +19,9 @@ import numpy as np
 
 from ..errors import FluorosimError
 from .volume import Volume
+from .volume_checks import check_header, check_hu, check_spacing
+
+log = logging.getLogger(__name__)
 
 FILE_SUFFIXES = (".nii", ".nii.gz", ".mha", ".mhd", ".nrrd", ".nhdr")
 #: Slice gaps may differ from the series' median gap by this fraction before the series is
@@ -39,6 +43,7 @@ def load_volume(path: str | Path) -> Volume:
         raise FluorosimError(f"{p}: unknown volume format; use a DICOM series folder, .nii/.nii.gz, .mha/.mhd or .nrrd")
     import SimpleITK as sitk
 
+    _refuse_or_warn(str(p), (check_header(p)[0], []))  # its warnings come again from the loaded image
     with _stderr_captured() as said:
         try:
             image = sitk.ReadImage(str(p))
@@ -48,6 +53,15 @@ def load_volume(path: str | Path) -> Volume:
         reason = said()[0] if said() else "unreadable"
         raise FluorosimError(f"{p}: cannot read this volume ({reason[:160]}); check the file is complete and not corrupt")
     return _from_image(image, str(p))
+
+
+def _refuse_or_warn(source: str, found: tuple[list[str], list[str]]) -> None:
+    """Raise the first error of a check as one line naming the volume; log its warnings."""
+    errors, warnings = found
+    if errors:
+        raise FluorosimError(f"{source}: {errors[0]}")
+    for warning in warnings:
+        log.warning("%s: %s", source, warning)
 
 
 @contextlib.contextmanager
@@ -79,11 +93,13 @@ def _from_image(image, source: str) -> Volume:
     arr = sitk.GetArrayFromImage(image)      # (nz, ny, nx)
     if not np.issubdtype(arr.dtype, np.number):
         raise FluorosimError(f"{source}: voxels are not numbers")
+    _refuse_or_warn(source, check_hu(arr))
     if arr.dtype != np.int16:
         arr = np.clip(np.rint(arr), -32768, 32767).astype(np.int16)
     spacing = np.array(image.GetSpacing(), dtype=np.float64)
     if np.any(spacing <= 0):
         raise FluorosimError(f"{source}: voxel spacing {tuple(spacing)} mm must be positive")
+    _refuse_or_warn(source, check_spacing(spacing))
     direction = np.array(image.GetDirection(), dtype=np.float64).reshape(3, 3)
     T = np.eye(4)
     T[:3, :3] = direction @ np.diag(spacing)
