@@ -202,8 +202,27 @@ def _cross_problems(kind: str, located: Located, obj: BaseModel) -> list[Problem
     return problems
 
 
-def validate_paths(paths: list[Path]) -> list[Problem]:
-    """Every problem in `paths` and in the files they refer to, each file checked once."""
+def _file_problems(kind: str, path: Path, obj: BaseModel, loc: tuple, target: Path) -> tuple[list[str], list[str]]:
+    """Open a script, trajectory or volume a profile names: (errors, warnings) as one-line messages."""
+    from . import referenced
+
+    if kind == "appliance" and loc[-1] == "script":
+        problem = referenced.script_problem(target, resolve(path, obj.keymap))
+        return ([problem] if problem else []), []
+    if kind == "appliance" and loc[-1] == "trajectory":
+        problem = referenced.trajectory_problem(target)
+        return ([problem] if problem else []), []
+    if kind == "case" and loc[-1] == "volume":
+        return referenced.volume_problems(target)
+    return [], []
+
+
+def validate_paths(paths: list[Path], warnings: list[Problem] | None = None) -> list[Problem]:
+    """Every problem in `paths` and in the files they refer to, each file checked once.
+
+    Scripts, trajectories and volumes are opened too; what may be meant (an unusual voxel
+    spacing, a CT without air) goes to `warnings` when given, not to the problems.
+    """
     problems: list[Problem] = []
     done: dict[Path, str | None] = {}  # resolved path -> kind it validated as (None: invalid)
 
@@ -235,6 +254,13 @@ def validate_paths(paths: list[Path]) -> list[Problem]:
                                         f"{written} does not exist (looked for {target})"))
             elif ref_kind is not None:
                 check(target, ref_kind)
+            elif target.resolve() not in done:
+                done[target.resolve()] = None
+                errors, cautions = _file_problems(kind, path, obj, loc, target)
+                line, field = located.line_of(loc), _field_path(loc)
+                problems.extend(Problem(located.display, line, field, m) for m in errors)
+                if warnings is not None:
+                    warnings.extend(Problem(located.display, line, field, m) for m in cautions)
 
     for path in paths:
         if path.is_dir():

@@ -112,8 +112,51 @@ def _from_image(image, source: str) -> Volume:
 def load_dicom_series(folder: Path) -> Volume:
     """One CT series from a folder: sorted by ImagePositionPatient along the slice normal,
     RescaleSlope/Intercept applied; mixed series, missing or uneven slices refused."""
-    import pydicom
     import SimpleITK as sitk
+
+    headers, normal, step = dicom_series_headers(folder)
+
+    reader = sitk.ImageSeriesReader()
+    reader.SetFileNames([str(f) for f, _ in headers])
+    with _stderr_captured() as said:
+        try:
+            image = reader.Execute()
+        except RuntimeError as e:
+            image, error = None, str(e)
+    if image is None:
+        reason = (said() or error.strip().splitlines() or ["unreadable"])[-1]
+        raise FluorosimError(f"{folder}: cannot read the DICOM pixels ({reason[:160]})")
+    # ITK takes the slice spacing from the positions; make the frame agree with our sort.
+    vol = _from_image(image, str(folder))
+    T = vol.T_ct_from_voxel.copy()
+    first = np.array([float(x) for x in headers[0][1].ImagePositionPatient])
+    T[:3, 2] = normal * step
+    T[:3, 3] = first
+    return Volume(hu=vol.hu, T_ct_from_voxel=T, source=str(folder))
+
+
+def check_volume(path: Path) -> tuple[list[str], list[str]]:
+    """(errors, warnings) of a volume from its headers alone, as `fluorosim validate` reports them;
+    the messages name the file or folder."""
+    if not path.exists():
+        return [f"{path}: no such file or folder"], []
+    try:
+        if path.is_dir():
+            headers, _, step = dicom_series_headers(path)
+            errors, warnings = check_spacing([*map(float, headers[0][1].PixelSpacing), step])
+        else:
+            if not path.name.lower().endswith(FILE_SUFFIXES):
+                load_volume(path)  # raises the one line for an unknown or single-DICOM file
+            errors, warnings = check_header(path)
+    except FluorosimError as e:
+        return [str(e)], []
+    return [f"{path}: {m}" for m in errors], [f"{path}: {m}" for m in warnings]
+
+
+def dicom_series_headers(folder: Path):
+    """The headers of one complete, evenly spaced CT series in `folder`, sorted along the slice
+    normal, with that normal and the slice step (mm); a mixed or gappy series is refused."""
+    import pydicom
 
     files = sorted(f for f in folder.iterdir() if f.is_file() and not f.name.startswith("."))
     headers = []
@@ -167,20 +210,4 @@ def load_dicom_series(folder: Path) -> Volume:
                 else "uneven slice spacing")
         raise FluorosimError(f"{folder}: {what} between slice positions {pos[i]:.2f} and {pos[i + 1]:.2f} mm "
                              f"(gap {gaps[i]:.2f} mm, series spacing {step:.2f} mm); export the complete series")
-    reader = sitk.ImageSeriesReader()
-    reader.SetFileNames([str(f) for f, _ in headers])
-    with _stderr_captured() as said:
-        try:
-            image = reader.Execute()
-        except RuntimeError as e:
-            image, error = None, str(e)
-    if image is None:
-        reason = (said() or error.strip().splitlines() or ["unreadable"])[-1]
-        raise FluorosimError(f"{folder}: cannot read the DICOM pixels ({reason[:160]})")
-    # ITK takes the slice spacing from the positions; make the frame agree with our sort.
-    vol = _from_image(image, str(folder))
-    T = vol.T_ct_from_voxel.copy()
-    first = np.array([float(x) for x in headers[0][1].ImagePositionPatient])
-    T[:3, 2] = normal * step
-    T[:3, 3] = first
-    return Volume(hu=vol.hu, T_ct_from_voxel=T, source=str(folder))
+    return headers, normal, step
