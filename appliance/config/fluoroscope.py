@@ -183,15 +183,17 @@ class FluoroscopeProfile(Section):
                    f"({limits.fmt(g.source_to_image_mm)} mm): the patient lies between isocentre and detector")
         nominal = g.source_to_image_mm / d.pixel_pitch_mm
         r = limits.MAX_FOCAL_LENGTH_RATIO
+        focal_ok = True
         for name, f in (("fx", k.fx), ("fy", k.fy)):
             if not nominal / r <= f <= nominal * r:
+                focal_ok = False
                 yield (("intrinsics", name),
                        f"{limits.fmt(f)} px is not a focal length this machine can have: SID / pixel pitch is "
                        f"{nominal:.0f} px, and a calibration stays within {nominal / r:.0f}..{nominal * r:.0f} px")
         for name, c, n in (("cx", k.cx, d.columns), ("cy", k.cy, d.rows)):
             if not -0.5 <= c <= n - 0.5:
                 yield ("intrinsics", name), f"{limits.fmt(c)} px lies outside the detector (0..{n - 1} px)"
-        if k.fx > 0 and k.fy > 0:
+        if focal_ok:  # the corner's normalised radius needs a real focal length
             corner = float(np.hypot(d.columns / 2 / k.fx, d.rows / 2 / k.fy))
             dist = k.distortion
             radial = limits.corner_distortion(dist.k1, dist.k2, dist.k3, corner)

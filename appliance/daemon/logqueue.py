@@ -93,7 +93,10 @@ class LogQueue:
         root.removeHandler(self.handler)
         self.listener.stop()
         for t in self.targets:
-            t.close()
+            try:
+                t.close()
+            except OSError:
+                pass  # a full disk refuses the last buffered bytes; the journal has them
 
 
 def start_logging(log_dir: Path | None, *, level: int = logging.INFO, stream=None, console_level: int = logging.NOTSET,
