@@ -14,7 +14,7 @@ import pytest
 from appliance.config import FluoroscopeProfile, KeymapProfile, load_profile
 from appliance.console.state import Console
 from appliance.errors import FluorosimError
-from appliance.records.ledger import Ledger, open_readonly, verify
+from appliance.records.ledger import MIGRATIONS, Ledger, open_readonly, verify
 from drivers.input_event import InputEvent
 
 REPO = Path(__file__).resolve().parents[1]
@@ -65,7 +65,7 @@ def test_wal_full_sync_and_migrations(tmp_path):
         pass
     conn = sqlite3.connect(path)
     assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
-    assert conn.execute("PRAGMA user_version").fetchone()[0] == 1
+    assert conn.execute("PRAGMA user_version").fetchone()[0] == len(MIGRATIONS)
     with Ledger(path) as ledger:
         assert ledger._conn.execute("PRAGMA synchronous").fetchone()[0] == 2  # FULL
 

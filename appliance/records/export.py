@@ -131,10 +131,32 @@ def build_files(conn: sqlite3.Connection, sessions: list[dict], fmt: str) -> tup
     raise FluorosimError(f"unknown export format '{fmt}'; choose one of {', '.join(FORMATS)}")
 
 
-def export(conn: sqlite3.Connection, since: float | None, until: float | None, fmt: str, out_dir: Path) -> tuple[list[Path], list[str]]:
-    """Write the export; returns the files written and notes. Refuses to overwrite anything."""
+def stamped(name: str, data: bytes, stamp: str) -> bytes:
+    """A file of an export from a broken ledger, marked so wherever it goes: a first CSV row,
+    a top-level JSON key, or a DICOM report flagged unverified and partial with the reason."""
+    if name.endswith(".csv"):
+        return _csv_bytes([stamp], []) + data
+    if name.endswith(".json"):
+        return (json.dumps({"NOT_INTACT": stamp, **json.loads(data)}, indent=1, allow_nan=False) + "\n").encode("utf-8")
+    if name.endswith(".dcm"):
+        import pydicom
+
+        ds = pydicom.dcmread(io.BytesIO(data))
+        ds.VerificationFlag = "UNVERIFIED"
+        ds.CompletionFlag = "PARTIAL"
+        ds.ImageComments = stamp[:10240]
+        return rdsr.encode(ds)
+    raise FluorosimError(f"{name}: cannot stamp this kind of export file")
+
+
+def export(conn: sqlite3.Connection, since: float | None, until: float | None, fmt: str, out_dir: Path,
+           stamp: str | None = None) -> tuple[list[Path], list[str]]:
+    """Write the export; returns the files written and notes. Refuses to overwrite anything.
+    `stamp` (from a ledger that failed verification) is written into every file."""
     sessions = sessions_between(conn, since, until)
     files, notes = build_files(conn, sessions, fmt)
+    if stamp:
+        files = {name: stamped(name, data, stamp) for name, data in files.items()}
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as e:

@@ -4,6 +4,9 @@ Durability: WAL journal with synchronous=FULL, so a committed event survives a p
 each `record()` call is one transaction, so a kill leaves whole batches or nothing.
 Tamper evidence: each event row carries `hash = sha256(prev_hash + canonical row)`, the
 first event chaining to 64 zeros; `verify()` reports the first row whose link is broken.
+Where a seal is configured (records/seal.py) each row also carries an HMAC with a key the
+service cannot read, and the newest entry is anchored outside the file; the sessions rows
+are checked against the chained session_start and session_end events.
 Recovery: opening the ledger finds sessions that never ended (power loss, kill -9), closes
 an exposure left open, and ends the session with totals equal to the sum of its events'
 increments. Schema changes are numbered migrations run at open (PRAGMA user_version).
@@ -17,6 +20,7 @@ from __future__ import annotations
 import fcntl
 import hashlib
 import json
+import logging
 import math
 import os
 import sqlite3
@@ -25,6 +29,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import FluorosimError
+
+log = logging.getLogger(__name__)
 
 GENESIS = "0" * 64
 
@@ -65,10 +71,15 @@ MIGRATIONS = (
     CREATE INDEX events_by_session ON events(session_id, id);
     CREATE INDEX sessions_by_start ON sessions(started_wall);
     """,
+    # 2 (tamper-evident ledger): each event's HMAC with the seal's key (records/seal.py); NULL
+    # in rows written before sealing, which the first sealed row's MAC covers through its hash.
+    """
+    ALTER TABLE events ADD COLUMN mac TEXT;
+    """,
 )
 
 EVENT_COLUMNS = ("id", "session_id", "t_wall", "t_monotonic", "kind", "fluoro_time_s", "air_kerma_mgy", "dap_gy_cm2",
-                 "d_fluoro_time_s", "d_air_kerma_mgy", "d_dap_gy_cm2", "detail", "prev_hash", "hash")
+                 "d_fluoro_time_s", "d_air_kerma_mgy", "d_dap_gy_cm2", "detail", "prev_hash", "hash", "mac")
 SESSION_COLUMNS = ("id", "operator", "case_title", "fluoroscope", "started_wall", "ended_wall", "end_reason",
                    "fluoro_time_s", "air_kerma_mgy", "dap_gy_cm2", "runs", "alarms", "saves")
 
@@ -173,14 +184,52 @@ def verify(conn: sqlite3.Connection, resume: tuple[int, str] | None = None) -> C
             if not math.isclose(d[name], s[name], rel_tol=1e-9, abs_tol=1e-12):
                 return ChainReport(False, count, None, f"session {s['id']}: {name} {s[name]!r} differs from its "
                                                        f"chained session_end record {d[name]!r} (the sessions table was changed)")
+    problem = session_rows_problem(conn, 0 if resume is None else resume[0])
+    if problem:
+        return ChainReport(False, count, None, problem)
     return ChainReport(True, count, None, f"{count} events, chain intact", last)
 
 
-class Ledger:
-    """The one writer of the ledger file."""
+def session_rows_problem(conn: sqlite3.Connection, after: int = 0) -> str | None:
+    """Why a sessions row disagrees with its chained events (operator, case, fluoroscope and start
+    against session_start; end, totals, runs, alarms and saves against session_end), or None."""
+    starts = {r["session_id"]: r for r in conn.execute(
+        "SELECT session_id, t_wall, detail FROM events WHERE kind = 'session_start' AND id > ?", (after,))}
+    for sid, start in starts.items():
+        s = conn.execute("SELECT * FROM sessions WHERE id = ?", (sid,)).fetchone()
+        if s is None:
+            return f"session {sid}: its row was deleted from the sessions table (its events remain)"
+        d = json.loads(start["detail"])
+        for column, value in (("operator", d.get("operator")), ("case_title", d.get("case")),
+                              ("fluoroscope", d.get("fluoroscope")), ("started_wall", start["t_wall"])):
+            if s[column] != value:
+                return (f"session {sid}: {column} {s[column]!r} differs from its chained session_start record "
+                        f"{value!r} (the sessions table was changed)")
+    ends = conn.execute("SELECT e.session_id, e.t_wall, e.detail, s.ended_wall, s.end_reason, s.runs, s.alarms, s.saves "
+                        "FROM events e JOIN sessions s ON s.id = e.session_id "
+                        "WHERE e.kind = 'session_end' AND e.id > ?", (after,))
+    for e in ends:
+        d = json.loads(e["detail"])
+        for column, value in (("ended_wall", e["t_wall"]), ("end_reason", d.get("reason")), ("runs", d.get("runs")),
+                              ("alarms", d.get("alarms")), ("saves", d.get("saves"))):
+            if value is not None and e[column] != value:
+                return (f"session {e['session_id']}: {column} {e[column]!r} differs from its chained session_end "
+                        f"record {value!r} (the sessions table was changed)")
+    return None
 
-    def __init__(self, path: str | Path):
+
+_FROM_ENVIRONMENT = object()
+
+
+class Ledger:
+    """The one writer of the ledger file; `seal` authenticates each event (default: the one
+    the service's environment names, see records/seal.py; None: hash chain only)."""
+
+    def __init__(self, path: str | Path, seal=_FROM_ENVIRONMENT):
+        from .seal import seal_from_environment
+
         self.path = Path(path)
+        self.seal = seal_from_environment() if seal is _FROM_ENVIRONMENT else seal
         self._conn = _connect(self.path, readonly=False)
         # One writer: a second process would otherwise "recover" a session that is still live.
         self._lock_fd = os.open(self.path, os.O_RDONLY)
@@ -194,8 +243,9 @@ class Ledger:
         self._anchor = (0.0, 0.0)
         try:
             _migrate(self._conn, self.path)
-            last = self._conn.execute("SELECT hash FROM events ORDER BY id DESC LIMIT 1").fetchone()
+            last = self._conn.execute("SELECT hash, mac FROM events ORDER BY id DESC LIMIT 1").fetchone()
             self._head = last["hash"] if last else GENESIS
+            self._mac_head = (last["mac"] if last else None) or ""
             self.recovered: list[int] = self._recover()
         except BaseException:
             self.close()
@@ -211,6 +261,7 @@ class Ledger:
                "d_fluoro_time_s": float(deltas[0]), "d_air_kerma_mgy": float(deltas[1]), "d_dap_gy_cm2": float(deltas[2]),
                "detail": _canonical_detail(detail), "prev_hash": self._head}
         row["hash"] = event_hash(self._head, row)
+        row["mac"] = None if self.seal is None else self.seal.mac(next_id, self._mac_head, row["hash"])
         self._conn.execute(f"INSERT INTO events ({', '.join(EVENT_COLUMNS)}) VALUES ({', '.join('?' * len(EVENT_COLUMNS))})",
                            [row[c] for c in EVENT_COLUMNS])
         self._conn.execute(
@@ -219,15 +270,16 @@ class Ledger:
             (row["d_fluoro_time_s"], row["d_air_kerma_mgy"], row["d_dap_gy_cm2"], int(kind == "fluoro_off"),
              int(kind == "alarm"), int(kind == "save"), session_id))
         self._head = row["hash"]
+        self._mac_head = row["mac"] or self._mac_head
 
     def _transaction(self, work) -> None:
-        head = self._head
+        head, mac_head = self._head, self._mac_head
         try:
             self._conn.execute("BEGIN IMMEDIATE")
             work()
             self._conn.execute("COMMIT")
         except BaseException as e:
-            self._head = head
+            self._head, self._mac_head = head, mac_head
             if self._conn.in_transaction:
                 try:
                     self._conn.execute("ROLLBACK")
@@ -237,6 +289,12 @@ class Ledger:
                 raise FluorosimError(f"{self.path}: cannot write the ledger ({e}); free disk space or fix permissions; "
                                      "nothing already recorded is lost") from None
             raise
+        if self.seal is not None:
+            try:
+                self.seal.advance(self._conn)
+            except FluorosimError as e:
+                # The events are committed and sealed; the anchor catches up at the next advance.
+                log.warning("%s: %s", self.path, e)
 
     def start_session(self, operator: str, case: str, fluoroscope: str, t_wall: float,
                       t_monotonic: float | None = None, equipment: dict | None = None,
