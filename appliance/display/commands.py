@@ -10,7 +10,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from drivers.framebuffer import FakeFramebuffer, FileDisplay, FramebufferDisplay, PixelFormat
+from drivers.framebuffer import FakeFramebuffer, FileDisplay, FramebufferDisplay
+from drivers.pixel_format import PixelFormat
 
 from ..atomic_file import write_atomic
 from ..config import ApplianceProfile, load_profile
