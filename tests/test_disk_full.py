@@ -63,3 +63,29 @@ def test_snapshot_on_a_really_full_disk(full_disk):
     snapper(frame())
     assert snapper.failures == 1 and "No space left on device" in (snapper.problem or "")
     assert "first" not in snapper.taken
+
+
+def test_ledger_on_a_full_disk_opens_when_space_returns(full_disk):
+    """`run` on a full disk: the ledger cannot open, the events wait in memory, then all are written."""
+    from appliance.console.state import ConsoleEvent
+    from appliance.records.deferred_ledger import DeferredLedger, open_ledger
+    from appliance.records.ledger import open_readonly, verify
+
+    from appliance.errors import FluorosimError
+
+    path = full_disk / "ledger.sqlite"
+    ledger = open_ledger(path)
+    assert isinstance(ledger, DeferredLedger) and "the disk is full" in ledger.problem
+    events = [ConsoleEvent(1.0, "fluoro_on"),
+              ConsoleEvent(31.0, "fluoro_off", {"start_t": 1.0}, 30.0, 4.0, 0.4, 30.0, 4.0, 0.4)]
+    with pytest.raises(FluorosimError, match="the disk is full"):
+        ledger.start_session("trainee", "case", "C-arm", t_wall=1_700_000_000.0, t_monotonic=0.0)
+    (full_disk / "filler").unlink()     # an admin frees space
+    ledger.start_session("trainee", "case", "C-arm", t_wall=1_700_000_000.0, t_monotonic=0.0)
+    ledger.record(events)
+    ledger.end_session(t_wall=1_700_000_040.0)
+    ledger.close()
+    conn = open_readonly(path)
+    row = conn.execute("SELECT fluoro_time_s, air_kerma_mgy, runs FROM sessions").fetchone()
+    assert tuple(row) == (30.0, 4.0, 1) and verify(conn).ok
+    conn.close()

@@ -34,6 +34,27 @@ log = logging.getLogger(__name__)
 
 GENESIS = "0" * 64
 
+
+class LedgerBusy(FluorosimError):
+    """Another fluorosim process holds the ledger: nothing else may be opened."""
+
+
+#: Below this much free space an error opening or writing the ledger is the disk being full (bytes).
+FULL_DISK_BYTES = 1 << 20
+
+
+def _why(path: Path, e: Exception) -> str:
+    """What a failed open or write of the ledger means for a person: a full disk, else the error."""
+    import shutil
+
+    try:
+        free = shutil.disk_usage(path.parent if path.parent.exists() else Path(".")).free
+    except OSError:
+        free = None
+    if free is not None and free < FULL_DISK_BYTES:
+        return f"the disk is full ({free // 1024} KiB free); free space in {path.parent}"
+    return f"{e}; check the file and its folder's permissions"
+
 MIGRATIONS = (
     # 1: sessions, chained events, running totals.
     """
@@ -124,7 +145,7 @@ def _connect(path: Path, readonly: bool) -> sqlite3.Connection:
         conn.execute("SELECT count(*) FROM sqlite_master").fetchone()
         return conn
     except sqlite3.DatabaseError as e:
-        raise FluorosimError(f"{path}: cannot open the ledger ({e}); check the file and its folder's permissions") from None
+        raise FluorosimError(f"{path}: cannot open the ledger ({_why(path, e)})") from None
     except OSError as e:
         raise FluorosimError(f"{path}: cannot create the ledger's folder ({e.strerror or e})") from None
 
@@ -238,7 +259,7 @@ class Ledger:
         except BlockingIOError:
             os.close(self._lock_fd)
             self._conn.close()
-            raise FluorosimError(f"{self.path}: the ledger is open in another fluorosim process; stop it first") from None
+            raise LedgerBusy(f"{self.path}: the ledger is open in another fluorosim process; stop it first") from None
         self.session_id: int | None = None
         self._anchor = (0.0, 0.0)
         try:
@@ -247,6 +268,7 @@ class Ledger:
             self._head = last["hash"] if last else GENESIS
             self._mac_head = (last["mac"] if last else None) or ""
             self.recovered: list[int] = self._recover()
+            self._carried = self._carry_from(self.recovered[-1]) if self.recovered else None
         except BaseException:
             self.close()
             raise
@@ -314,9 +336,10 @@ class Ledger:
             holder["id"] = cur.lastrowid
             self._insert(cur.lastrowid, t_wall, self._anchor[1], "session_start", (0, 0, 0), (0, 0, 0),
                          {"operator": operator, "case": case, "fluoroscope": fluoroscope, "equipment": equipment or {},
-                          "patient": patient or {}})
+                          "patient": patient or {}, **({"carried": self._carried} if self._carried else {})})
         self._transaction(work)
         self.session_id = holder["id"]
+        self._carried = None  # carried into this session; the next one starts from its own record
         return self.session_id
 
     def wall(self, t_monotonic: float) -> float:
@@ -394,6 +417,30 @@ class Ledger:
                 continue
             self._transaction(lambda: self._close_session(sid, last, "recovered"))
         return open_ids
+
+    def _carry_from(self, session_id: int) -> dict | None:
+        """Cumulative fluoroscopy time and alarm count a crashed session leaves to the next: its
+        own since a person last reset the timer, plus what it had carried from one before."""
+        rows = [dict(r) for r in self._conn.execute(
+            "SELECT kind, d_fluoro_time_s, detail FROM events WHERE session_id = ? ORDER BY id", (session_id,))]
+        time_s, alarms = 0.0, 0
+        for r in rows:
+            detail = json.loads(r["detail"])
+            if r["kind"] == "session_start":
+                carried = detail.get("carried") or {}
+                time_s, alarms = float(carried.get("fluoro_time_s", 0.0)), int(carried.get("alarms", 0))
+            elif r["kind"] == "alarm_reset" and detail.get("timer") == "reset":
+                time_s, alarms = 0.0, 0
+            time_s += r["d_fluoro_time_s"]
+            alarms += r["kind"] == "alarm"
+        if time_s <= 0 and alarms == 0:
+            return None
+        return {"fluoro_time_s": time_s, "alarms": alarms, "from_session": session_id}
+
+    def carry_over(self) -> dict | None:
+        """What the console continues from after a crash (21 CFR 1020.32: the cumulative timer is
+        reset only by a person): {"fluoro_time_s", "alarms", "from_session"}, or None."""
+        return self._carried
 
     def close(self) -> None:
         if self._conn is not None:
