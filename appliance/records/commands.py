@@ -98,6 +98,7 @@ def _ledger_options(p) -> None:
 def register(commands, benches) -> None:
     from ..cli import command_group
     from .bench import register_bench
+    from .seal_commands import register_seal
 
     logs = command_group(commands, "logs", "read, verify and export the dose and session ledger")
     ls = logs.add_parser("list", help="list sessions with their fluoroscopy time and dose",
@@ -126,3 +127,4 @@ def register(commands, benches) -> None:
                    help="export a ledger that fails verification anyway; every file written is stamped as such")
     e.set_defaults(run=run_export)
     register_bench(benches)
+    register_seal(commands)
