@@ -136,7 +136,7 @@ make_venv() {   # the release's own virtualenv, exactly the hashed lock, then it
     if [ ! -x "$venv/bin/fluorosim" ]; then
         rm -rf "$venv"
         python3 -m venv "$venv"
-        "$venv/bin/python" -m pip install -q --no-cache-dir --require-hashes --no-deps --only-binary=:all: \
+        "$venv/bin/python" -m pip install -q --no-cache-dir --require-hashes --no-deps \
             -r "$RELEASE/src/provisioning/requirements.lock"
         "$venv/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])' \
             | { read -r site; echo "$RELEASE/src" > "$site/fluorosim.pth"; }
