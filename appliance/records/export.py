@@ -80,6 +80,12 @@ def events_of(conn: sqlite3.Connection, session_id: int) -> list[dict]:
                                           (session_id,))]
 
 
+def ledger_head(conn: sqlite3.Connection) -> dict:
+    """{"events", "hash"}: the id and hash of the newest event in the ledger."""
+    row = conn.execute("SELECT id, hash FROM events ORDER BY id DESC LIMIT 1").fetchone()
+    return {"events": row["id"] if row else 0, "hash": row["hash"] if row else None}
+
+
 def _csv_bytes(header, rows) -> bytes:
     buffer = io.StringIO(newline="")
     writer = csv.writer(buffer, lineterminator="\r\n")
@@ -116,6 +122,9 @@ def build_files(conn: sqlite3.Connection, sessions: list[dict], fmt: str) -> tup
         chain = verify(conn)
         doc = {"format": "fluorosim ledger export 1", "exported_utc": iso(dt.datetime.now(dt.timezone.utc).timestamp()),
                "chain": {"ok": chain.ok, "message": chain.message},
+               # The ledger's newest entry as it stood at export: a later deletion of that tail shows
+               # against this copy, kept outside the ledger (records.seal.anchor_entry is the live one).
+               "ledger_head": ledger_head(conn),
                "sessions": [{**_session_fields(s),
                              "events": [{**_event_fields(e), "detail": json.loads(e["detail"])} for e in events_of(conn, s["id"])]}
                             for s in sessions]}

@@ -156,6 +156,11 @@ def open_readonly(path: str | Path) -> sqlite3.Connection:
     conn = _connect(path, readonly=True)
     version = conn.execute("PRAGMA user_version").fetchone()[0]
     if version == 0:
+        tables = conn.execute("SELECT count(*) FROM sqlite_master").fetchone()[0]
+        conn.close()
+        if tables == 0:
+            raise FluorosimError(f"{path}: holds no ledger yet (the appliance was stopped while creating it?); "
+                                 "start the appliance once to create it, or give the right --ledger")
         raise FluorosimError(f"{path}: not a fluorosim ledger (no schema)")
     if version > len(MIGRATIONS):
         raise FluorosimError(f"{path}: ledger schema {version} is newer than this fluorosim knows; update fluorosim")
