@@ -234,10 +234,10 @@ class Display:
     def close(self) -> None:
         raise NotImplementedError
 
-    def __enter__(self):
+    def __enter__(self) -> Display:
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def _check_frame(self, rgb: np.ndarray) -> None:
@@ -281,12 +281,13 @@ class FramebufferDisplay(Display):
         fits = (var.yoffset + self.height) * self.stride <= fix.smem_len
         self._visible_row = var.yoffset if fits else 0
         try:
-            self._mm = mmap.mmap(device.fileno(), fix.smem_len, mmap.MAP_SHARED,
+            self._mm: mmap.mmap | None = mmap.mmap(device.fileno(), fix.smem_len, mmap.MAP_SHARED,
                                  mmap.PROT_READ if read_only else mmap.PROT_READ | mmap.PROT_WRITE)
         except OSError as e:
             raise DisplayError(f"{self.name}: cannot map {fix.smem_len} bytes of screen memory ({e.strerror})") from None
         self._memory = np.frombuffer(self._mm, dtype=np.uint8)
-        self._back = None if self.pages > 1 else np.zeros((self.height, self.width * self.pixel_format.bytes_per_pixel), np.uint8)
+        row_bytes = self.width * self.pixel_format.bytes_per_pixel
+        self._back: np.ndarray | None = None if self.pages > 1 else np.zeros((self.height, row_bytes), np.uint8)
 
     def _enable_double_buffer(self, var: VarScreenInfo, fix: FixScreenInfo) -> int:
         """2 when a second page is available for panning, else 1."""
@@ -311,7 +312,7 @@ class FramebufferDisplay(Display):
         self._check_frame(rgb)
         if self.read_only:
             raise DisplayError(f"{self.name}: opened read-only")
-        if self.pages == 1:
+        if self._back is not None:   # one page: pack aside, then one copy to the screen
             self.pixel_format.pack(rgb, self._back)
             self._page(self._memory, self._visible_row)[...] = self._back
             return
@@ -338,9 +339,10 @@ class FramebufferDisplay(Display):
         return self.pixel_format.unpack(np.ascontiguousarray(self._page(self._memory, first_row)))
 
     def close(self) -> None:
-        if getattr(self, "_mm", None) is not None:
-            self._memory = None
-            self._mm.close()
+        mm = getattr(self, "_mm", None)
+        if mm is not None:
+            del self._memory   # the array views the mapping: drop it before unmapping
+            mm.close()
             self._mm = None
         self.device.close()
 

@@ -28,7 +28,7 @@ class PixelFormat:
     transp: tuple[int, int] = (0, 0)
 
     @classmethod
-    def standard(cls, bpp: int) -> "PixelFormat":
+    def standard(cls, bpp: int) -> PixelFormat:
         """The usual Linux layout: RGB565, BGR byte order at 24 bpp, XRGB8888 at 32 bpp."""
         if bpp == 16:
             return cls(16, (11, 5), (5, 6), (0, 5))
@@ -39,7 +39,7 @@ class PixelFormat:
         raise ValueError(f"bpp must be 16, 24 or 32, got {bpp}")
 
     @classmethod
-    def from_var(cls, var: VarScreenInfo) -> "PixelFormat":
+    def from_var(cls, var: VarScreenInfo) -> PixelFormat:
         return cls(var.bits_per_pixel, (var.red.offset, var.red.length), (var.green.offset, var.green.length),
                    (var.blue.offset, var.blue.length), (var.transp.offset, var.transp.length))
 
@@ -95,7 +95,7 @@ class PixelFormat:
             return
         value = np.full((h, w), self.padding_bits, dtype=np.uint32)
         for c, (offset, length) in enumerate((self.red, self.green, self.blue)):
-            channel = rgb[:, :, c].astype(np.uint32)
+            channel: np.ndarray = rgb[:, :, c].astype(np.uint32)
             if length <= 8:
                 channel >>= 8 - length
             else:   # widen by repeating the high bits, so 255 becomes all ones

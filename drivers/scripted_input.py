@@ -20,7 +20,7 @@ import math
 from collections.abc import Callable
 from pathlib import Path
 
-from .input_event import InputEvent
+from .input_event import DeviceState, InputEvent
 
 
 class ScriptProblem(ValueError):
@@ -34,7 +34,7 @@ MAX_SCRIPT_TIME_S = 86_400.0
 MAX_SCRIPT_BYTES = 4_000_000
 
 
-def _refuse_constant(name: str):
+def _refuse_constant(name: str) -> float:
     # json.loads turns NaN, Infinity and -Infinity into floats by default; none is a time.
     raise ValueError(f"{name} is not a number of seconds")
 
@@ -134,7 +134,7 @@ class ScriptedInput:
         self._events = parse_script(read_script(self.path), str(self.path), known)
         self.t0 = t0
         self._next = 0
-        self.state = "ok"
+        self.state = DeviceState.OK
 
     @property
     def duration_s(self) -> float:

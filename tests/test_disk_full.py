@@ -7,7 +7,6 @@ really full (ENOSPC from the kernel); elsewhere those tests skip and say why.
 from __future__ import annotations
 
 import subprocess
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -68,10 +67,9 @@ def test_snapshot_on_a_really_full_disk(full_disk):
 def test_ledger_on_a_full_disk_opens_when_space_returns(full_disk):
     """`run` on a full disk: the ledger cannot open, the events wait in memory, then all are written."""
     from appliance.console.state import ConsoleEvent
+    from appliance.errors import FluorosimError
     from appliance.records.deferred_ledger import DeferredLedger, open_ledger
     from appliance.records.ledger import open_readonly, verify
-
-    from appliance.errors import FluorosimError
 
     path = full_disk / "ledger.sqlite"
     ledger = open_ledger(path)

@@ -111,7 +111,8 @@ def test_halving_a_sessions_kerma_and_rechaining_is_caught(tmp_path, seal):
     assert verify(conn).ok          # the plain hash chain is fooled...
     conn.close()
     report = checked(path, seal)    # ...the MACs are not
-    assert not report.ok and "MAC does not match" in report.message and report.first_bad_id == 8  # its fluoro_off, the first event whose figures changed
+    # Event 8 is session 2's fluoro_off, the first event whose figures changed.
+    assert not report.ok and "MAC does not match" in report.message and report.first_bad_id == 8
 
 
 @pytest.mark.parametrize("where", ["session_id = 3", "id > 5"])

@@ -51,7 +51,7 @@ MAX_PLACEMENT_OFFSET_MM = 2000.0
 MAX_WEBCAM_DISTANCE_MM = 5000.0
 
 
-def finite(value) -> bool:
+def finite(value: object) -> bool:
     """Whether `value` is a real number (not NaN or infinite), arrays included."""
     try:
         return bool(np.all(np.isfinite(np.asarray(value, dtype=np.float64))))

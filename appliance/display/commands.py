@@ -98,7 +98,7 @@ def run_bench(args) -> int:
           f"median (fastest) per frame")
     for width, height in ((1920, 1080), (1280, 1024)):
         comp = Compositor(width, height)
-        timing = Timing(lambda i: comp.compose(image, overlay, now=i * 0.04), frames)
+        timing = Timing(lambda i, comp=comp: comp.compose(image, overlay, now=i * 0.04), frames)
         print(f"  compose {width}x{height}: {timing}")
         if out:
             write_png(out / f"compose-{width}x{height}.png", comp.compose(image, overlay, now=0.1))

@@ -13,8 +13,11 @@ from __future__ import annotations
 
 import logging
 import shutil
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
+from ..console.state import ConsoleEvent
 from ..errors import FluorosimError
 from .ledger import FULL_DISK_BYTES, Ledger, LedgerBusy
 
@@ -26,7 +29,7 @@ class DeferredLedger:
 
     def __init__(self, path: Path, problem: str):
         self.path = Path(path)
-        self.problem = problem
+        self.problem: str | None = problem
         self._ledger: Ledger | None = None
 
     def _open(self) -> Ledger:
@@ -53,10 +56,10 @@ class DeferredLedger:
     def carry_over(self) -> dict | None:
         return None if self._ledger is None else self._ledger.carry_over()
 
-    def start_session(self, *args, **kwargs) -> int:
+    def start_session(self, *args: Any, **kwargs: Any) -> int:
         return self._open().start_session(*args, **kwargs)
 
-    def record(self, events) -> None:
+    def record(self, events: Sequence[ConsoleEvent]) -> None:
         self._open().record(events)
 
     def end_session(self, t_wall: float) -> None:

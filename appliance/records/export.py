@@ -16,11 +16,12 @@ import datetime as dt
 import io
 import json
 import sqlite3
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 from ..atomic_file import write_atomic
 from ..errors import FluorosimError
-from . import rdsr
+from . import dicom, rdsr
 from .ledger import EVENT_COLUMNS, SESSION_COLUMNS, verify
 
 FORMATS = ("csv", "json", "rdsr")
@@ -54,8 +55,8 @@ def parse_when(text: str, *, end: bool = False) -> float:
             stamp = (when if when.tzinfo is not None else when.astimezone()).timestamp()  # naive: local time
         except (ValueError, OverflowError):
             stamp = float("inf")
-    if not dt.datetime(MIN_YEAR, 1, 1, tzinfo=dt.timezone.utc).timestamp() <= stamp < \
-            dt.datetime(MAX_YEAR + 1, 1, 1, tzinfo=dt.timezone.utc).timestamp():
+    if not dt.datetime(MIN_YEAR, 1, 1, tzinfo=dt.UTC).timestamp() <= stamp < \
+            dt.datetime(MAX_YEAR + 1, 1, 1, tzinfo=dt.UTC).timestamp():
         raise FluorosimError(f"'{text}' is outside {MIN_YEAR}..{MAX_YEAR}; the ledger holds no sessions then "
                              "(leave the option out for no limit)")
     return stamp
@@ -64,7 +65,7 @@ def parse_when(text: str, *, end: bool = False) -> float:
 def iso(t_wall: float | None) -> str:
     if t_wall is None:
         return ""
-    return dt.datetime.fromtimestamp(t_wall, tz=dt.timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+    return dt.datetime.fromtimestamp(t_wall, tz=dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
 def sessions_between(conn: sqlite3.Connection, since: float | None, until: float | None) -> list[dict]:
@@ -80,13 +81,13 @@ def events_of(conn: sqlite3.Connection, session_id: int) -> list[dict]:
                                           (session_id,))]
 
 
-def ledger_head(conn: sqlite3.Connection) -> dict:
+def ledger_head(conn: sqlite3.Connection) -> dict[str, object]:
     """{"events", "hash"}: the id and hash of the newest event in the ledger."""
     row = conn.execute("SELECT id, hash FROM events ORDER BY id DESC LIMIT 1").fetchone()
     return {"events": row["id"] if row else 0, "hash": row["hash"] if row else None}
 
 
-def _csv_bytes(header, rows) -> bytes:
+def _csv_bytes(header: Sequence[str], rows: Iterable[Sequence[object]]) -> bytes:
     buffer = io.StringIO(newline="")
     writer = csv.writer(buffer, lineterminator="\r\n")
     writer.writerow(header)
@@ -120,7 +121,7 @@ def build_files(conn: sqlite3.Connection, sessions: list[dict], fmt: str) -> tup
                                                               for e in events))}, notes)
     if fmt == "json":
         chain = verify(conn)
-        doc = {"format": "fluorosim ledger export 1", "exported_utc": iso(dt.datetime.now(dt.timezone.utc).timestamp()),
+        doc = {"format": "fluorosim ledger export 1", "exported_utc": iso(dt.datetime.now(dt.UTC).timestamp()),
                "chain": {"ok": chain.ok, "message": chain.message},
                # The ledger's newest entry as it stood at export: a later deletion of that tail shows
                # against this copy, kept outside the ledger (records.seal.anchor_entry is the live one).
@@ -135,7 +136,7 @@ def build_files(conn: sqlite3.Connection, sessions: list[dict], fmt: str) -> tup
             if s["ended_wall"] is None:
                 notes.append(f"session {s['id']} is still open; no dose report until it ends")
                 continue
-            files[f"session-{s['id']:06d}.dcm"] = rdsr.encode(rdsr.session_report(s, events_of(conn, s["id"])))
+            files[f"session-{s['id']:06d}.dcm"] = dicom.encode(rdsr.session_report(s, events_of(conn, s["id"])))
         return files, notes
     raise FluorosimError(f"unknown export format '{fmt}'; choose one of {', '.join(FORMATS)}")
 
@@ -154,7 +155,7 @@ def stamped(name: str, data: bytes, stamp: str) -> bytes:
         ds.VerificationFlag = "UNVERIFIED"
         ds.CompletionFlag = "PARTIAL"
         ds.ImageComments = stamp[:10240]
-        return rdsr.encode(ds)
+        return dicom.encode(ds)
     raise FluorosimError(f"{name}: cannot stamp this kind of export file")
 
 

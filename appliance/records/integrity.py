@@ -29,7 +29,7 @@ class Integrity:
     authenticated: bool = False
 
 
-def reading_seal():
+def reading_seal() -> seal_module.Seal | None:
     """The seal an admin's command can use: the environment's, else the provisioned helper's
     socket where it exists, else None (hash chain and anchor only)."""
     found = seal_module.seal_from_environment()
@@ -42,7 +42,7 @@ def anchor_path() -> Path:
     return Path(os.environ.get(seal_module.ANCHOR_ENV) or seal_module.DEFAULT_ANCHOR)
 
 
-def check(conn: sqlite3.Connection, seal=None, anchor: Path | None = None) -> Integrity:
+def check(conn: sqlite3.Connection, seal: seal_module.Seal | None = None, anchor: Path | None = None) -> Integrity:
     chain = verify(conn)
     if not chain.ok:
         return Integrity(False, chain.message, chain.first_bad_id)
@@ -50,7 +50,6 @@ def check(conn: sqlite3.Connection, seal=None, anchor: Path | None = None) -> In
         try:
             macs = seal.verify(conn)
         except FluorosimError as e:
-            macs = None
             note = f"MACs not checked ({e})"
         else:
             if not macs.ok:

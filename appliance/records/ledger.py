@@ -25,10 +25,14 @@ import math
 import os
 import sqlite3
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
+from ..console.state import ConsoleEvent
 from ..errors import FluorosimError
+from .seal import Seal, seal_from_environment
 
 log = logging.getLogger(__name__)
 
@@ -244,18 +248,20 @@ def session_rows_problem(conn: sqlite3.Connection, after: int = 0) -> str | None
     return None
 
 
-_FROM_ENVIRONMENT = object()
+class _FromEnvironment:
+    """The default seal: the one the service's environment names."""
+
+
+_FROM_ENVIRONMENT = _FromEnvironment()
 
 
 class Ledger:
     """The one writer of the ledger file; `seal` authenticates each event (default: the one
     the service's environment names, see records/seal.py; None: hash chain only)."""
 
-    def __init__(self, path: str | Path, seal=_FROM_ENVIRONMENT):
-        from .seal import seal_from_environment
-
+    def __init__(self, path: str | Path, seal: Seal | None | _FromEnvironment = _FROM_ENVIRONMENT):
         self.path = Path(path)
-        self.seal = seal_from_environment() if seal is _FROM_ENVIRONMENT else seal
+        self.seal = seal_from_environment() if isinstance(seal, _FromEnvironment) else seal
         self._conn = _connect(self.path, readonly=False)
         # One writer: a second process would otherwise "recover" a session that is still live.
         self._lock_fd = os.open(self.path, os.O_RDONLY)
@@ -287,8 +293,9 @@ class Ledger:
                "fluoro_time_s": float(totals[0]), "air_kerma_mgy": float(totals[1]), "dap_gy_cm2": float(totals[2]),
                "d_fluoro_time_s": float(deltas[0]), "d_air_kerma_mgy": float(deltas[1]), "d_dap_gy_cm2": float(deltas[2]),
                "detail": _canonical_detail(detail), "prev_hash": self._head}
-        row["hash"] = event_hash(self._head, row)
-        row["mac"] = None if self.seal is None else self.seal.mac(next_id, self._mac_head, row["hash"])
+        row_hash = event_hash(self._head, row)
+        row["hash"] = row_hash
+        row["mac"] = None if self.seal is None else self.seal.mac(next_id, self._mac_head, row_hash)
         self._conn.execute(f"INSERT INTO events ({', '.join(EVENT_COLUMNS)}) VALUES ({', '.join('?' * len(EVENT_COLUMNS))})",
                            [row[c] for c in EVENT_COLUMNS])
         self._conn.execute(
@@ -299,7 +306,7 @@ class Ledger:
         self._head = row["hash"]
         self._mac_head = row["mac"] or self._mac_head
 
-    def _transaction(self, work) -> None:
+    def _transaction(self, work: Callable[[], object]) -> None:
         head, mac_head = self._head, self._mac_head
         try:
             self._conn.execute("BEGIN IMMEDIATE")
@@ -333,36 +340,39 @@ class Ledger:
         if self.session_id is not None:
             raise RuntimeError("a session is already open; end it first")
         self._anchor = (float(t_wall), time.monotonic() if t_monotonic is None else float(t_monotonic))
-        holder = {}
+        holder: dict[str, int] = {}
 
-        def work():
+        def work() -> None:
             cur = self._conn.execute("INSERT INTO sessions (operator, case_title, fluoroscope, started_wall) VALUES (?, ?, ?, ?)",
                                      (operator, case, fluoroscope, float(t_wall)))
-            holder["id"] = cur.lastrowid
-            self._insert(cur.lastrowid, t_wall, self._anchor[1], "session_start", (0, 0, 0), (0, 0, 0),
+            session_id = cur.lastrowid
+            assert session_id is not None  # an INSERT into a rowid table always gives one
+            holder["id"] = session_id
+            self._insert(session_id, t_wall, self._anchor[1], "session_start", (0, 0, 0), (0, 0, 0),
                          {"operator": operator, "case": case, "fluoroscope": fluoroscope, "equipment": equipment or {},
                           "patient": patient or {}, **({"carried": self._carried} if self._carried else {})})
         self._transaction(work)
         self.session_id = holder["id"]
         self._carried = None  # carried into this session; the next one starts from its own record
-        return self.session_id
+        return holder["id"]
 
     def wall(self, t_monotonic: float) -> float:
         return self._anchor[0] + (t_monotonic - self._anchor[1])
 
-    def record(self, events) -> None:
+    def record(self, events: Sequence[ConsoleEvent]) -> None:
         """Append console events to the open session, all in one transaction."""
         if not events:
             return
-        if self.session_id is None:
+        session_id = self.session_id
+        if session_id is None:
             raise RuntimeError("no open session; call start_session first")
 
-        def work():
+        def work() -> None:
             for ev in events:
                 detail = dict(ev.detail)
                 if "start_t" in detail:
                     detail["start_wall"] = self.wall(detail["start_t"])
-                self._insert(self.session_id, self.wall(ev.t_monotonic), ev.t_monotonic, ev.kind,
+                self._insert(session_id, self.wall(ev.t_monotonic), ev.t_monotonic, ev.kind,
                              (ev.fluoro_time_s, ev.air_kerma_mgy, ev.dap_gy_cm2),
                              (ev.d_fluoro_time_s, ev.d_air_kerma_mgy, ev.d_dap_gy_cm2), detail)
         self._transaction(work)
@@ -417,10 +427,11 @@ class Ledger:
             last = self._conn.execute("SELECT max(t_wall) FROM events WHERE session_id = ?", (sid,)).fetchone()[0]
             if last is None:  # a session row without its start event cannot come from this code; keep it visible
                 last = self._conn.execute("SELECT started_wall FROM sessions WHERE id = ?", (sid,)).fetchone()[0]
-                self._transaction(lambda: self._conn.execute(
+                self._transaction(partial(
+                    self._conn.execute,
                     "UPDATE sessions SET ended_wall = ?, end_reason = 'recovered-empty' WHERE id = ?", (last, sid)))
                 continue
-            self._transaction(lambda: self._close_session(sid, last, "recovered"))
+            self._transaction(partial(self._close_session, sid, last, "recovered"))
         return open_ids
 
     def _carry_from(self, session_id: int) -> dict | None:
@@ -450,11 +461,11 @@ class Ledger:
     def close(self) -> None:
         if self._conn is not None:
             self._conn.close()
-            self._conn = None
+            self._conn = None  # type: ignore[assignment]  # closed: every later call fails, as sqlite3's would
             os.close(self._lock_fd)
 
-    def __enter__(self):
+    def __enter__(self) -> Ledger:
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.close()

@@ -206,6 +206,8 @@ class HelperSeal:
             doc = json.loads(answer)
         except ValueError:
             raise FluorosimError(f"{self.socket_path}: the seal helper gave no answer") from None
+        if not isinstance(doc, dict):
+            raise FluorosimError(f"{self.socket_path}: the seal helper gave no answer")
         if "error" in doc:
             raise FluorosimError(str(doc["error"]))
         return doc

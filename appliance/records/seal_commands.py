@@ -7,6 +7,7 @@ fluorosim-seal.service (running `seal serve` as root when the first request come
 
 from __future__ import annotations
 
+import argparse
 import os
 import socket
 from pathlib import Path
@@ -17,7 +18,7 @@ from ..errors import FluorosimError
 SD_LISTEN_FDS_START = 3
 
 
-def run_init(args) -> int:
+def run_init(args: argparse.Namespace) -> int:
     from .seal import make_key
 
     key = Path(args.key)
@@ -46,7 +47,7 @@ def _listener(path: str | None) -> socket.socket:
     return s
 
 
-def run_serve(args) -> int:
+def run_serve(args: argparse.Namespace) -> int:
     from .seal import KeySeal, serve
 
     seal = KeySeal(Path(args.key), Path(args.anchor))
@@ -58,7 +59,7 @@ def run_serve(args) -> int:
     return 0
 
 
-def register_seal(commands) -> None:
+def register_seal(commands: argparse._SubParsersAction) -> None:
     from ..cli import command_group
 
     group = command_group(commands, "seal", "the ledger's seal: the key only root reads, and the anchor")
