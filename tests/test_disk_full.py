@@ -7,6 +7,7 @@ really full (ENOSPC from the kernel); elsewhere those tests skip and say why.
 from __future__ import annotations
 
 import subprocess
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -86,4 +87,45 @@ def test_ledger_on_a_full_disk_opens_when_space_returns(full_disk):
     conn = open_readonly(path)
     row = conn.execute("SELECT fluoro_time_s, air_kerma_mgy, runs FROM sessions").fetchone()
     assert tuple(row) == (30.0, 4.0, 1) and verify(conn).ok
+    conn.close()
+
+
+def test_records_worker_holds_the_session_until_the_disk_lets_it_be_written(full_disk):
+    """The session begins on a full disk: its events wait in memory and are all written, with
+    the session's own start time, once space returns; the dose totals are the events' sums."""
+    import queue
+
+    from appliance.console.state import ConsoleEvent
+    from appliance.daemon.handoff import LatestValue, Recorded
+    from appliance.daemon.records_worker import RecordsWorker
+    from appliance.daemon.reload import ProfileKeeper
+    from appliance.records.deferred_ledger import open_ledger
+    from appliance.records.ledger import open_readonly, verify
+
+    repo = Path(__file__).resolve().parents[1]
+    keeper = ProfileKeeper(repo / "configs/appliance-demo.yaml", data_dir=full_disk)
+    ledger = open_ledger(full_disk / "ledger.sqlite")
+    events: queue.Queue = queue.Queue()
+    clock = iter(range(100, 10_000)).__next__
+    worker = RecordsWorker(ledger, keeper, None, lambda: float(clock()), events=events, shown=LatestValue(),
+                           saves=LatestValue())
+    worker.setup()                                   # on a full disk: no crash, a problem for the banner
+    assert worker.session_id is None and "the disk is full" in worker.problem
+    # Two runs: 12 s and 30 s, 1.5 and 4 mGy (hand-made increments; the totals are their sums).
+    for ev in [ConsoleEvent(101.0, "fluoro_on"), ConsoleEvent(113.0, "fluoro_off", {}, 12.0, 1.5, 0.15, 12.0, 1.5, 0.15),
+               ConsoleEvent(120.0, "fluoro_on"), ConsoleEvent(150.0, "fluoro_off", {}, 42.0, 5.5, 0.55, 30.0, 4.0, 0.4)]:
+        events.put(Recorded(ev))
+    worker.step()                                    # still full: held in memory
+    assert worker.session_id is None and events.empty()
+    (full_disk / "filler").unlink()
+    worker.step()                                    # space returned: session opened, everything written
+    assert worker.session_id == 1 and worker.problem is None
+    worker.stop()
+    worker.teardown()
+    ledger.close()
+    conn = open_readonly(full_disk / "ledger.sqlite")
+    row = conn.execute("SELECT started_wall, fluoro_time_s, air_kerma_mgy, runs FROM sessions").fetchone()
+    first_event = conn.execute("SELECT t_monotonic FROM events WHERE kind = 'session_start'").fetchone()[0]
+    assert (row["fluoro_time_s"], row["air_kerma_mgy"], row["runs"]) == (42.0, 5.5, 2) and verify(conn).ok
+    assert first_event == 100.0                     # the console time of the first try, not of the write
     conn.close()
