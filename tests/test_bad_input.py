@@ -296,7 +296,8 @@ def test_volume_that_is_no_ct_is_refused(tmp_path, capsys, name):
     assert str(e.value).startswith(f"{path}: ") and "\n" not in str(e.value)
 
 
-@pytest.mark.parametrize("name", ["truncated-nii-gz", "truncated-nii", "nan-nii", "spacing-70mm"])
+@pytest.mark.parametrize("name", ["truncated-nii-gz", "truncated-nii", "nan-nii", "spacing-70mm", "label-map",
+                                  "offset-2048"])
 def test_validate_opens_the_cases_volumes(configs, capsys, name):
     make, expected = VOLUME_CASES[name]
     volume = make(configs / "cases")
@@ -437,3 +438,29 @@ def test_fuzz_fluoroscope_values(tmp_path, field, value):
     assert max(rates) * profile.abc.max_factor <= 88
     assert 10 <= profile.dose.alarm_period_s <= 300
     assert np.isfinite([profile.intrinsics.fx, profile.intrinsics.cx, profile.display.level]).all()
+
+
+def test_nifti_stored_unsigned_with_its_intercept_is_a_ct(tmp_path):
+    """A scanner's unsigned voxels with scl_inter = -1024 in the header are HU once rescaled:
+    accepted at validate (which reads the header's rescale itself) and at load."""
+    import gzip
+    import struct
+
+    from appliance.patient.volume_checks import check_header
+    from appliance.patient.volume_io import load_volume
+
+    hu = np.clip(ct_like(), -1024, 3000).astype(np.int16)     # what an unsigned store with -1024 can hold
+    path = write(tmp_path / "v.nii", hu)
+    data = bytearray(path.read_bytes())
+    offset = int(struct.unpack("<f", data[108:112])[0])
+    data[70:72] = struct.pack("<h", 512)                      # datatype: uint16
+    data[112:120] = struct.pack("<ff", 1.0, -1024.0)          # scl_slope, scl_inter
+    data[offset:] = (hu.astype(np.int32) + 1024).astype("<u2").tobytes()
+    gz = tmp_path / "unsigned.nii.gz"
+    gz.write_bytes(gzip.compress(bytes(data)))
+    assert check_header(gz) == ([], [])
+    assert int(load_volume(gz).hu.min()) == int(hu.min())
+    # Without the intercept the same bytes are no CT, and validate says why.
+    data[112:120] = struct.pack("<ff", 1.0, 0.0)
+    gz.write_bytes(gzip.compress(bytes(data)))
+    assert "rescale intercept" in check_header(gz)[0][0]

@@ -14,8 +14,10 @@ prefixes where the volume came from.
 from __future__ import annotations
 
 import gzip
+import math
 import struct
 import zlib
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -55,47 +57,76 @@ def check_spacing(spacing_mm) -> tuple[list[str], list[str]]:
     return [], []
 
 
-#: NIfTI datatype codes of floating-point voxels, which can hold NaN.
-_NIFTI_FLOATS = {16: "f4", 64: "f8"}
+#: NIfTI datatype codes and the numpy type of their voxels.
+_NIFTI_TYPES = {2: "u1", 4: "i2", 8: "i4", 16: "f4", 64: "f8", 256: "i1", 512: "u2", 768: "u4", 1024: "i8", 1280: "u8"}
 
 
-def _nifti_layout(head: bytes) -> tuple[int, str | None] | None:
-    """(byte offset of the voxel data, numpy dtype if floating point) of a NIfTI-1 or -2 file."""
+@dataclass
+class _NiftiScan:
+    """What the bytes of a NIfTI file hold: data offset, decompressed length, and its voxels'
+    non-finite count, lowest value (HU, after scl_slope/scl_inter) and first distinct values."""
+
+    offset: int
+    itemsize: int | None = None   # bytes of one stored voxel (ITK reports the rescaled type instead)
+    total: int = 0
+    non_finite: int = 0
+    low: float = math.inf
+    distinct: set[float] = field(default_factory=set)
+
+
+def _nifti_layout(head: bytes) -> tuple[int, str | None, float, float] | None:
+    """(voxel data offset, numpy dtype, scl_slope, scl_inter) of a NIfTI-1 or -2 header."""
     for endian in "<>":
         if len(head) >= 348 and struct.unpack(endian + "i", head[:4])[0] == 348:
             code = struct.unpack(endian + "h", head[70:72])[0]
             offset = int(struct.unpack(endian + "f", head[108:112])[0])
+            slope, inter = struct.unpack(endian + "ff", head[112:120])
         elif len(head) >= 540 and struct.unpack(endian + "i", head[:4])[0] == 540:
             code = struct.unpack(endian + "h", head[12:14])[0]
             offset = int(struct.unpack(endian + "q", head[168:176])[0])
+            slope, inter = struct.unpack(endian + "dd", head[176:192])
         else:
             continue
-        return offset, (endian + _NIFTI_FLOATS[code] if code in _NIFTI_FLOATS else None)
+        dtype = endian + _NIFTI_TYPES[code] if code in _NIFTI_TYPES else None
+        # NIfTI: a slope of 0 (or not a number) means the stored values are the values.
+        if not (math.isfinite(slope) and slope != 0):
+            slope, inter = 1.0, 0.0
+        return offset, dtype, float(slope), float(inter) if math.isfinite(inter) else 0.0
     return None
 
 
-def _scan_nifti(path: Path) -> tuple[int, int, int] | None:
-    """(data offset, bytes in the file decompressed, non-finite float voxels) of a NIfTI file.
-
-    ITK's NIfTI reader turns NaN voxels into 0 (water) and pads a short file with zeros, so
-    both are counted here from the bytes themselves. Raises EOFError when gzip data ends early.
-    """
+def _scan_nifti(path: Path) -> _NiftiScan | None:
+    """Read a NIfTI file's voxel bytes once, as ITK will not tell: it turns NaN voxels into 0
+    (water) and pads a short file with zeros. Raises EOFError when gzip data ends early."""
     opener = gzip.open if path.name.lower().endswith(".gz") else open
     with opener(path, "rb") as f:
         head = f.read(544)
         layout = _nifti_layout(head)
         if layout is None:
             return None
-        offset, dtype = layout
-        total, bad, carry = len(head), 0, head[offset:] if len(head) > offset else b""
+        offset, dtype, slope, inter = layout
+        scan = _NiftiScan(offset, np.dtype(dtype).itemsize if dtype else None, total=len(head))
+        carry = head[offset:]
+        if offset > len(head):  # header extensions: not voxels
+            skipped = f.read(offset - len(head))
+            scan.total += len(skipped)
         while chunk := f.read(_CHUNK_BYTES):
-            total += len(chunk)
-            if dtype is not None:
-                carry += chunk
-                whole = len(carry) - len(carry) % np.dtype(dtype).itemsize
-                bad += int(np.count_nonzero(~np.isfinite(np.frombuffer(carry[:whole], dtype=dtype))))
-                carry = carry[whole:]
-        return offset, total, bad
+            scan.total += len(chunk)
+            if dtype is None:
+                continue
+            carry += chunk
+            whole = len(carry) - len(carry) % np.dtype(dtype).itemsize
+            values = np.frombuffer(carry[:whole], dtype=dtype)
+            carry = carry[whole:]
+            finite = np.isfinite(values) if values.dtype.kind == "f" else None
+            if finite is not None:
+                scan.non_finite += int(values.size - np.count_nonzero(finite))
+                values = values[finite]
+            if values.size:
+                scan.low = min(scan.low, float(values.min()) * slope + inter)
+                if len(scan.distinct) <= LABEL_MAP_MAX_VALUES:
+                    scan.distinct.update((np.unique(values).astype(np.float64) * slope + inter).tolist())
+        return scan
 
 
 def check_header(path: Path) -> tuple[list[str], list[str]]:
@@ -129,9 +160,15 @@ def check_header(path: Path) -> tuple[list[str], list[str]]:
     except (EOFError, OSError, zlib.error):
         return ["is truncated or corrupt (its compressed data ends early); copy the complete file again"], warnings
     if scanned is not None:
-        offset, have, bad = scanned
-        if bad:
-            return [_non_finite(bad, voxels)], warnings
+        offset, have = scanned.offset, scanned.total
+        if scanned.non_finite:
+            return [_non_finite(scanned.non_finite, voxels)], warnings
+        if math.isfinite(scanned.low):
+            found_errors, found_warnings = _hu_findings(scanned.low, np.array(sorted(scanned.distinct)))
+            if found_errors:
+                return found_errors, warnings
+            warnings = warnings + found_warnings
+        per_voxel = scanned.itemsize or per_voxel
         need = offset + voxels * per_voxel
         if have < need:
             return [f"is truncated: it holds {max(have - offset, 0) / max(per_voxel, 1):.0f} of its {voxels} voxels "
@@ -145,12 +182,14 @@ def check_hu(values: np.ndarray) -> tuple[list[str], list[str]]:
         bad = int(np.count_nonzero(~np.isfinite(values)))
         if bad:
             return [_non_finite(bad, values.size)], []
-    finite = values
-    if finite.size == 0:
+    if values.size == 0:
         return ["holds no voxels"], []
-    low = float(np.min(finite))
+    return _hu_findings(float(np.min(values)), np.unique(values[:: max(1, values.size // 1_000_000)]))
+
+
+def _hu_findings(low: float, distinct: np.ndarray) -> tuple[list[str], list[str]]:
+    """From the lowest value and (some of) the distinct values: is this a CT in HU?"""
     if low >= AIR_ABSENT_HU:
-        distinct = np.unique(finite[:: max(1, finite.size // 1_000_000)])
         if distinct.size <= LABEL_MAP_MAX_VALUES and np.all(distinct == np.rint(distinct)):
             return [f"holds only {distinct.size} distinct values from {distinct.min():g} to {distinct.max():g}: a label "
                     "map or mask, not a CT in HU; give the CT image itself"], []
