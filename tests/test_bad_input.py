@@ -139,6 +139,22 @@ def test_wrong_kind_of_profile_is_one_line(configs, capsys, tmp_path):
                      "check which file the command or profile names here"]
 
 
+def test_a_file_of_no_kind_is_one_line_but_typos_keep_a_line_each(configs, capsys, tmp_path):
+    junk = tmp_path / "pose.yaml"
+    junk.write_text("a: 1\nb: 2\nc: 3\n")
+    lines = refused(["render", "--volume", str(tmp_path / "none.nii"), "--fluoroscope", str(configs / FLUORO),
+                     "--pose", str(junk), "--quantity", "display", "--output", str(tmp_path / "x.png")], capsys)
+    assert len(lines) == 1 and "none of its keys (a, b, c)" in lines[0]
+    # A fluoroscope with three typos is still a fluoroscope: each typo is named at its line.
+    path = configs / FLUORO
+    for old, new in (("  kvp: 75", "  kvpp: 75"), ("  ma: 2.0", "  mA: 2.0"), ("  rows: 1024", "  row: 1024")):
+        edit(path, old, new)
+    lines = [l for l in refused(["render", "--volume", str(tmp_path / "none.nii"), "--fluoroscope", str(path),
+                                 "--pose", str(junk), "--quantity", "display", "--output", str(tmp_path / "x.png")],
+                                capsys)]
+    assert sum("unknown key" in l for l in lines) == 3 and all(l.startswith(f"{path}:") for l in lines)
+
+
 # --- Keypad scripts -------------------------------------------------------------------------------
 
 SCRIPT_CASES = [

@@ -144,10 +144,12 @@ def wrong_kind(located: Located, model: type[BaseModel], problems: list[Problem]
     if kind is not None and KINDS[kind] is not model and kind_of_folder_ok(located, kind):
         return Problem(located.display, 1, "", f"is a {kind} profile, not a {_kind_name(model)}; check which file "
                                                "the command or profile names here")
-    strange = [p for p in problems if p.message.startswith(("unknown key", "is required but missing"))]
-    if len(problems) >= 3 and len(strange) * 2 > len(problems):
-        return Problem(located.display, 1, "", f"is not a {_kind_name(model)}: {len(strange)} of its keys are unknown "
-                                               "or missing (is this the right file?)")
+    # A file sharing no top-level key with the expected kind is the wrong file, not a profile
+    # with typos (whose every problem is worth its own line).
+    keys = set(located.data) if isinstance(located.data, dict) else set()
+    if len(problems) >= 2 and not keys & set(model.model_fields):
+        return Problem(located.display, 1, "", f"is not a {_kind_name(model)}: none of its keys ({', '.join(sorted(keys)[:5])}"
+                                               f"{', ...' if len(keys) > 5 else ''}) is one (is this the right file?)")
     return None
 
 
