@@ -246,3 +246,33 @@ def test_list_warns_on_a_broken_ledger(broken, capsys):
     assert main(["logs", "list", "--ledger", str(broken)]) == 0
     captured = capsys.readouterr()
     assert "NOT INTACT" in captured.err and "Dr B" in captured.out
+
+
+def test_seal_helper_as_its_own_process(tmp_path, seal):
+    """`fluorosim seal serve` in its own process, as systemd runs it: the ledger is written through
+    it, it refuses to re-sign history, and it verifies the ledger it was started with."""
+    import subprocess
+    import sys
+    import time
+
+    repo = Path(__file__).resolve().parents[1]
+    path, sock = tmp_path / "ledger.sqlite", tmp_path / "seal.sock"
+    proc = subprocess.Popen([sys.executable, "-m", "appliance", "seal", "serve", "--key", str(tmp_path / "ledger.key"),
+                             "--anchor", str(seal.anchor_path), "--ledger", str(path), "--socket", str(sock)],
+                            cwd=repo, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 20
+        while not sock.exists() and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.05)
+        assert sock.exists(), proc.stderr.read() if proc.poll() is not None else "no socket"
+        helper = HelperSeal(sock)
+        write_sessions(path, helper, sessions=(("Dr A", 2.0),))
+        assert anchor_entry(seal.anchor_path)[0] == 5
+        with pytest.raises(FluorosimError, match="already anchored"):
+            helper.mac(5, "", "0" * 64)
+        conn = open_readonly(path)
+        assert integrity.check(conn, helper, seal.anchor_path).authenticated
+        conn.close()
+    finally:
+        proc.terminate()
+        proc.wait(10)
