@@ -49,3 +49,10 @@ bench: setup
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache
+
+# The appliance's pinned, hashed dependencies (provisioning/requirements.lock), from pyproject.toml.
+.PHONY: lock
+lock: setup
+	$(BIN)/python -m pip lock . -o .pylock.toml
+	$(BIN)/python provisioning/lock_requirements.py .pylock.toml provisioning/requirements.lock
+	rm -f .pylock.toml

@@ -16,6 +16,8 @@ the press length of a tap (s). Events come out in time order; ties keep file ord
 from __future__ import annotations
 
 import json
+import math
+from collections.abc import Callable
 from pathlib import Path
 
 from .input_event import DeviceState, InputEvent
@@ -25,12 +27,24 @@ class ScriptProblem(ValueError):
     """A line of a script that cannot be read; the message names file and line."""
 
 
+#: Latest time a script may name: one day (s). A session runs for hours; a larger number
+#: is a typo that would hold the pedal down, or never arrive.
+MAX_SCRIPT_TIME_S = 86_400.0
+#: A script is a few kilobytes; a larger file is the wrong file (bytes).
+MAX_SCRIPT_BYTES = 4_000_000
+
+
+def _refuse_constant(name: str) -> float:
+    # json.loads turns NaN, Infinity and -Infinity into floats by default; none is a time.
+    raise ValueError(f"{name} is not a number of seconds")
+
+
 def _number(obj: dict, field: str, where: str, default: float | None = None) -> float:
     value = obj.get(field, default)
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ScriptProblem(f"{where}: '{field}' must be a number of seconds (got {value!r})")
-    if value < 0:
-        raise ScriptProblem(f"{where}: '{field}' must not be negative (got {value})")
+    if not math.isfinite(value) or value < 0 or value > MAX_SCRIPT_TIME_S:
+        raise ScriptProblem(f"{where}: '{field}' must be between 0 and {MAX_SCRIPT_TIME_S:g} s (one day; got {value:g})")
     return float(value)
 
 
@@ -41,8 +55,13 @@ def _name(obj: dict, field: str, where: str) -> str:
     return value
 
 
-def parse_script(text: str, display: str = "<script>") -> list[tuple[float, str, bool]]:
-    """(t_s, key, pressed) of every transition, in time order."""
+def parse_script(text: str, display: str = "<script>",
+                 known: Callable[[str], bool] | None = None) -> list[tuple[float, str, bool]]:
+    """(t_s, key, pressed) of every transition, in time order.
+
+    `known(name)` says whether a key name means something on this console (the keymap);
+    a name it refuses is an error rather than a key press that silently does nothing.
+    """
     out: list[tuple[float, int, str, bool]] = []
     for number, raw in enumerate(text.splitlines(), start=1):
         line = raw.strip()
@@ -50,9 +69,11 @@ def parse_script(text: str, display: str = "<script>") -> list[tuple[float, str,
             continue
         where = f"{display}:{number}"
         try:
-            obj = json.loads(line)
+            obj = json.loads(line, parse_constant=_refuse_constant)
         except json.JSONDecodeError as e:
             raise ScriptProblem(f"{where}: not valid JSON ({e.msg})") from None
+        except (ValueError, RecursionError) as e:
+            raise ScriptProblem(f"{where}: {e}") from None
         if not isinstance(obj, dict):
             raise ScriptProblem(f"{where}: each line must be a JSON object such as {{\"t\": 1.0, \"tap\": \"zoom_2\"}}")
         kinds = [k for k in ("key", "tap", "hold") if k in obj]
@@ -65,6 +86,9 @@ def parse_script(text: str, display: str = "<script>") -> list[tuple[float, str,
         t = _number(obj, "t", where)
         kind = kinds[0]
         name = _name(obj, kind, where)
+        if known is not None and not known(name):
+            raise ScriptProblem(f"{where}: '{name}' is no key of the keymap, 'pedal' or a console action; "
+                                "check its spelling against the keymap profile")
         if kind == "key":
             pressed = obj.get("pressed")
             if not isinstance(pressed, bool):
@@ -80,6 +104,22 @@ def parse_script(text: str, display: str = "<script>") -> list[tuple[float, str,
     return [(t, key, pressed) for t, _, key, pressed in out]
 
 
+def read_script(path: Path) -> str:
+    """The text of a script file, or ScriptProblem naming the file and what is wrong with it."""
+    try:
+        if path.stat().st_size > MAX_SCRIPT_BYTES:
+            raise ScriptProblem(f"{path}: is larger than {MAX_SCRIPT_BYTES // 1_000_000} MB; is this the input script?")
+        raw = path.read_bytes()
+    except OSError as e:
+        raise ScriptProblem(f"{path}: cannot read the input script ({e.strerror or e})") from None
+    if b"\x00" in raw:
+        raise ScriptProblem(f"{path}: is a binary file, not a JSONL input script")
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ScriptProblem(f"{path}: is not UTF-8 text (bad byte at offset {e.start}); save it as UTF-8") from None
+
+
 class ScriptedInput:
     """Replays a script against the console's clock: `poll(now)` yields what is due by `now`.
 
@@ -89,13 +129,9 @@ class ScriptedInput:
 
     source = "scripted"
 
-    def __init__(self, path: str | Path, t0: float = 0.0):
+    def __init__(self, path: str | Path, t0: float = 0.0, known: Callable[[str], bool] | None = None):
         self.path = Path(path)
-        try:
-            text = self.path.read_text(encoding="utf-8")
-        except OSError as e:
-            raise ScriptProblem(f"{self.path}: cannot read the input script ({e.strerror or e})") from None
-        self._events = parse_script(text, str(self.path))
+        self._events = parse_script(read_script(self.path), str(self.path), known)
         self.t0 = t0
         self._next = 0
         self.state = DeviceState.OK

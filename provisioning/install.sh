@@ -9,10 +9,14 @@
 #                                            virtualenv, systemctl, update-grub) are listed as skipped
 #
 # What it does: system packages; the service user fluorosim (groups video, input, dialout,
-# audio, render); the code in /opt/fluorosim/src and a virtualenv in /opt/fluorosim/venv;
-# profiles in /etc/fluorosim with appliance.yaml naming the real devices; /var/lib/fluorosim;
-# the systemd unit and udev rules; a persistent journal; boot straight into the service
-# (enabled, multi-user target, no login prompt on tty1, quiet boot).
+# audio, render); the code as a release /opt/fluorosim/releases/ID with its own virtualenv
+# built from the hashed lock provisioning/requirements.lock, made current by one atomic
+# rename of the symlink /opt/fluorosim/current (/opt/fluorosim/src and venv point through
+# it); profiles in /etc/fluorosim with appliance.yaml naming the real devices;
+# /var/lib/fluorosim; the systemd units and udev rules; the ledger's seal (a root-only key,
+# its helper's socket); a persistent journal; boot straight into the service (enabled,
+# multi-user target, no login prompt on any console, Ctrl-Alt-Del off, quiet boot, the GRUB
+# menu locked with a password so nobody at the box can edit the kernel command line).
 #
 # Idempotent: a second run changes nothing, and an update keeps local edits to the profiles
 # in /etc/fluorosim (files already there are left alone; units and rules are replaced).
@@ -106,21 +110,55 @@ install_file() {   # install_file MODE SOURCE DEST (DEST under $ROOT); replaced 
     install -D -m "$1" "$SRC/$2" "$ROOT$3"
 }
 
-install_code() {
-    local dest="$ROOT/opt/fluorosim/src" new="$ROOT/opt/fluorosim/.src.new"
+code_tar() {   # the code as a reproducible tar stream: same tree, same bytes, same release id
+    tar -C "$SRC" --exclude=__pycache__ --exclude='*.pyc' --exclude='*.egg-info' --sort=name --mtime=@0 \
+        --owner=0 --group=0 --numeric-owner -cf - \
+        appliance drivers configs systemd provisioning pyproject.toml README.md
+}
+
+RELEASE_ID=$(code_tar | sha256sum | cut -c1-12)
+RELEASE=/opt/fluorosim/releases/$RELEASE_ID
+
+install_code() {   # a new release beside the running one; nothing the service uses changes yet
+    local dest="$ROOT$RELEASE/src" new="$ROOT$RELEASE/.src.new"
+    if [ -d "$dest" ]; then
+        echo "    release $RELEASE_ID is already there"
+        return
+    fi
     rm -rf "$new"
     install -d -m 0755 "$new"
-    tar -C "$SRC" --exclude=__pycache__ --exclude='*.pyc' --exclude='*.egg-info' --owner=0 --group=0 -cf - \
-        appliance drivers configs systemd provisioning pyproject.toml README.md | tar -C "$new" --no-same-owner -xf -
-    rm -rf "$dest"
+    code_tar | tar -C "$new" --no-same-owner -xf -
     mv "$new" "$dest"
 }
 
-make_venv() {
-    local venv=/opt/fluorosim/venv
-    [ -x "$venv/bin/python" ] || python3 -m venv "$venv"
-    "$venv/bin/python" -m pip install -q --upgrade pip
-    "$venv/bin/python" -m pip install -q --upgrade --no-cache-dir /opt/fluorosim/src
+make_venv() {   # the release's own virtualenv, exactly the hashed lock, then its code on the path
+    local venv=$RELEASE/venv
+    if [ ! -x "$venv/bin/fluorosim" ]; then
+        rm -rf "$venv"
+        python3 -m venv "$venv"
+        "$venv/bin/python" -m pip install -q --no-cache-dir --require-hashes --no-deps \
+            -r "$RELEASE/src/provisioning/requirements.lock"
+        "$venv/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])' \
+            | { read -r site; echo "$RELEASE/src" > "$site/fluorosim.pth"; }
+        printf '#!/bin/sh\nexec %s -m appliance "$@"\n' "$venv/bin/python" > "$venv/bin/fluorosim"
+        chmod 0755 "$venv/bin/fluorosim"
+    fi
+}
+
+activate_release() {   # one rename(2) makes the new code and its virtualenv current together
+    local opt="$ROOT/opt/fluorosim"
+    ln -sfn "releases/$RELEASE_ID" "$opt/.current.new"
+    mv -T "$opt/.current.new" "$opt/current"
+    [ -L "$opt/src" ] || { rm -rf "$opt/src"; ln -sfn current/src "$opt/src"; }
+    [ -L "$opt/venv" ] || { rm -rf "$opt/venv"; ln -sfn current/venv "$opt/venv"; }
+}
+
+prune_releases() {   # keep the current release and the one before it, to go back to
+    local opt="$ROOT/opt/fluorosim" keep r
+    keep=$(printf '%s\n' "$RELEASE_ID"; ls -1t "$opt/releases" | { grep -vx "$RELEASE_ID" || true; } | head -n 1)
+    for r in "$opt/releases"/*; do
+        echo "$keep" | grep -qx "${r##*/}" || rm -rf "$r"
+    done
 }
 
 install_profiles() {
@@ -189,6 +227,43 @@ apply_units() {
         --subsystem-match=tty --subsystem-match=hidraw --subsystem-match=graphics
 }
 
+lock_consoles() {   # nobody at the box gets a login prompt, a reboot key or a kernel command line
+    local n
+    for n in 2 3 4 5 6; do
+        link /dev/null "/etc/systemd/system/getty@tty$n.service"
+        link /dev/null "/etc/systemd/system/autovt@tty$n.service"
+    done
+    link /dev/null /etc/systemd/system/ctrl-alt-del.target
+    install_file 0644 provisioning/logind-fluorosim.conf /etc/systemd/logind.conf.d/fluorosim.conf
+    install_file 0755 provisioning/grub-fluorosim-password /etc/grub.d/01_fluorosim_password
+}
+
+grub_password() {   # a random GRUB superuser password, its PBKDF2 hash root-only; kept once made
+    local dir=/etc/fluorosim-seal pass
+    install -d -m 0700 "$dir"
+    if ! command -v grub-mkpasswd-pbkdf2 >/dev/null; then
+        echo "    no grub-mkpasswd-pbkdf2 on this machine (package grub-common); lock the boot loader by hand"
+        return
+    fi
+    if [ ! -s "$dir/grub.pbkdf2" ]; then
+        pass=$(head -c 18 /dev/urandom | base64)
+        printf '%s\n%s\n' "$pass" "$pass" | grub-mkpasswd-pbkdf2 | sed -n 's/.*is \(grub\.pbkdf2\..*\)$/\1/p' \
+            > "$dir/grub.pbkdf2"
+        chmod 0400 "$dir/grub.pbkdf2"
+        printf '%s\n' "$pass" > "$dir/grub-password"
+        chmod 0400 "$dir/grub-password"
+        echo "    GRUB menu password written to $dir/grub-password (root only): note it, then delete that file"
+    fi
+    # The menu entries boot without the password; editing them or the GRUB shell needs it.
+    grep -q -- '--unrestricted' /etc/grub.d/10_linux || \
+        sed -i 's/^CLASS="--class gnu-linux --class gnu --class os/& --unrestricted/' /etc/grub.d/10_linux
+}
+
+seal_key() {
+    /opt/fluorosim/venv/bin/fluorosim seal init --key /etc/fluorosim-seal/ledger.key
+    install -d -m 0755 /var/lib/fluorosim-seal
+}
+
 apply_grub() {
     if command -v update-grub >/dev/null; then
         update-grub
@@ -197,7 +272,14 @@ apply_grub() {
     fi
 }
 
+install_seal_units() {
+    install_file 0644 systemd/fluorosim-seal.socket /etc/systemd/system/fluorosim-seal.socket
+    install_file 0644 systemd/fluorosim-seal.service /etc/systemd/system/fluorosim-seal.service
+    link /etc/systemd/system/fluorosim-seal.socket /etc/systemd/system/sockets.target.wants/fluorosim-seal.socket
+}
+
 start_service() {
+    systemctl enable --now fluorosim-seal.socket
     systemctl restart fluorosim.service
 }
 
@@ -209,8 +291,11 @@ file_step "install the service user's definition as /usr/lib/sysusers.d/fluorosi
     install_file 0644 provisioning/sysusers-fluorosim.conf /usr/lib/sysusers.d/fluorosim.conf
 system_step "create user fluorosim in groups video, input, dialout, audio, render (systemd-sysusers)" \
     systemd-sysusers /usr/lib/sysusers.d/fluorosim.conf
-file_step "copy the code to /opt/fluorosim/src" install_code
-system_step "create the virtualenv /opt/fluorosim/venv and install fluorosim into it (pip)" make_venv
+file_step "copy the code to the release $RELEASE (the running release is not touched)" install_code
+system_step "create the release's virtualenv $RELEASE/venv from the hashed lock (pip --require-hashes)" make_venv
+file_step "make release $RELEASE_ID current: atomic rename of /opt/fluorosim/current (src and venv point through it)" \
+    activate_release
+file_step "remove releases older than the current one and the one before it" prune_releases
 file_step "install profiles into /etc/fluorosim (existing files are kept) with appliance.yaml for the real devices" \
     install_profiles
 file_step "make the appliance's Device Observer UID once (/etc/fluorosim/device-identity)" make_identity
@@ -218,6 +303,9 @@ file_step "create /var/lib/fluorosim, /var/log/fluorosim and /var/cache/fluorosi
 system_step "give the state folders to user fluorosim (chown)" own_state_dirs
 file_step "install the unit /etc/systemd/system/fluorosim.service" \
     install_file 0644 systemd/fluorosim.service /etc/systemd/system/fluorosim.service
+file_step "install the ledger seal helper's units fluorosim-seal.socket and fluorosim-seal.service" \
+    install_seal_units
+system_step "write the ledger key /etc/fluorosim-seal/ledger.key (root only, 0400; kept if there)" seal_key
 file_step "install the udev rules /etc/udev/rules.d/99-fluorosim.rules (/dev/fluorosim/camera, keypad, pedal)" \
     install_file 0644 systemd/99-fluorosim.rules /etc/udev/rules.d/99-fluorosim.rules
 file_step "load the device drivers at boot (/etc/modules-load.d/fluorosim.conf)" \
@@ -226,6 +314,10 @@ file_step "keep the journal across reboots (/var/log/journal, journald.conf.d/fl
 system_step "apply the journal settings (systemd-tmpfiles, restart systemd-journald)" apply_journal
 file_step "boot into the service: enable fluorosim.service, default multi-user.target, no getty on tty1, quiet boot" \
     boot_into_service
+file_step "lock the consoles: no getty on tty2-6, no Ctrl-Alt-Del, logind spawns no consoles, GRUB menu password" \
+    lock_consoles
+system_step "set the GRUB menu password (random, hash root-only in /etc/fluorosim-seal) and boot entries unrestricted" \
+    grub_password
 system_step "reload systemd and udev (systemctl daemon-reload, udevadm control --reload, udevadm trigger)" apply_units
 system_step "apply the boot settings (update-grub)" apply_grub
 system_step "start the appliance (systemctl restart fluorosim.service)" start_service

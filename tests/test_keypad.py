@@ -92,7 +92,7 @@ def test_scripted_input_yields_events_at_their_scripted_times(tmp_path):
 @pytest.mark.parametrize("line, message", [
     ('{"t": 1, "tap": "x"', "not valid JSON"),
     ('[1, 2]', "JSON object"),
-    ('{"t": -1, "tap": "x"}', "must not be negative"),
+    ('{"t": -1, "tap": "x"}', "must be between 0 and 86400 s"),
     ('{"t": "soon", "tap": "x"}', "must be a number"),
     ('{"t": 1, "tap": "x", "hold": "y"}', "exactly one"),
     ('{"t": 1, "key": "x"}', "'pressed' must be true or false"),

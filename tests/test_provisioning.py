@@ -107,6 +107,77 @@ def test_code_state_journal_and_boot_settings(installed):
     assert "quiet" in (root / "etc/default/grub.d/fluorosim.cfg").read_text()
 
 
+def test_code_is_a_release_made_current_by_one_symlink(installed):
+    root, out = installed
+    opt = root / "opt/fluorosim"
+    current = os.readlink(opt / "current")
+    assert current.startswith("releases/") and (opt / current / "src/appliance/cli.py").is_file()
+    # The unit's paths go through `current`, so one rename swaps code and virtualenv together.
+    assert os.readlink(opt / "src") == "current/src" and os.readlink(opt / "venv") == "current/venv"
+    assert "atomic rename of /opt/fluorosim/current" in out
+    assert not list(opt.glob(".current.new")) and not list(opt.glob("releases/*/.src.new"))
+
+
+def test_a_new_release_keeps_the_one_before_and_drops_older(tmp_path):
+    root, src = tmp_path / "root", tmp_path / "checkout"
+    shutil.copytree(REPO, src, ignore=shutil.ignore_patterns(".venv", ".git", "var", "__pycache__", "tests"))
+    ids = []
+    for n in range(3):
+        (src / "README.md").write_text(f"release {n}\n")
+        result = subprocess.run(["bash", str(src / "provisioning/install.sh"), "--root", str(root)],
+                                capture_output=True, text=True, timeout=120)
+        assert result.returncode == 0, result.stderr
+        ids.append(os.readlink(root / "opt/fluorosim/current").removeprefix("releases/"))
+    assert len(set(ids)) == 3
+    assert sorted(p.name for p in (root / "opt/fluorosim/releases").iterdir()) == sorted(ids[1:])
+    assert (root / "opt/fluorosim/src/README.md").read_text() == "release 2\n"
+
+
+def test_lock_pins_every_dependency_with_a_hash(installed):
+    root, _ = installed
+    lock = (REPO / "provisioning/requirements.lock").read_text()
+    entries = [e for e in lock.replace("\\\n", " ").splitlines() if e.strip() and not e.startswith("#")]
+    names = {e.split("==")[0].lower() for e in entries}
+    assert all("==" in e and "--hash=sha256:" in e for e in entries), entries
+    assert "file:" not in lock and "http" not in lock       # the hashes, not a location, decide
+    # Every dependency pyproject.toml names is in the lock.
+    import tomllib
+    deps = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["dependencies"]
+    import re
+
+    def normal(name: str) -> str:   # PEP 503
+        return re.sub(r"[-_.]+", "-", name).lower()
+    for dep in deps:
+        name = normal(re.match(r"[A-Za-z0-9._-]+", dep).group(0))
+        assert name in {normal(n) for n in names}, name
+    assert "--require-hashes" in (REPO / "provisioning/install.sh").read_text()
+
+
+def test_consoles_and_boot_loader_are_locked(installed):
+    root, out = installed
+    system = root / "etc/systemd/system"
+    for n in range(1, 7):
+        assert os.readlink(system / f"getty@tty{n}.service") == "/dev/null"
+        assert os.readlink(system / f"autovt@tty{n}.service") == "/dev/null"
+    assert os.readlink(system / "ctrl-alt-del.target") == "/dev/null"
+    assert "NAutoVTs=0" in (root / "etc/systemd/logind.conf.d/fluorosim.conf").read_text()
+    grub = root / "etc/grub.d/01_fluorosim_password"
+    assert stat.S_IMODE(grub.stat().st_mode) == 0o755 and "password_pbkdf2" in grub.read_text()
+    assert os.readlink(system / "sockets.target.wants/fluorosim-seal.socket") == "/etc/systemd/system/fluorosim-seal.socket"
+    assert "skipped (--root): set the GRUB menu password" in out
+
+
+def test_grub_password_script_emits_the_superuser(tmp_path):
+    script = (REPO / "provisioning/grub-fluorosim-password").read_text()
+    hash_file = tmp_path / "grub.pbkdf2"
+    hash_file.write_text("grub.pbkdf2.sha512.10000.AB.CD\n")
+    result = subprocess.run(["sh", "-c", script.replace("/etc/fluorosim-seal/grub.pbkdf2", str(hash_file))],
+                            capture_output=True, text=True)
+    assert result.returncode == 0
+    assert result.stdout.splitlines() == ['set superusers="fluorosim-admin"',
+                                          "password_pbkdf2 fluorosim-admin grub.pbkdf2.sha512.10000.AB.CD"]
+
+
 def test_system_changes_are_listed_as_skipped_under_root(installed):
     _, out = installed
     skipped = [line for line in out.splitlines() if line.startswith("skipped (--root):")]
@@ -123,10 +194,14 @@ def test_the_installed_unit_verifies_in_the_installed_tree(installed, tmp_path):
     shutil.copytree(installed[0], root, symlinks=True)
     system_units = next(p for p in (Path("/usr/lib/systemd/system"), Path("/lib/systemd/system")) if p.is_dir())
     shutil.copytree(system_units, root / "usr/lib/systemd/system", symlinks=True, dirs_exist_ok=True)
-    exe = root / "opt/fluorosim/venv/bin/fluorosim"   # the virtualenv pip would have made
+    exe = root / "opt/fluorosim/current/venv/bin/fluorosim"   # the release's virtualenv pip would have made
     exe.parent.mkdir(parents=True)
     exe.write_text("#!/bin/sh\n")
     exe.chmod(0o755)
+    kill = root / "bin/kill"     # ExecReload=
+    kill.parent.mkdir(parents=True, exist_ok=True)
+    kill.write_text("#!/bin/sh\n")
+    kill.chmod(0o755)
     result = subprocess.run([analyze, "verify", f"--root={root}", "fluorosim.service"], capture_output=True, text=True)
     assert result.returncode == 0 and result.stderr.strip() == "", result.stderr
 

@@ -57,10 +57,16 @@ def root_with_unit(tmp_path: Path, unit_text: str) -> Path:
     shutil.copytree(system_units, root / "usr/lib/systemd/system", symlinks=True)
     (root / "etc/systemd/system").mkdir(parents=True)
     (root / "etc/systemd/system/fluorosim.service").write_text(unit_text)
+    for helper in ("fluorosim-seal.socket", "fluorosim-seal.service"):
+        shutil.copy(REPO / "systemd" / helper, root / "etc/systemd/system" / helper)
     exe = root / EXEC.lstrip("/")
     exe.parent.mkdir(parents=True)
     exe.write_text("#!/bin/sh\nexit 0\n")
     exe.chmod(0o755)
+    kill = root / "bin/kill"     # ExecReload=
+    kill.parent.mkdir(parents=True, exist_ok=True)
+    kill.write_text("#!/bin/sh\nexit 0\n")
+    kill.chmod(0o755)
     return root
 
 
@@ -120,6 +126,8 @@ def test_unit_runs_the_appliance_as_a_supervised_notify_service():
         seconds(one(s, "Unit", "StartLimitIntervalSec"))
     assert seconds(one(s, "Service", "TimeoutStopSec")) >= 2   # the daemon exits within 2 s of SIGTERM
     assert one(s, "Install", "WantedBy") == "multi-user.target"
+    # `systemctl reload` sends the SIGHUP the daemon reloads its profiles on.
+    assert one(s, "Service", "ExecReload") == "/bin/kill -HUP $MAINPID"
 
 
 def test_unit_user_groups_devices_and_writable_state():

@@ -14,7 +14,9 @@ from ..geometry import rigid_problem
 class Section(BaseModel):
     """A profile section: unknown keys are refused, so a typo is an error, not a silent default."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+    # NaN and infinity are never a setting: YAML's .nan/.inf would pass every `gt=`/`le=` bound
+    # test or none, and a NaN time never ends.
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, allow_inf_nan=False)
 
 
 def _check_rigid(value: list[list[float]]) -> list[list[float]]:

@@ -6,6 +6,7 @@ from typing import Literal
 
 from pydantic import Field
 
+from . import limits
 from .base import IDENTITY, Findings, RigidTransform, Section
 
 #: Procedurally generated patients that ship with the appliance (see appliance/patient/).
@@ -69,6 +70,10 @@ class CaseProfile(Section):
             for i in range(1, len(self.phases or [])):
                 if not self.phases[i].time_s > self.phases[i - 1].time_s:
                     yield ("phases", i, "time_s"), f"must be later than phases[{i - 1}].time_s ({self.phases[i - 1].time_s} s)"
+        offset = sum(x * x for x in (row[3] for row in self.T_phantom_from_ct[:3])) ** 0.5
+        if offset > limits.MAX_PLACEMENT_OFFSET_MM:
+            yield (("T_phantom_from_ct",), f"puts the CT {limits.fmt(offset)} mm from the phantom's origin; a patient in "
+                                           f"the box lies within {limits.MAX_PLACEMENT_OFFSET_MM:g} mm")
         m = self.materials
         if not m.air_max_hu < m.bone_min_hu:
             yield ("materials", "bone_min_hu"), "must be greater than materials.air_max_hu"

@@ -30,7 +30,10 @@ def run_validate(args: argparse.Namespace) -> int:
     for p in paths:
         if not p.exists():
             raise FluorosimError(f"{p}: no such file or folder")
-    problems = validate_paths(paths)
+    warnings: list = []
+    problems = validate_paths(paths, warnings)
+    for warning in warnings:
+        print(f"warning: {warning}", file=sys.stderr)
     for problem in problems:
         print(problem, file=sys.stderr)
     if problems:

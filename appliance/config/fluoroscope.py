@@ -12,6 +12,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from ..geometry import camera_matrix
+from . import limits
 from .base import IDENTITY, Findings, RigidTransform, Section, matrix
 from .image_chain import ImageChain
 
@@ -83,6 +84,8 @@ class Collimator(Section):
 class Mode(Section):
     name: str = Field(min_length=1, description="Shown on screen and used as a key in the dose table, e.g. 'continuous', 'pulsed-15'.")
     pulse_rate_per_s: float | None = Field(None, gt=0, le=60, description="Pulses per second; omit for continuous fluoroscopy (1/s).")
+    high_level_control: bool = Field(False, description="A high-level (boost) mode the operator holds a separate control "
+                                     "for; its air-kerma rate may reach 176 mGy/min instead of 88 (21 CFR 1020.32(d)).")
 
 
 class Tube(Section):
@@ -104,8 +107,9 @@ class Tube(Section):
 class Dose(Section):
     reference_point_from_isocentre_mm: float = Field(
         150.0, ge=0, description="Patient entrance reference point, toward the source from the isocentre (mm; IEC 60601-2-43 uses 150).")
-    alarm_period_s: float = Field(300.0, gt=0, description="Cumulative fluoroscopy time between audible alarms "
-                                                           "(s; 21 CFR 1020.32 requires 300).")
+    alarm_period_s: float = Field(300.0, ge=limits.MIN_ALARM_PERIOD_S, le=limits.MAX_ALARM_PERIOD_S,
+                                  description="Cumulative fluoroscopy time between audible alarms (s; 21 CFR 1020.32 "
+                                              "allows at most 300; below 10 s the alarm would never stop).")
 
 
 class Display(Section):
@@ -157,8 +161,7 @@ class FluoroscopeProfile(Section):
 
     def problems(self) -> Findings:
         """Checks across fields, as (location, message) pairs so errors point at the right line."""
-        if self.geometry.source_to_isocentre_mm >= self.geometry.source_to_image_mm:
-            yield ("geometry", "source_to_isocentre_mm"), "must be less than source_to_image_mm"
+        yield from self._physical_problems()
         fovs = [z.fov_mm for z in self.zoom_levels]
         for i in range(1, len(fovs)):
             if not fovs[i] < fovs[i - 1]:
@@ -178,6 +181,57 @@ class FluoroscopeProfile(Section):
                    "must be less than geometry.source_to_isocentre_mm: the reference point lies between source and isocentre")
         if self.collimator.min_opening_mm >= fovs[0]:
             yield ("collimator", "min_opening_mm"), "must be smaller than the widest field of view"
+
+    def _physical_problems(self) -> Findings:
+        """What no real machine can be: checked so a typo is refused, not simulated and recorded."""
+        g, d, k = self.geometry, self.detector, self.intrinsics
+        margin = g.source_to_image_mm - g.source_to_isocentre_mm
+        if margin < limits.MIN_ISOCENTRE_TO_IMAGE_MM:
+            yield (("geometry", "source_to_isocentre_mm"),
+                   f"must be at least {limits.MIN_ISOCENTRE_TO_IMAGE_MM:g} mm less than source_to_image_mm "
+                   f"({limits.fmt(g.source_to_image_mm)} mm): the patient lies between isocentre and detector")
+        nominal = g.source_to_image_mm / d.pixel_pitch_mm
+        r = limits.MAX_FOCAL_LENGTH_RATIO
+        focal_ok = True
+        for name, f in (("fx", k.fx), ("fy", k.fy)):
+            if not nominal / r <= f <= nominal * r:
+                focal_ok = False
+                yield (("intrinsics", name),
+                       f"{limits.fmt(f)} px is not a focal length this machine can have: SID / pixel pitch is "
+                       f"{nominal:.0f} px, and a calibration stays within {nominal / r:.0f}..{nominal * r:.0f} px")
+        for name, c, n in (("cx", k.cx, d.columns), ("cy", k.cy, d.rows)):
+            if not -0.5 <= c <= n - 0.5:
+                yield ("intrinsics", name), f"{limits.fmt(c)} px lies outside the detector (0..{n - 1} px)"
+        if focal_ok:  # the corner's normalised radius needs a real focal length
+            corner = float(np.hypot(d.columns / 2 / k.fx, d.rows / 2 / k.fy))
+            dist = k.distortion
+            radial = limits.corner_distortion(dist.k1, dist.k2, dist.k3, corner)
+            if abs(radial) > limits.MAX_CORNER_DISTORTION:
+                yield (("intrinsics", "distortion"),
+                       f"k1, k2, k3 move the detector corner by {radial:+.0%}; a real intensifier's pincushion stays "
+                       f"within {limits.MAX_CORNER_DISTORTION:.0%} (are these in OpenCV's normalised units?)")
+            tangential = 2 * (abs(dist.p1) + abs(dist.p2)) * corner
+            if tangential > limits.MAX_CORNER_TANGENTIAL:
+                yield (("intrinsics", "distortion"),
+                       f"p1, p2 move the detector corner by {tangential:.0%} of its radius; a real lens stays "
+                       f"within {limits.MAX_CORNER_TANGENTIAL:.0%}")
+        reach = g.source_to_image_mm + limits.WEBCAM_HOUSING_REACH_MM
+        offset = float(np.linalg.norm(np.asarray(self.webcam.T_xray_from_webcam)[:3, 3]))
+        if offset > reach:
+            yield (("webcam", "T_xray_from_webcam"),
+                   f"puts the webcam {limits.fmt(offset)} mm from the focal spot; on the intensifier housing it is "
+                   f"within {reach:g} mm (SID + {limits.WEBCAM_HOUSING_REACH_MM:g} mm)")
+        high = {m.name for m in self.tube.modes if m.high_level_control}
+        boost = self.abc.max_factor if self.abc.enabled else 1.0
+        for i, z in enumerate(self.zoom_levels):
+            for mode, rate in z.air_kerma_rate_mgy_per_min.items():
+                cap = (limits.MAX_HIGH_LEVEL_AIR_KERMA_RATE_MGY_PER_MIN if mode in high
+                       else limits.MAX_AIR_KERMA_RATE_MGY_PER_MIN)
+                law = "176 mGy/min with high-level control" if mode in high else "88 mGy/min in normal mode"
+                if rate * boost > cap:
+                    why = f" x abc.max_factor {boost:g} = {rate * boost:g} mGy/min" if boost != 1.0 else " mGy/min"
+                    yield (("zoom_levels", i, "air_kerma_rate_mgy_per_min", mode),
+                           f"{limits.fmt(rate)}{why} exceeds the federal limit of {law} (21 CFR 1020.32(d))")
 
     def T_xray_from_webcam(self) -> np.ndarray:
         return matrix(self.webcam.T_xray_from_webcam)

@@ -130,12 +130,42 @@ def validate_located(located: Located, model: type[M]) -> tuple[M | None, list[P
     return (obj if not problems else None), problems
 
 
+def _kind_name(model: type[BaseModel]) -> str:
+    for name, m in KINDS.items():
+        if m is model:
+            return f"{name} profile"
+    return (model.__doc__ or model.__name__).strip().splitlines()[0].rstrip(".").removeprefix("A ").removeprefix("The ")
+
+
+def wrong_kind(located: Located, model: type[BaseModel], problems: list[Problem]) -> Problem | None:
+    """One line for a file of another kind than `model` (a fluoroscope given as a pose), instead
+    of a line per key it does not share with the expected kind."""
+    kind = kind_of(located)
+    if kind is not None and KINDS[kind] is not model and kind_of_folder_ok(located, kind):
+        return Problem(located.display, 1, "", f"is a {kind} profile, not a {_kind_name(model)}; check which file "
+                                               "the command or profile names here")
+    # A file sharing no top-level key with the expected kind is the wrong file, not a profile
+    # with typos (whose every problem is worth its own line).
+    keys = set(located.data) if isinstance(located.data, dict) else set()
+    if len(problems) >= 2 and not keys & set(model.model_fields):
+        return Problem(located.display, 1, "", f"is not a {_kind_name(model)}: none of its keys ({', '.join(sorted(keys)[:5])}"
+                                               f"{', ...' if len(keys) > 5 else ''}) is one (is this the right file?)")
+    return None
+
+
+def kind_of_folder_ok(located: Located, kind: str) -> bool:
+    """Whether the file really is of `kind` by its own keys (not only by the folder it sits in)."""
+    obj, problems = validate_located(located, KINDS[kind])
+    return obj is not None
+
+
 def load_profile(path: str | Path, model: type[M]) -> M:
     """Load and validate one profile, or raise ProfileProblems naming file, line and field."""
     located = load(path)
     obj, problems = validate_located(located, model)
     if problems or obj is None:
-        raise ProfileProblems(problems)
+        other = wrong_kind(located, model, problems)
+        raise ProfileProblems([other] if other else problems)
     return obj
 
 
@@ -174,8 +204,28 @@ def _cross_problems(kind: str, located: Located, obj: Any) -> list[Problem]:
     return problems
 
 
-def validate_paths(paths: list[Path]) -> list[Problem]:
-    """Every problem in `paths` and in the files they refer to, each file checked once."""
+def _file_problems(kind: str, path: Path, obj: BaseModel, loc: tuple, target: Path) -> tuple[list[str], list[str]]:
+    """Open a script, trajectory or volume a profile names: (errors, warnings) as one-line messages."""
+    from . import referenced
+
+    if kind == "appliance" and loc[-1] == "script":
+        assert isinstance(obj, ApplianceProfile)
+        problem = referenced.script_problem(target, resolve(path, obj.keymap))
+        return ([problem] if problem else []), []
+    if kind == "appliance" and loc[-1] == "trajectory":
+        problem = referenced.trajectory_problem(target)
+        return ([problem] if problem else []), []
+    if kind == "case" and loc[-1] == "volume":
+        return referenced.volume_problems(target)
+    return [], []
+
+
+def validate_paths(paths: list[Path], warnings: list[Problem] | None = None) -> list[Problem]:
+    """Every problem in `paths` and in the files they refer to, each file checked once.
+
+    Scripts, trajectories and volumes are opened too; what may be meant (an unusual voxel
+    spacing, a CT without air) goes to `warnings` when given, not to the problems.
+    """
     problems: list[Problem] = []
     done: dict[Path, str | None] = {}  # resolved path -> kind it validated as (None: invalid)
 
@@ -207,6 +257,13 @@ def validate_paths(paths: list[Path]) -> list[Problem]:
                                         f"{written} does not exist (looked for {target})"))
             elif ref_kind is not None:
                 check(target, ref_kind)
+            elif target.resolve() not in done:
+                done[target.resolve()] = None
+                errors, cautions = _file_problems(kind, path, obj, loc, target)
+                line, field = located.line_of(loc), _field_path(loc)
+                problems.extend(Problem(located.display, line, field, m) for m in errors)
+                if warnings is not None:
+                    warnings.extend(Problem(located.display, line, field, m) for m in cautions)
 
     for path in paths:
         if path.is_dir():

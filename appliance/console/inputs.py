@@ -17,6 +17,12 @@ from drivers.scripted_input import ScriptedInput, ScriptProblem
 
 from ..config.loading import ApplianceConfig
 from ..errors import FluorosimError
+from .keys import action_for
+
+
+def known_keys(config: ApplianceConfig):
+    """Whether a key name in a script means something to this console's keymap."""
+    return lambda name: action_for(config.keymap, name) is not None
 
 
 def open_keypad(config: ApplianceConfig, now: float):
@@ -26,7 +32,7 @@ def open_keypad(config: ApplianceConfig, now: float):
         return NoInput()
     if source == "scripted":
         try:
-            return ScriptedInput(config.resolve(keypad.script), t0=now)
+            return ScriptedInput(config.resolve(keypad.script), t0=now, known=known_keys(config))
         except ScriptProblem as e:
             raise FluorosimError(str(e)) from None
     if source.startswith("hid:"):

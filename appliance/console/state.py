@@ -148,6 +148,9 @@ class Console:
         self.alarm_sounding = False
         self.alarm_count = 0
         self._next_alarm_s = fluoroscope.dose.alarm_period_s
+        # Cumulative time and alarms carried from a session a crash ended (see carry_over).
+        self.carried_fluoro_time_s = 0.0
+        self.carried_alarms = 0
         # Tube output relative to the reference technique, as automatic brightness control set
         # it for the latest image (1 without it): the dose rate is the reference rate times this.
         self.exposure_factor = 1.0
@@ -351,6 +354,14 @@ class Console:
             if self.alarm_sounding:
                 self.alarm_sounding = False
                 self._emit(out, t, "alarm_reset")
+            elif self.carried_fluoro_time_s or self.carried_alarms:
+                # With no alarm sounding, the press resets the timer carried over a crash: a person's act.
+                carried = (self.carried_fluoro_time_s, self.carried_alarms)
+                self.alarm_count -= self.carried_alarms
+                self.carried_fluoro_time_s, self.carried_alarms = 0.0, 0
+                self._schedule_alarm()
+                self._emit(out, t, "alarm_reset", timer="reset", carried_fluoro_time_s=carried[0],
+                           carried_alarms=carried[1])
         elif action == "hold_breath":
             if not self.breath_hold:
                 self.breath_hold = True
@@ -423,22 +434,38 @@ class Console:
         fov = fluoroscope.zoom_levels[self.zoom - 1].fov_mm
         lo = fluoroscope.collimator.min_opening_mm
         self.collimation = tuple(fov if c >= zoom_fov else min(max(c, lo), fov) for c in self.collimation)
-        period = fluoroscope.dose.alarm_period_s
-        self._next_alarm_s = period * (math.floor(self.fluoro_time_s / period + 1e-12) + 1)
+        self._schedule_alarm()
         self._emit(out, t, "profile", fluoroscope=fluoroscope.name, mode=self.mode.name)
         if exposing:
             self._start_run(out, t, "profile reloaded")
         return out
 
+    def _schedule_alarm(self) -> None:
+        """The next alarm at the next multiple of the period of the cumulative timer (carried
+        plus this session's), kept in this session's own fluoroscopy time."""
+        period = self.fl.dose.alarm_period_s
+        timer = self.carried_fluoro_time_s + self.fluoro_time_s
+        self._next_alarm_s = period * (math.floor(timer / period + 1e-12) + 1) - self.carried_fluoro_time_s
+
+    def carry_over(self, fluoro_time_s: float, alarms: int) -> None:
+        """Continue the cumulative fluoroscopy timer and alarm count of a session a crash ended:
+        21 CFR 1020.32 lets only a person reset them (alarm reset with no alarm sounding).
+        The session's own totals, and so its dose record, stay its own."""
+        self.carried_fluoro_time_s = max(0.0, float(fluoro_time_s))
+        self.carried_alarms = max(0, int(alarms))
+        self.alarm_count += self.carried_alarms
+        self._schedule_alarm()
+
     def snapshot(self) -> ConsoleState:
         fl, mode = self.fl, self.mode
+        timer = self.carried_fluoro_time_s + self.fluoro_time_s
         return ConsoleState(
             t=self._t, fluoro_on=self.fluoro_on,
             image="live" if self.fluoro_on else ("held" if self.has_image else "none"),
             mode=mode.name, pulse_rate_per_s=mode.pulse_rate_per_s, zoom=self.zoom,
             fov_mm=fl.zoom_levels[self.zoom - 1].fov_mm, collimation_mm=tuple(self.collimation),
-            invert=self.invert, breath_hold=self.breath_hold, fluoro_time_s=self.fluoro_time_s,
-            fluoro_time_display=minutes_and_tenths(self.fluoro_time_s), air_kerma_mgy=self.air_kerma_mgy,
+            invert=self.invert, breath_hold=self.breath_hold, fluoro_time_s=timer,
+            fluoro_time_display=minutes_and_tenths(timer), air_kerma_mgy=self.air_kerma_mgy,
             dap_gy_cm2=self.dap_gy_cm2, air_kerma_rate_mgy_per_min=self._rate() if self.fluoro_on else 0.0,
             alarm_sounding=self.alarm_sounding, alarm_count=self.alarm_count, save_count=self.save_count,
             runs=self.runs,

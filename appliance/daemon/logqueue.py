@@ -49,7 +49,16 @@ class _DroppingQueueHandler(logging.handlers.QueueHandler):
 
 
 class _HeaderRotatingFileHandler(logging.handlers.RotatingFileHandler):
-    """A rotating file whose every new file begins with the version header."""
+    """A rotating file whose every new file begins with the version header.
+
+    A record the disk refuses (full, read-only) is counted and dropped: the log is a side
+    task and must never print a traceback per record or stop what is being logged.
+    """
+
+    failed = 0
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        self.failed += 1
 
     def _open(self):
         stream = super()._open()
@@ -65,8 +74,15 @@ class LogQueue:
     """The running log set-up; `stop()` writes out what is queued and restores the root logger."""
 
     def __init__(self, handler: _DroppingQueueHandler, listener: logging.handlers.QueueListener,
-                 targets: list[logging.Handler], path: Path | None):
+                 targets: list[logging.Handler], path: Path | None, problem: str | None = None):
         self.handler, self.listener, self.targets, self.path = handler, listener, targets, path
+        #: Why the log file could not be opened (the journal still gets every record), or None.
+        self.problem = problem
+
+    @property
+    def failed_writes(self) -> int:
+        """Records the log file's disk refused (full or read-only) since start."""
+        return sum(getattr(t, "failed", 0) for t in self.targets)
 
     @property
     def dropped(self) -> int:
@@ -77,7 +93,10 @@ class LogQueue:
         root.removeHandler(self.handler)
         self.listener.stop()
         for t in self.targets:
-            t.close()
+            try:
+                t.close()
+            except OSError:
+                pass  # a full disk refuses the last buffered bytes; the journal has them
 
 
 def start_logging(log_dir: Path | None, *, level: int = logging.INFO, stream=None, console_level: int = logging.NOTSET,
@@ -92,14 +111,21 @@ def start_logging(log_dir: Path | None, *, level: int = logging.INFO, stream=Non
     console.setFormatter(formatter)
     console.setLevel(console_level)
     targets.append(console)
-    path = None
+    path, problem = None, None
     if log_dir is not None:
         log_dir = Path(log_dir)
-        log_dir.mkdir(parents=True, exist_ok=True)
-        path = log_dir / "fluorosim.log"
-        f = _HeaderRotatingFileHandler(path, maxBytes=int(max_mb * 2**20), backupCount=backups, encoding="utf-8")
-        f.setFormatter(formatter)
-        targets.append(f)
+        try:
+            log_dir.mkdir(parents=True, exist_ok=True)
+            f = _HeaderRotatingFileHandler(log_dir / "fluorosim.log", maxBytes=int(max_mb * 2**20),
+                                           backupCount=backups, encoding="utf-8")
+        except OSError as e:
+            # A full or read-only disk must not keep the appliance from starting: the journal
+            # (stderr) still gets every record, and the disk health check says so on screen.
+            problem = f"{log_dir}: cannot write the log file ({e.strerror or e}); logging to the journal only"
+        else:
+            path = log_dir / "fluorosim.log"
+            f.setFormatter(formatter)
+            targets.append(f)
     q: queue.Queue = queue.Queue(maxsize=QUEUE_RECORDS)
     handler = _DroppingQueueHandler(q)
     listener = logging.handlers.QueueListener(q, *targets, respect_handler_level=True)
@@ -108,4 +134,6 @@ def start_logging(log_dir: Path | None, *, level: int = logging.INFO, stream=Non
     root.setLevel(level)
     listener.start()
     logging.getLogger(__name__).info("%s", version_header())
-    return LogQueue(handler, listener, targets, path)
+    if problem:
+        logging.getLogger(__name__).warning("%s", problem)
+    return LogQueue(handler, listener, targets, path, problem)

@@ -38,7 +38,7 @@ from ..config import ApplianceConfig
 from ..config.fluoroscope import FluoroscopeProfile
 from ..console.state import ConsoleState
 from ..errors import FluorosimError
-from ..records.ledger import Ledger
+from ..records.deferred_ledger import open_ledger
 from .capture_worker import CaptureWorker
 from .clock import SimClock
 from .handoff import LatestValue, PhaseValue, Recorded, SavedImage, ShownFrame, TrackedPose
@@ -92,14 +92,21 @@ class Appliance:
             raise FluorosimError(f"{cfg.data_dir}: cannot create the data folder ({e.strerror or e}); "
                                  f"check data_dir in {cfg.path}") from None
 
-        # The ledger first: if another process holds it, nothing else is opened.
-        self.ledger = Ledger(cfg.data_dir / "ledger.sqlite")
+        # The ledger first: if another process holds it, nothing else is opened. On a full disk
+        # it opens later, when it can (records/deferred_ledger.py).
+        self.ledger = open_ledger(cfg.data_dir / "ledger.sqlite")
         try:
             self.parts: Parts = open_parts(cfg, self.clock)
         except BaseException:
             self.ledger.close()
             raise
         parts = self.parts
+        carried = self.ledger.carry_over()
+        if carried:
+            # A crash ended the last session: its timer and alarm count go on until a person resets them.
+            parts.console.carry_over(carried["fluoro_time_s"], carried["alarms"])
+            log.warning("continuing the fluoroscopy timer of session %s after a crash: %.0f s, %d alarm(s)",
+                        carried["from_session"], carried["fluoro_time_s"], carried["alarms"])
 
         # The slots between the workers: who writes each is the one worker named beside it.
         self.poses: LatestValue[TrackedPose] = LatestValue("poses")                       # capture

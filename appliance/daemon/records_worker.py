@@ -16,6 +16,7 @@ from ..config.fluoroscope import FluoroscopeProfile
 from ..console.state import ConsoleState
 from ..errors import FluorosimError
 from ..records import rdsr
+from ..records.deferred_ledger import DeferredLedger
 from ..records.dicom import encode as encode_dicom
 from ..records.dicom_sender import KIND, DicomSender, queue_object, sop_instance_uid
 from ..records.identity import device_uid, equipment_of, identity_path
@@ -46,8 +47,8 @@ class RecordsWorker(Worker):
     event the disk refused is kept in memory and written again, never dropped.
     """
 
-    def __init__(self, ledger: Ledger, keeper: ProfileKeeper, parts: Parts, clock: Callable[[], float], *,
-                 events: queue.Queue[Recorded], shown: LatestValue[np.ndarray], saves: LatestValue[SavedImage],
+    def __init__(self, ledger: Ledger | DeferredLedger, keeper: ProfileKeeper, parts: Parts, clock: Callable[[], float],
+                 *, events: queue.Queue[Recorded], shown: LatestValue[np.ndarray], saves: LatestValue[SavedImage],
                  native: Callable[[], tuple[np.ndarray, FluoroscopeProfile] | None] | None = None):
         super().__init__("records", idle_s=0.0)
         self.ledger, self.keeper, self.parts, self.console_clock = ledger, keeper, parts, clock
@@ -62,10 +63,12 @@ class RecordsWorker(Worker):
         self._unwritten: list[Recorded] = []
         self._outbox: Outbox | None = None
         self._last_report: bytes | None = None
+        self._session_start: tuple[float, float] | None = None
 
     def setup(self) -> None:
-        if self._outbox is None:
+        if self._outbox is None and not isinstance(self.ledger, DeferredLedger):
             # Its own connection to the ledger's file: the send queue is outside the event chain.
+            # (An appliance started on a full disk queues nothing to send until it restarts.)
             self._outbox = Outbox(self.ledger.path, KIND)
             # Sessions a crash or power loss left open were closed when the ledger opened, and the
             # last run may have been cut off before it queued its report: queue what is missing.
@@ -73,6 +76,13 @@ class RecordsWorker(Worker):
                 self._queue_report(sid)
         if self.session_id is not None:
             return  # restarted after a crash: the session goes on
+        if self._session_start is None:
+            # When the session began, even if the disk lets it be written only later.
+            self._session_start = (time.time(), self.console_clock())
+        self._start_session()
+
+    def _start_session(self) -> bool:
+        """Open the session in the ledger; on a full disk say so and try again later, never crash."""
         cfg = self.keeper.current
         fl = cfg.fluoroscope
         dicom = cfg.appliance.dicom
@@ -82,13 +92,29 @@ class RecordsWorker(Worker):
             # Training goes on; the session's objects then name the device by its profile only.
             log.error("no Device Observer UID: %s", e)
             identity = ""
-        self.session_id = self.ledger.start_session(
-            cfg.appliance.operator, cfg.case.title, fl.name, time.time(), t_monotonic=self.console_clock(),
-            equipment=equipment_of(fl, dicom, identity), patient=patient_of(cfg.case))
+        assert self._session_start is not None
+        try:
+            self.session_id = self.ledger.start_session(
+                cfg.appliance.operator, cfg.case.title, fl.name, self._session_start[0],
+                t_monotonic=self._session_start[1], equipment=equipment_of(fl, dicom, identity),
+                patient=patient_of(cfg.case))
+        except FluorosimError as e:
+            if self.problem is None:
+                log.error("session not opened in the ledger, events kept in memory: %s", e)
+            self.problem = str(e)
+            return False
+        self.problem = None
         log.info("session %s started: operator %s, case %s, fluoroscope %s",
                  self.session_id, cfg.appliance.operator, cfg.case.title, fl.name)
+        return True
 
     def step(self) -> bool:
+        if self.session_id is None:
+            # No session yet (the disk refused it): hold what comes in memory, and try again.
+            self._hold_queued()
+            if self.sleep(RECORDS_RETRY_S) or not self._start_session():
+                return False
+            return self._record([])
         if self._unwritten:
             # The disk refused the last batch: try again a little later, keeping everything.
             if self.sleep(RECORDS_RETRY_S):
@@ -104,6 +130,13 @@ class RecordsWorker(Worker):
             except queue.Empty:
                 break
         return self._record(batch)
+
+    def _hold_queued(self) -> None:
+        while True:
+            try:
+                self._unwritten.append(self.events.get_nowait())
+            except queue.Empty:
+                return
 
     def _record(self, batch: list[Recorded]) -> bool:
         """Write events (and their saved images); on a disk error keep them for the next try."""
@@ -217,7 +250,12 @@ class RecordsWorker(Worker):
                 batch.append(self.events.get_nowait())
             except queue.Empty:
                 break
-        if batch or self._unwritten:
+        if self.session_id is None:
+            self._unwritten += batch
+            batch = []
+            if self.stopping:
+                self._start_session()
+        if (batch or self._unwritten) and self.session_id is not None:
             self._record(batch)
         if not self.stopping:
             return  # crashed: the supervisor restarts this worker and the session goes on

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +20,7 @@ import cv2
 import numpy as np
 
 from ..atomic_file import write_atomic
+from ..errors import FluorosimError
 from .handoff import ShownFrame
 
 log = logging.getLogger(__name__)
@@ -84,16 +86,38 @@ def key_moments() -> list[Moment]:
 
 
 class Snapshotter:
-    """Called with each ShownFrame; writes `out_dir/NN-name.png` the first time each moment happens."""
+    """Called with each ShownFrame; writes `out_dir/NN-name.png` the first time each moment happens.
+
+    A snapshot is a side task: it runs on the render worker, so a write the disk refuses
+    (full, read-only) is logged once, counted in `failures`, and tried again at the next hit
+    of that moment after `RETRY_S` - never raised into the renderer.
+    """
+
+    #: After a refused write, wait this long before writing a snapshot again (s).
+    RETRY_S = 5.0
 
     def __init__(self, out_dir: Path, moments: list[Moment]):
         self.out_dir = Path(out_dir)
-        self.out_dir.mkdir(parents=True, exist_ok=True)
         self.moments = moments
         self.taken: dict[str, Path] = {}
+        self.failures = 0
+        self.problem: str | None = None
+        self._retry_at = 0.0
         self._alarm_seen = False
 
     def __call__(self, frame) -> None:
+        try:
+            self._look(frame)
+        except (OSError, FluorosimError, ValueError) as e:
+            self.failures += 1
+            self._retry_at = time.monotonic() + self.RETRY_S
+            if self.problem is None:
+                log.warning("snapshot not written (rendering and dose recording go on): %s", e)
+            self.problem = str(e)
+
+    def _look(self, frame) -> None:
+        if time.monotonic() < self._retry_at:
+            return
         for i, m in enumerate(self.moments):
             if m.name in self.taken:
                 continue
@@ -113,8 +137,10 @@ class Snapshotter:
     def _take(self, index: int, moment: Moment, frame) -> None:
         rgb = frame.rgb_source()
         path = self.out_dir / f"{index:02d}-{moment.name}.png"
+        self.out_dir.mkdir(parents=True, exist_ok=True)
         write_png(path, rgb)
         self.taken[moment.name] = path
+        self.problem = None
         log.info("snapshot %s: %s", moment.name, path)
 
     def captions(self) -> dict[str, str]:

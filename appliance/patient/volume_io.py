@@ -9,6 +9,7 @@ being stacked into a distorted patient.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import sys
 import tempfile
@@ -18,6 +19,9 @@ import numpy as np
 
 from ..errors import FluorosimError
 from .volume import Volume
+from .volume_checks import check_header, check_hu, check_spacing
+
+log = logging.getLogger(__name__)
 
 FILE_SUFFIXES = (".nii", ".nii.gz", ".mha", ".mhd", ".nrrd", ".nhdr")
 #: Slice gaps may differ from the series' median gap by this fraction before the series is
@@ -39,6 +43,7 @@ def load_volume(path: str | Path) -> Volume:
         raise FluorosimError(f"{p}: unknown volume format; use a DICOM series folder, .nii/.nii.gz, .mha/.mhd or .nrrd")
     import SimpleITK as sitk
 
+    _refuse_or_warn(str(p), (check_header(p)[0], []))  # its warnings come again from the loaded image
     with _stderr_captured() as said:
         try:
             image = sitk.ReadImage(str(p))
@@ -48,6 +53,15 @@ def load_volume(path: str | Path) -> Volume:
         reason = said()[0] if said() else "unreadable"
         raise FluorosimError(f"{p}: cannot read this volume ({reason[:160]}); check the file is complete and not corrupt")
     return _from_image(image, str(p))
+
+
+def _refuse_or_warn(source: str, found: tuple[list[str], list[str]]) -> None:
+    """Raise the first error of a check as one line naming the volume; log its warnings."""
+    errors, warnings = found
+    if errors:
+        raise FluorosimError(f"{source}: {errors[0]}")
+    for warning in warnings:
+        log.warning("%s: %s", source, warning)
 
 
 @contextlib.contextmanager
@@ -79,11 +93,13 @@ def _from_image(image, source: str) -> Volume:
     arr = sitk.GetArrayFromImage(image)      # (nz, ny, nx)
     if not np.issubdtype(arr.dtype, np.number):
         raise FluorosimError(f"{source}: voxels are not numbers")
+    _refuse_or_warn(source, check_hu(arr))
     if arr.dtype != np.int16:
         arr = np.clip(np.rint(arr), -32768, 32767).astype(np.int16)
     spacing = np.array(image.GetSpacing(), dtype=np.float64)
     if np.any(spacing <= 0):
         raise FluorosimError(f"{source}: voxel spacing {tuple(spacing)} mm must be positive")
+    _refuse_or_warn(source, check_spacing(spacing))
     direction = np.array(image.GetDirection(), dtype=np.float64).reshape(3, 3)
     T = np.eye(4)
     T[:3, :3] = direction @ np.diag(spacing)
@@ -96,8 +112,51 @@ def _from_image(image, source: str) -> Volume:
 def load_dicom_series(folder: Path) -> Volume:
     """One CT series from a folder: sorted by ImagePositionPatient along the slice normal,
     RescaleSlope/Intercept applied; mixed series, missing or uneven slices refused."""
-    import pydicom
     import SimpleITK as sitk
+
+    headers, normal, step = dicom_series_headers(folder)
+
+    reader = sitk.ImageSeriesReader()
+    reader.SetFileNames([str(f) for f, _ in headers])
+    with _stderr_captured() as said:
+        try:
+            image = reader.Execute()
+        except RuntimeError as e:
+            image, error = None, str(e)
+    if image is None:
+        reason = (said() or error.strip().splitlines() or ["unreadable"])[-1]
+        raise FluorosimError(f"{folder}: cannot read the DICOM pixels ({reason[:160]})")
+    # ITK takes the slice spacing from the positions; make the frame agree with our sort.
+    vol = _from_image(image, str(folder))
+    T = vol.T_ct_from_voxel.copy()
+    first = np.array([float(x) for x in headers[0][1].ImagePositionPatient])
+    T[:3, 2] = normal * step
+    T[:3, 3] = first
+    return Volume(hu=vol.hu, T_ct_from_voxel=T, source=str(folder))
+
+
+def check_volume(path: Path) -> tuple[list[str], list[str]]:
+    """(errors, warnings) of a volume from its headers alone, as `fluorosim validate` reports them;
+    the messages name the file or folder."""
+    if not path.exists():
+        return [f"{path}: no such file or folder"], []
+    try:
+        if path.is_dir():
+            headers, _, step = dicom_series_headers(path)
+            errors, warnings = check_spacing([*map(float, headers[0][1].PixelSpacing), step])
+        else:
+            if not path.name.lower().endswith(FILE_SUFFIXES):
+                load_volume(path)  # raises the one line for an unknown or single-DICOM file
+            errors, warnings = check_header(path)
+    except FluorosimError as e:
+        return [str(e)], []
+    return [f"{path}: {m}" for m in errors], [f"{path}: {m}" for m in warnings]
+
+
+def dicom_series_headers(folder: Path):
+    """The headers of one complete, evenly spaced CT series in `folder`, sorted along the slice
+    normal, with that normal and the slice step (mm); a mixed or gappy series is refused."""
+    import pydicom
 
     files = sorted(f for f in folder.iterdir() if f.is_file() and not f.name.startswith("."))
     headers = []
@@ -151,20 +210,4 @@ def load_dicom_series(folder: Path) -> Volume:
                 else "uneven slice spacing")
         raise FluorosimError(f"{folder}: {what} between slice positions {pos[i]:.2f} and {pos[i + 1]:.2f} mm "
                              f"(gap {gaps[i]:.2f} mm, series spacing {step:.2f} mm); export the complete series")
-    reader = sitk.ImageSeriesReader()
-    reader.SetFileNames([str(f) for f, _ in headers])
-    with _stderr_captured() as said:
-        try:
-            image = reader.Execute()
-        except RuntimeError as e:
-            image, error = None, str(e)
-    if image is None:
-        reason = (said() or error.strip().splitlines() or ["unreadable"])[-1]
-        raise FluorosimError(f"{folder}: cannot read the DICOM pixels ({reason[:160]})")
-    # ITK takes the slice spacing from the positions; make the frame agree with our sort.
-    vol = _from_image(image, str(folder))
-    T = vol.T_ct_from_voxel.copy()
-    first = np.array([float(x) for x in headers[0][1].ImagePositionPatient])
-    T[:3, 2] = normal * step
-    T[:3, 3] = first
-    return Volume(hu=vol.hu, T_ct_from_voxel=T, source=str(folder))
+    return headers, normal, step

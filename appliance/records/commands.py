@@ -9,7 +9,8 @@ from pathlib import Path
 from ..config import ApplianceProfile, load_profile, resolve
 from ..errors import FluorosimError
 from . import export as export_module
-from .ledger import open_readonly, verify
+from . import integrity
+from .ledger import open_readonly
 
 DEFAULT_CONFIG = "configs/appliance.yaml"
 
@@ -29,7 +30,7 @@ def run_verify(args: argparse.Namespace) -> int:
     path = ledger_path(args)
     conn = open_readonly(path)
     try:
-        report = verify(conn)
+        report = integrity.check(conn, integrity.reading_seal())
     finally:
         conn.close()
     if report.ok:
@@ -48,9 +49,16 @@ def run_export(args: argparse.Namespace) -> int:
     path = ledger_path(args)
     conn = open_readonly(path)
     try:
-        written, notes = export_module.export(conn, since, until, args.format, Path(args.out))
+        report = integrity.check(conn, integrity.reading_seal())
+        if not report.ok and not args.allow_broken:
+            raise FluorosimError(f"{path}: NOT INTACT ({report.message}); nothing exported. Give --allow-broken to "
+                                 "export it anyway, with every file stamped as from a broken ledger")
+        stamp = None if report.ok else f"LEDGER NOT INTACT: {report.message}"
+        written, notes = export_module.export(conn, since, until, args.format, Path(args.out), stamp=stamp)
     finally:
         conn.close()
+    if stamp:
+        print(f"warning: {path}: {stamp}; every file written says so", file=sys.stderr)
     for note in notes:
         print(f"note: {note}", file=sys.stderr)
     for p in written:
@@ -67,8 +75,12 @@ def run_list(args: argparse.Namespace) -> int:
     conn = open_readonly(path)
     try:
         sessions = export_module.sessions_between(conn, since, until)
+        report = integrity.check(conn, integrity.reading_seal())
     finally:
         conn.close()
+    if not report.ok:
+        print(f"warning: {path}: NOT INTACT: {report.message}; these figures cannot be trusted "
+              "(see `fluorosim logs verify`)", file=sys.stderr)
     print(f"{'id':>6}  {'started (UTC)':<24} {'operator':<16} {'fluoro min':>10} {'kerma mGy':>10} {'DAP Gy cm2':>11} "
           f"{'runs':>5} {'alarms':>6}  end")
     for s in sessions:
@@ -89,6 +101,7 @@ def register(commands: argparse._SubParsersAction[argparse.ArgumentParser],
     from ..cli import command_group
     from .bench import register_bench
     from .dicom_commands import register as register_dicom
+    from .seal_commands import register_seal
 
     logs = command_group(commands, "logs", "read, verify and export the dose and session ledger")
     ls = logs.add_parser("list", help="list sessions with their fluoroscopy time and dose",
@@ -113,6 +126,9 @@ def register(commands: argparse._SubParsersAction[argparse.ArgumentParser],
     e.add_argument("--until", metavar="DATE", help="last day to include (a date-time is exclusive); default: no limit")
     e.add_argument("--format", choices=export_module.FORMATS, required=True)
     e.add_argument("--out", required=True, metavar="DIR", help="folder to write into (created if missing)")
+    e.add_argument("--allow-broken", action="store_true",
+                   help="export a ledger that fails verification anyway; every file written is stamped as such")
     e.set_defaults(run=run_export)
     register_bench(benches)
     register_dicom(commands)
+    register_seal(commands)

@@ -32,6 +32,11 @@ EVENT_CSV_COLUMNS = ("event_id", "session_id", "time_utc", "kind", "fluoro_time_
                      "d_fluoro_time_s", "d_air_kerma_mgy", "d_dap_gy_cm2", "detail", "hash")
 
 
+#: Dates a ledger can hold: the appliance did not exist before 1970 (Unix time 0), and
+#: datetime ends with year 9999, which must leave room for the day after an --until date.
+MIN_YEAR, MAX_YEAR = 1970, 9998
+
+
 def parse_when(text: str, *, end: bool = False) -> float:
     """Unix time of an ISO date or date-time. A bare date as `end` means the end of that day;
     a time without an offset is the appliance's local time."""
@@ -43,9 +48,18 @@ def parse_when(text: str, *, end: bool = False) -> float:
             when = dt.datetime.fromisoformat(text)
     except ValueError:
         raise FluorosimError(f"'{text}' is not a date; write it as YYYY-MM-DD or YYYY-MM-DDTHH:MM[:SS][+HH:MM]") from None
-    if when.tzinfo is None:
-        when = when.astimezone()  # local time
-    return when.timestamp()
+    except OverflowError:
+        stamp = float("inf")
+    else:
+        try:
+            stamp = (when if when.tzinfo is not None else when.astimezone()).timestamp()  # naive: local time
+        except (ValueError, OverflowError):
+            stamp = float("inf")
+    if not dt.datetime(MIN_YEAR, 1, 1, tzinfo=dt.UTC).timestamp() <= stamp < \
+            dt.datetime(MAX_YEAR + 1, 1, 1, tzinfo=dt.UTC).timestamp():
+        raise FluorosimError(f"'{text}' is outside {MIN_YEAR}..{MAX_YEAR}; the ledger holds no sessions then "
+                             "(leave the option out for no limit)")
+    return stamp
 
 
 def iso(t_wall: float | None) -> str:
@@ -65,6 +79,12 @@ def sessions_between(conn: sqlite3.Connection, since: float | None, until: float
 def events_of(conn: sqlite3.Connection, session_id: int) -> list[dict]:
     return [dict(r) for r in conn.execute(f"SELECT {', '.join(EVENT_COLUMNS)} FROM events WHERE session_id = ? ORDER BY id",
                                           (session_id,))]
+
+
+def ledger_head(conn: sqlite3.Connection) -> dict[str, object]:
+    """{"events", "hash"}: the id and hash of the newest event in the ledger."""
+    row = conn.execute("SELECT id, hash FROM events ORDER BY id DESC LIMIT 1").fetchone()
+    return {"events": row["id"] if row else 0, "hash": row["hash"] if row else None}
 
 
 def _csv_bytes(header: Sequence[str], rows: Iterable[Sequence[object]]) -> bytes:
@@ -103,6 +123,9 @@ def build_files(conn: sqlite3.Connection, sessions: list[dict], fmt: str) -> tup
         chain = verify(conn)
         doc = {"format": "fluorosim ledger export 1", "exported_utc": iso(dt.datetime.now(dt.UTC).timestamp()),
                "chain": {"ok": chain.ok, "message": chain.message},
+               # The ledger's newest entry as it stood at export: a later deletion of that tail shows
+               # against this copy, kept outside the ledger (records.seal.anchor_entry is the live one).
+               "ledger_head": ledger_head(conn),
                "sessions": [{**_session_fields(s),
                              "events": [{**_event_fields(e), "detail": json.loads(e["detail"])} for e in events_of(conn, s["id"])]}
                             for s in sessions]}
@@ -118,10 +141,32 @@ def build_files(conn: sqlite3.Connection, sessions: list[dict], fmt: str) -> tup
     raise FluorosimError(f"unknown export format '{fmt}'; choose one of {', '.join(FORMATS)}")
 
 
-def export(conn: sqlite3.Connection, since: float | None, until: float | None, fmt: str, out_dir: Path) -> tuple[list[Path], list[str]]:
-    """Write the export; returns the files written and notes. Refuses to overwrite anything."""
+def stamped(name: str, data: bytes, stamp: str) -> bytes:
+    """A file of an export from a broken ledger, marked so wherever it goes: a first CSV row,
+    a top-level JSON key, or a DICOM report flagged unverified and partial with the reason."""
+    if name.endswith(".csv"):
+        return _csv_bytes([stamp], []) + data
+    if name.endswith(".json"):
+        return (json.dumps({"NOT_INTACT": stamp, **json.loads(data)}, indent=1, allow_nan=False) + "\n").encode("utf-8")
+    if name.endswith(".dcm"):
+        import pydicom
+
+        ds = pydicom.dcmread(io.BytesIO(data))
+        ds.VerificationFlag = "UNVERIFIED"
+        ds.CompletionFlag = "PARTIAL"
+        ds.ImageComments = stamp[:10240]
+        return dicom.encode(ds)
+    raise FluorosimError(f"{name}: cannot stamp this kind of export file")
+
+
+def export(conn: sqlite3.Connection, since: float | None, until: float | None, fmt: str, out_dir: Path,
+           stamp: str | None = None) -> tuple[list[Path], list[str]]:
+    """Write the export; returns the files written and notes. Refuses to overwrite anything.
+    `stamp` (from a ledger that failed verification) is written into every file."""
     sessions = sessions_between(conn, since, until)
     files, notes = build_files(conn, sessions, fmt)
+    if stamp:
+        files = {name: stamped(name, data, stamp) for name, data in files.items()}
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as e:

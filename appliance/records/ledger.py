@@ -4,6 +4,9 @@ Durability: WAL journal with synchronous=FULL, so a committed event survives a p
 each `record()` call is one transaction, so a kill leaves whole batches or nothing.
 Tamper evidence: each event row carries `hash = sha256(prev_hash + canonical row)`, the
 first event chaining to 64 zeros; `verify()` reports the first row whose link is broken.
+Where a seal is configured (records/seal.py) each row also carries an HMAC with a key the
+service cannot read, and the newest entry is anchored outside the file; the sessions rows
+are checked against the chained session_start and session_end events.
 Recovery: opening the ledger finds sessions that never ended (power loss, kill -9), closes
 an exposure left open, and ends the session with totals equal to the sum of its events'
 increments. Schema changes are numbered migrations run at open (PRAGMA user_version).
@@ -17,6 +20,7 @@ from __future__ import annotations
 import fcntl
 import hashlib
 import json
+import logging
 import math
 import os
 import sqlite3
@@ -28,8 +32,32 @@ from pathlib import Path
 
 from ..console.state import ConsoleEvent
 from ..errors import FluorosimError
+from .seal import Seal, seal_from_environment
+
+log = logging.getLogger(__name__)
 
 GENESIS = "0" * 64
+
+
+class LedgerBusy(FluorosimError):
+    """Another fluorosim process holds the ledger: nothing else may be opened."""
+
+
+#: Below this much free space an error opening or writing the ledger is the disk being full (bytes).
+FULL_DISK_BYTES = 1 << 20
+
+
+def _why(path: Path, e: Exception) -> str:
+    """What a failed open or write of the ledger means for a person: a full disk, else the error."""
+    import shutil
+
+    try:
+        free = shutil.disk_usage(path.parent if path.parent.exists() else Path(".")).free
+    except OSError:
+        free = None
+    if free is not None and free < FULL_DISK_BYTES:
+        return f"the disk is full ({free // 1024} KiB free); free space in {path.parent}"
+    return f"{e}; check the file and its folder's permissions"
 
 MIGRATIONS = (
     # 1: sessions, chained events, running totals.
@@ -68,7 +96,7 @@ MIGRATIONS = (
     CREATE INDEX events_by_session ON events(session_id, id);
     CREATE INDEX sessions_by_start ON sessions(started_wall);
     """,
-    # Outbox (DICOM network sending, reused for xAPI): objects to deliver and one delivery row
+    # 2 Outbox (DICOM network sending, reused for xAPI): objects to deliver and one delivery row
     # per destination, kept in the ledger's file so a queued object survives kill -9 and power
     # loss together with the session it belongs to. See records.outbox.
     """
@@ -96,10 +124,15 @@ MIGRATIONS = (
     );
     CREATE INDEX outbox_due ON outbox_deliveries(sent_wall, next_try_wall);
     """,
+    # 3 (tamper-evident ledger): each event's HMAC with the seal's key (records/seal.py); NULL
+    # in rows written before sealing, which the first sealed row's MAC covers through its hash.
+    """
+    ALTER TABLE events ADD COLUMN mac TEXT;
+    """,
 )
 
 EVENT_COLUMNS = ("id", "session_id", "t_wall", "t_monotonic", "kind", "fluoro_time_s", "air_kerma_mgy", "dap_gy_cm2",
-                 "d_fluoro_time_s", "d_air_kerma_mgy", "d_dap_gy_cm2", "detail", "prev_hash", "hash")
+                 "d_fluoro_time_s", "d_air_kerma_mgy", "d_dap_gy_cm2", "detail", "prev_hash", "hash", "mac")
 SESSION_COLUMNS = ("id", "operator", "case_title", "fluoroscope", "started_wall", "ended_wall", "end_reason",
                    "fluoro_time_s", "air_kerma_mgy", "dap_gy_cm2", "runs", "alarms", "saves")
 
@@ -144,7 +177,7 @@ def _connect(path: Path, readonly: bool) -> sqlite3.Connection:
         conn.execute("SELECT count(*) FROM sqlite_master").fetchone()
         return conn
     except sqlite3.DatabaseError as e:
-        raise FluorosimError(f"{path}: cannot open the ledger ({e}); check the file and its folder's permissions") from None
+        raise FluorosimError(f"{path}: cannot open the ledger ({_why(path, e)})") from None
     except OSError as e:
         raise FluorosimError(f"{path}: cannot create the ledger's folder ({e.strerror or e})") from None
 
@@ -168,6 +201,11 @@ def open_readonly(path: str | Path) -> sqlite3.Connection:
     conn = _connect(path, readonly=True)
     version = conn.execute("PRAGMA user_version").fetchone()[0]
     if version == 0:
+        tables = conn.execute("SELECT count(*) FROM sqlite_master").fetchone()[0]
+        conn.close()
+        if tables == 0:
+            raise FluorosimError(f"{path}: holds no ledger yet (the appliance was stopped while creating it?); "
+                                 "start the appliance once to create it, or give the right --ledger")
         raise FluorosimError(f"{path}: not a fluorosim ledger (no schema)")
     if version > len(MIGRATIONS):
         raise FluorosimError(f"{path}: ledger schema {version} is newer than this fluorosim knows; update fluorosim")
@@ -217,14 +255,54 @@ def verify(conn: sqlite3.Connection, resume: tuple[int, str] | None = None) -> C
             if not math.isclose(d[name], s[name], rel_tol=1e-9, abs_tol=1e-12):
                 return ChainReport(False, count, None, f"session {s['id']}: {name} {s[name]!r} differs from its "
                                                        f"chained session_end record {d[name]!r} (the sessions table was changed)")
+    problem = session_rows_problem(conn, 0 if resume is None else resume[0])
+    if problem:
+        return ChainReport(False, count, None, problem)
     return ChainReport(True, count, None, f"{count} events, chain intact", last)
 
 
-class Ledger:
-    """The one writer of the ledger file."""
+def session_rows_problem(conn: sqlite3.Connection, after: int = 0) -> str | None:
+    """Why a sessions row disagrees with its chained events (operator, case, fluoroscope and start
+    against session_start; end, totals, runs, alarms and saves against session_end), or None."""
+    starts = {r["session_id"]: r for r in conn.execute(
+        "SELECT session_id, t_wall, detail FROM events WHERE kind = 'session_start' AND id > ?", (after,))}
+    for sid, start in starts.items():
+        s = conn.execute("SELECT * FROM sessions WHERE id = ?", (sid,)).fetchone()
+        if s is None:
+            return f"session {sid}: its row was deleted from the sessions table (its events remain)"
+        d = json.loads(start["detail"])
+        for column, value in (("operator", d.get("operator")), ("case_title", d.get("case")),
+                              ("fluoroscope", d.get("fluoroscope")), ("started_wall", start["t_wall"])):
+            if s[column] != value:
+                return (f"session {sid}: {column} {s[column]!r} differs from its chained session_start record "
+                        f"{value!r} (the sessions table was changed)")
+    ends = conn.execute("SELECT e.session_id, e.t_wall, e.detail, s.ended_wall, s.end_reason, s.runs, s.alarms, s.saves "
+                        "FROM events e JOIN sessions s ON s.id = e.session_id "
+                        "WHERE e.kind = 'session_end' AND e.id > ?", (after,))
+    for e in ends:
+        d = json.loads(e["detail"])
+        for column, value in (("ended_wall", e["t_wall"]), ("end_reason", d.get("reason")), ("runs", d.get("runs")),
+                              ("alarms", d.get("alarms")), ("saves", d.get("saves"))):
+            if value is not None and e[column] != value:
+                return (f"session {e['session_id']}: {column} {e[column]!r} differs from its chained session_end "
+                        f"record {value!r} (the sessions table was changed)")
+    return None
 
-    def __init__(self, path: str | Path):
+
+class _FromEnvironment:
+    """The default seal: the one the service's environment names."""
+
+
+_FROM_ENVIRONMENT = _FromEnvironment()
+
+
+class Ledger:
+    """The one writer of the ledger file; `seal` authenticates each event (default: the one
+    the service's environment names, see records/seal.py; None: hash chain only)."""
+
+    def __init__(self, path: str | Path, seal: Seal | None | _FromEnvironment = _FROM_ENVIRONMENT):
         self.path = Path(path)
+        self.seal = seal_from_environment() if isinstance(seal, _FromEnvironment) else seal
         self._conn = _connect(self.path, readonly=False)
         # One writer: a second process would otherwise "recover" a session that is still live.
         self._lock_fd = os.open(self.path, os.O_RDONLY)
@@ -233,14 +311,16 @@ class Ledger:
         except BlockingIOError:
             os.close(self._lock_fd)
             self._conn.close()
-            raise FluorosimError(f"{self.path}: the ledger is open in another fluorosim process; stop it first") from None
+            raise LedgerBusy(f"{self.path}: the ledger is open in another fluorosim process; stop it first") from None
         self.session_id: int | None = None
         self._anchor = (0.0, 0.0)
         try:
             _migrate(self._conn, self.path)
-            last = self._conn.execute("SELECT hash FROM events ORDER BY id DESC LIMIT 1").fetchone()
+            last = self._conn.execute("SELECT hash, mac FROM events ORDER BY id DESC LIMIT 1").fetchone()
             self._head = last["hash"] if last else GENESIS
+            self._mac_head = (last["mac"] if last else None) or ""
             self.recovered: list[int] = self._recover()
+            self._carried = self._carry_from(self.recovered[-1]) if self.recovered else None
         except BaseException:
             self.close()
             raise
@@ -254,7 +334,9 @@ class Ledger:
                "fluoro_time_s": float(totals[0]), "air_kerma_mgy": float(totals[1]), "dap_gy_cm2": float(totals[2]),
                "d_fluoro_time_s": float(deltas[0]), "d_air_kerma_mgy": float(deltas[1]), "d_dap_gy_cm2": float(deltas[2]),
                "detail": _canonical_detail(detail), "prev_hash": self._head}
-        row["hash"] = event_hash(self._head, row)
+        row_hash = event_hash(self._head, row)
+        row["hash"] = row_hash
+        row["mac"] = None if self.seal is None else self.seal.mac(next_id, self._mac_head, row_hash)
         self._conn.execute(f"INSERT INTO events ({', '.join(EVENT_COLUMNS)}) VALUES ({', '.join('?' * len(EVENT_COLUMNS))})",
                            [row[c] for c in EVENT_COLUMNS])
         self._conn.execute(
@@ -263,15 +345,16 @@ class Ledger:
             (row["d_fluoro_time_s"], row["d_air_kerma_mgy"], row["d_dap_gy_cm2"], int(kind == "fluoro_off"),
              int(kind == "alarm"), int(kind == "save"), session_id))
         self._head = row["hash"]
+        self._mac_head = row["mac"] or self._mac_head
 
     def _transaction(self, work: Callable[[], object]) -> None:
-        head = self._head
+        head, mac_head = self._head, self._mac_head
         try:
             self._conn.execute("BEGIN IMMEDIATE")
             work()
             self._conn.execute("COMMIT")
         except BaseException as e:
-            self._head = head
+            self._head, self._mac_head = head, mac_head
             if self._conn.in_transaction:
                 try:
                     self._conn.execute("ROLLBACK")
@@ -281,6 +364,12 @@ class Ledger:
                 raise FluorosimError(f"{self.path}: cannot write the ledger ({e}); free disk space or fix permissions; "
                                      "nothing already recorded is lost") from None
             raise
+        if self.seal is not None:
+            try:
+                self.seal.advance(self._conn)
+            except FluorosimError as e:
+                # The events are committed and sealed; the anchor catches up at the next advance.
+                log.warning("%s: %s", self.path, e)
 
     def start_session(self, operator: str, case: str, fluoroscope: str, t_wall: float,
                       t_monotonic: float | None = None, equipment: dict | None = None,
@@ -302,9 +391,10 @@ class Ledger:
             holder["id"] = session_id
             self._insert(session_id, t_wall, self._anchor[1], "session_start", (0, 0, 0), (0, 0, 0),
                          {"operator": operator, "case": case, "fluoroscope": fluoroscope, "equipment": equipment or {},
-                          "patient": patient or {}})
+                          "patient": patient or {}, **({"carried": self._carried} if self._carried else {})})
         self._transaction(work)
         self.session_id = holder["id"]
+        self._carried = None  # carried into this session; the next one starts from its own record
         return holder["id"]
 
     def wall(self, t_monotonic: float) -> float:
@@ -392,6 +482,30 @@ class Ledger:
         events = [dict(r) for r in self._conn.execute(
             f"SELECT {', '.join(EVENT_COLUMNS)} FROM events WHERE session_id = ? ORDER BY id", (session_id,))]
         return session, events
+
+    def _carry_from(self, session_id: int) -> dict | None:
+        """Cumulative fluoroscopy time and alarm count a crashed session leaves to the next: its
+        own since a person last reset the timer, plus what it had carried from one before."""
+        rows = [dict(r) for r in self._conn.execute(
+            "SELECT kind, d_fluoro_time_s, detail FROM events WHERE session_id = ? ORDER BY id", (session_id,))]
+        time_s, alarms = 0.0, 0
+        for r in rows:
+            detail = json.loads(r["detail"])
+            if r["kind"] == "session_start":
+                carried = detail.get("carried") or {}
+                time_s, alarms = float(carried.get("fluoro_time_s", 0.0)), int(carried.get("alarms", 0))
+            elif r["kind"] == "alarm_reset" and detail.get("timer") == "reset":
+                time_s, alarms = 0.0, 0
+            time_s += r["d_fluoro_time_s"]
+            alarms += r["kind"] == "alarm"
+        if time_s <= 0 and alarms == 0:
+            return None
+        return {"fluoro_time_s": time_s, "alarms": alarms, "from_session": session_id}
+
+    def carry_over(self) -> dict | None:
+        """What the console continues from after a crash (21 CFR 1020.32: the cumulative timer is
+        reset only by a person): {"fluoro_time_s", "alarms", "from_session"}, or None."""
+        return self._carried
 
     def close(self) -> None:
         if self._conn is not None:

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from ..config import limits
 from ..errors import FluorosimError
 from ..geometry import make_transform, rigid_problem, rotation_about
 
@@ -73,26 +74,46 @@ class Trajectory:
         return make_transform(R, p)
 
 
+def _refuse_constant(name: str) -> float:
+    raise ValueError(f"{name} is not a number; every value of a keyframe must be finite")
+
+
+def _finite_number(k: dict, field: str, where: str, low: float, high: float, unit: str) -> float:
+    value = k.get(field, 0.0)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not low <= value <= high:
+        raise FluorosimError(f"{where}: '{field}' must be a number from {low:g} to {high:g} {unit} (got {value!r})")
+    return float(value)
+
+
 def load_trajectory(path: str | Path) -> Trajectory:
     """Read a JSONL keyframe file, or raise FluorosimError naming the file and line."""
     path = Path(path)
     try:
-        lines = path.read_text(encoding="utf-8").splitlines()
+        raw = path.read_bytes()
     except FileNotFoundError:
         raise FluorosimError(f"{path}: trajectory file does not exist; check devices.camera.trajectory") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise FluorosimError(f"{path}: cannot read the trajectory ({e}); it must be UTF-8 JSONL") from None
+    except OSError as e:
+        raise FluorosimError(f"{path}: cannot read the trajectory ({e.strerror or e})") from None
+    try:
+        if b"\x00" in raw:
+            raise UnicodeError("binary")
+        lines = raw.decode("utf-8").splitlines()
+    except UnicodeError:
+        raise FluorosimError(f"{path}: is not UTF-8 text; a trajectory is JSONL, one keyframe object per line") from None
     times, poses = [], []
     for n, line in enumerate(lines, start=1):
         if not line.strip() or line.lstrip().startswith("#"):
             continue
         where = f"{path}:{n}"
         try:
-            k = json.loads(line)
+            k = json.loads(line, parse_constant=_refuse_constant)
         except json.JSONDecodeError as e:
             raise FluorosimError(f"{where}: not valid JSON ({e.msg}); write one keyframe object per line") from None
-        if not isinstance(k, dict) or not isinstance(k.get("t"), (int, float)):
+        except (ValueError, RecursionError) as e:
+            raise FluorosimError(f"{where}: {e}") from None
+        if not isinstance(k, dict) or isinstance(k.get("t"), bool) or not isinstance(k.get("t"), (int, float)):
             raise FluorosimError(f'{where}: a keyframe needs a number "t" (s), e.g. {{"t": 0, "position_mm": [0, 0, 550]}}')
+        _finite_number(k, "t", where, -limits.MAX_SCRIPT_TIME_S, limits.MAX_SCRIPT_TIME_S, "s")
         unknown = set(k) - {"t", "position_mm", "roll_deg", "tilt_deg", "yaw_deg", "T_webcam_from_phantom"}
         if unknown:
             raise FluorosimError(f"{where}: unknown key(s) {', '.join(sorted(unknown))}; allowed: t, position_mm, "
@@ -107,9 +128,13 @@ def load_trajectory(path: str | Path) -> Trajectory:
                 pos = np.asarray(k.get("position_mm"), dtype=np.float64)
                 if pos.shape != (3,):
                     raise ValueError("position_mm must be three numbers (mm)")
-                T = pose_from_angles(pos, float(k.get("roll_deg", 0)), float(k.get("tilt_deg", 0)), float(k.get("yaw_deg", 0)))
+                angles = [_finite_number(k, a, where, -360.0, 360.0, "degrees") for a in ("roll_deg", "tilt_deg", "yaw_deg")]
+                T = pose_from_angles(pos, *angles)
         except (TypeError, ValueError) as e:
             raise FluorosimError(f"{where}: {e}") from None
+        if not limits.finite(T) or np.linalg.norm(T[:3, 3]) > limits.MAX_WEBCAM_DISTANCE_MM:
+            raise FluorosimError(f"{where}: the phantom must be within {limits.MAX_WEBCAM_DISTANCE_MM:g} mm of the webcam "
+                                 "(every number finite)")
         if T[2, 3] <= 0:
             raise FluorosimError(f"{where}: the phantom must be in front of the webcam (z > 0 mm)")
         if times and k["t"] <= times[-1]:
