@@ -19,6 +19,7 @@ from pydantic import BaseModel, ValidationError
 from .appliance import ApplianceProfile
 from .calibration_phantom import CalibrationPhantomProfile
 from .case import CaseProfile
+from .exercise import ExerciseProfile
 from .fluoroscope import FluoroscopeProfile
 from .keymap import KeymapProfile
 from .phantom import PhantomProfile
@@ -36,12 +37,13 @@ KINDS: dict[str, type[BaseModel]] = {
     "keymap": KeymapProfile,
     "webcam": WebcamProfile,
     "calibration-phantom": CalibrationPhantomProfile,
+    "exercise": ExerciseProfile,
 }
 
 #: Folder under configs/ -> kind of the profiles in it.
 KIND_OF_FOLDER = {"fluoroscopes": "fluoroscope", "cases": "case", "phantoms": "phantom",
                   "keymaps": "keymap", "webcams": "webcam",
-                  "calibration-phantoms": "calibration-phantom"}
+                  "calibration-phantoms": "calibration-phantom", "exercises": "exercise"}
 
 #: A top-level key that only one kind has, to recognise a profile outside configs/.
 _KIND_BY_KEY = {"devices": "appliance", "detector": "fluoroscope", "markers": "phantom",
@@ -156,6 +158,8 @@ def _references(kind: str, obj: BaseModel) -> list[tuple[tuple, str, str | None]
         if obj.devices.camera.trajectory:
             refs.append((("devices", "camera", "trajectory"), obj.devices.camera.trajectory, None))
         return refs
+    if kind == "exercise":
+        return [(("case",), obj.case, "case")]
     if kind == "case" and obj.phases:
         return [(("phases", i, "volume"), ph.volume, None) for i, ph in enumerate(obj.phases)]
     return []
