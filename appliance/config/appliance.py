@@ -10,6 +10,7 @@ from typing import Literal
 from pydantic import Field
 
 from .base import Section
+from .teaching import Teaching
 
 
 class Camera(Section):
@@ -102,3 +103,4 @@ class ApplianceProfile(Section):
     tracking: Tracking = Field(default_factory=Tracking, description="How the phantom's pose is computed and smoothed.")
     data_dir: str = Field(description="Ledger, logs, saved images and caches live here; relative to this file unless absolute.")
     daemon: Daemon = Field(default_factory=Daemon, description="Supervisor, watchdog and logging settings.")
+    teaching: Teaching = Field(default_factory=Teaching, description="Exercises, the shot counter and trainee names.")

@@ -157,6 +157,8 @@ def _references(kind: str, obj: BaseModel) -> list[tuple[tuple, str, str | None]
             refs.append((("devices", "keypad", "script"), obj.devices.keypad.script, None))
         if obj.devices.camera.trajectory:
             refs.append((("devices", "camera", "trajectory"), obj.devices.camera.trajectory, None))
+        if obj.teaching.exercise:
+            refs.append((("teaching", "exercise"), obj.teaching.exercise, "exercise"))
         return refs
     if kind == "exercise":
         return [(("case",), obj.case, "case")]
@@ -237,6 +239,8 @@ class ApplianceConfig:
     webcam: WebcamProfile
     webcam_path: Path
     data_dir: Path
+    exercise: ExerciseProfile | None = None
+    exercise_path: Path | None = None
 
     def resolve(self, written: str) -> Path:
         """A path written in the appliance profile."""
@@ -260,4 +264,6 @@ def load_appliance(path: str | Path) -> ApplianceConfig:
         keymap=load_profile(resolve(path, a.keymap), KeymapProfile),
         webcam=load_profile(wc, WebcamProfile), webcam_path=wc,
         data_dir=resolve(path, a.data_dir),
+        exercise=load_profile(resolve(path, a.teaching.exercise), ExerciseProfile) if a.teaching.exercise else None,
+        exercise_path=resolve(path, a.teaching.exercise) if a.teaching.exercise else None,
     )
