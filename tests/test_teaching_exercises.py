@@ -96,6 +96,8 @@ def test_a_target_behind_the_focal_spot_is_not_in_the_field():
     assert beam(pose((0, 0, 1), (0, 0, 300)), t_case=5.0).in_field(np.array([[0.0, -15.0, -124.0]]))[0]
     # ...but through z = 700 the source is at z = 80, the bladder behind the tube: never in the field.
     assert not judge(early, beam(pose((0, 0, 1), (0, 0, 700)), t_case=5.0)).in_field
+    # And through z = -700 the detector is at z = -1320 + 1000 = -320: the bladder lies beyond it.
+    assert not judge(early, beam(pose((0, 0, 1), (0, 0, -700)), t_case=5.0)).in_field
 
 
 BROKEN = [

@@ -192,3 +192,19 @@ class LiveTeaching:
         else:
             task, state = self.progress.status(), ("done" if self.progress.finished else "current")
         return TeachingStatus(self.exposures, trainee, task, state, cue if now - t_cue < self.cue_s else "")
+
+
+def live_teaching_for(cfg) -> LiveTeaching:
+    """The live teaching of an ApplianceConfig: its exercise (when written for the active case) and settings."""
+    import logging
+
+    t = cfg.appliance.teaching
+    exercise = cfg.exercise
+    if exercise is not None and cfg.exercise_path is not None:
+        case_of_exercise = (cfg.exercise_path.parent / exercise.case).resolve()
+        if case_of_exercise != cfg.case_path.resolve():
+            logging.getLogger(__name__).warning("%s is written for %s, not the active case %s; no exercise offered",
+                                                cfg.exercise_path, case_of_exercise, cfg.case_path)
+            exercise = None
+    path = "" if cfg.exercise_path is None else str(cfg.exercise_path)
+    return LiveTeaching(cfg.keymap, exercise, path, view_period_s=t.view_period_s, trainees=tuple(t.trainees), cue_s=t.cue_s)

@@ -7,7 +7,7 @@ out again from the ledger alone, whatever profiles are installed later.
 
 The field model is the renderer's (appliance/xray/renderer.py): at zoom z the focal
 lengths are scaled by fov[0]/fov[z-1]; the field is centred on the detector's centre
-pixel; a point lies in it when its projection (OpenCV's model, with the intensifier's
+pixel; a point lies in it when it is between the focal spot and the detector and its projection (OpenCV's model, with the intensifier's
 distortion) falls inside the blade rectangle (h x v mm at the detector plane) and, on an
 image intensifier, inside the circle of diameter fov[z-1]. The central ray is the ray
 through the detector's centre pixel; "centred within d mm" is the distance of the target's
@@ -34,7 +34,8 @@ def camera_of(fluoroscope) -> dict:
     i, det = fluoroscope.intrinsics, fluoroscope.detector
     return {"fx": i.fx, "fy": i.fy, "cx": i.cx, "cy": i.cy, "distortion": [float(c) for c in i.distortion.coefficients()],
             "columns": det.columns, "rows": det.rows, "pixel_pitch_mm": det.pixel_pitch_mm,
-            "circular": det.kind == "image_intensifier", "fovs_mm": [z.fov_mm for z in fluoroscope.zoom_levels]}
+            "circular": det.kind == "image_intensifier", "fovs_mm": [z.fov_mm for z in fluoroscope.zoom_levels],
+            "sid_mm": fluoroscope.geometry.source_to_image_mm}
 
 
 def view_detail(fluoroscope, T_xray_from_ct, zoom: int, collimation_mm, t_case_s: float | None, camera: dict | None = None) -> dict:
@@ -101,7 +102,7 @@ class Beam:
 
     def detector_mm(self, points_ct) -> np.ndarray:
         """(n, 2) offsets (mm, at the detector plane, this zoom) of the points' images from the
-        field centre; NaN for points not in front of the focal spot."""
+        field centre; NaN for points not between the focal spot and the detector (only those are imaged)."""
         import cv2
 
         pts = np.atleast_2d(np.asarray(points_ct, dtype=float))
@@ -110,7 +111,7 @@ class Beam:
         s = c["fovs_mm"][0] / c["fovs_mm"][self.zoom - 1]
         K = np.array([[c["fx"] * s, 0, c["cx"]], [0, c["fy"] * s, c["cy"]], [0, 0, 1.0]])
         out = np.full((len(p), 2), np.nan)
-        front = p[:, 2] > 1e-6
+        front = (p[:, 2] > 1e-6) & (p[:, 2] < c["sid_mm"])
         if front.any():
             uv, _ = cv2.projectPoints(p[front].reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K,
                                       np.asarray(c["distortion"], dtype=float))
