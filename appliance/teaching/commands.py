@@ -44,6 +44,31 @@ def run_trainee(args) -> int:
     return 0
 
 
+def run_lrs_send(args) -> int:
+    from ..config import ApplianceProfile, load_profile, resolve
+    from .xapi import XapiQueue, queue_ended_sessions, read_password, send_pending
+
+    config = Path(args.config)
+    if not config.is_file():
+        raise FluorosimError(f"{config}: no appliance profile there; give --config PATH")
+    appliance = load_profile(config, ApplianceProfile)
+    lrs = appliance.teaching.lrs
+    if lrs is None:
+        raise FluorosimError(f"{config}: no teaching.lrs section; add the LRS's endpoint, username, password_file "
+                             "and account_home_page to send results")
+    data_dir = resolve(config, appliance.data_dir)
+    conn = open_readonly(data_dir / "ledger.sqlite")
+    queue = XapiQueue(data_dir / "xapi-outbox.sqlite")
+    try:
+        sessions = queue_ended_sessions(conn, queue, lrs)
+        sent = send_pending(queue, lrs, read_password(resolve(config, lrs.password_file)))
+        print(f"{sessions} session(s) queued, {sent} statement(s) sent to {lrs.endpoint}; {queue.count_pending()} waiting")
+    finally:
+        queue.close()
+        conn.close()
+    return 0
+
+
 def register(commands, benches) -> None:
     from ..cli import command_group
 
@@ -67,3 +92,12 @@ def register(commands, benches) -> None:
     t.add_argument("--until", metavar="DATE", help="last day (or date-time, exclusive) to include")
     t.add_argument("--out", metavar="DIR", help="folder to write into (default: reports/ beside the ledger)")
     t.set_defaults(run=run_trainee)
+    lrs = command_group(commands, "lrs", "send trainees' results to the Learning Record Store (xAPI)")
+    send = lrs.add_parser("send", help="queue every ended session's xAPI statements and send what is queued",
+                          description="Queues the xAPI statements of each ended session not queued before (in "
+                                      "xapi-outbox.sqlite in data_dir) and sends what is waiting to teaching.lrs. A "
+                                      "refusal or an unreachable LRS is one line, exit 2, and nothing is lost: the "
+                                      "statements stay queued for the next run; none is ever stored twice.")
+    send.add_argument("--config", default="configs/appliance.yaml", metavar="PATH",
+                      help="appliance profile with the teaching.lrs section (default configs/appliance.yaml)")
+    send.set_defaults(run=run_lrs_send)

@@ -114,16 +114,23 @@ class XapiQueue:
             self._conn.execute("CREATE TABLE IF NOT EXISTS statements (id TEXT PRIMARY KEY, session_id INTEGER NOT NULL, "
                                "body TEXT NOT NULL, queued_wall REAL NOT NULL, attempts INTEGER NOT NULL DEFAULT 0, "
                                "last_error TEXT, sent_wall REAL)")
+            self._conn.execute("CREATE TABLE IF NOT EXISTS sessions (session_id INTEGER PRIMARY KEY, queued_wall REAL NOT NULL)")
         except (sqlite3.Error, OSError) as e:
             raise FluorosimError(f"{self.path}: cannot open the xAPI queue ({e}); check the data folder") from None
 
     def put(self, session_id: int, items: list[dict]) -> int:
-        """Queue statements; one already queued (same id) is not queued again. Returns how many were new."""
+        """Queue a session's statements, all or none; one already queued (same id) is not queued
+        again. Returns how many were new."""
         with self._conn:
             before = self._conn.total_changes
             self._conn.executemany("INSERT OR IGNORE INTO statements (id, session_id, body, queued_wall) VALUES (?, ?, ?, ?)",
                                    [(s["id"], session_id, json.dumps(s, sort_keys=True), time.time()) for s in items])
-            return self._conn.total_changes - before
+            new = self._conn.total_changes - before
+            self._conn.execute("INSERT OR IGNORE INTO sessions (session_id, queued_wall) VALUES (?, ?)", (session_id, time.time()))
+            return new
+
+    def queued_sessions(self) -> set[int]:
+        return {r[0] for r in self._conn.execute("SELECT session_id FROM sessions")}
 
     def pending(self, limit: int = BATCH) -> list[dict]:
         rows = self._conn.execute("SELECT body FROM statements WHERE sent_wall IS NULL ORDER BY rowid LIMIT ?", (limit,))
@@ -217,3 +224,15 @@ def send_pending(queue: XapiQueue, lrs, password: str) -> int:
                 raise _refusal(lrs, e, queue.count_pending()) from None
             queue.sent([s["id"]])
             total += 1
+
+
+def queue_ended_sessions(conn: sqlite3.Connection, queue: XapiQueue, lrs) -> int:
+    """Queue the statements of every ended session of the ledger not queued before; returns how many sessions."""
+    from .metrics import session_metrics
+
+    done = queue.queued_sessions()
+    ended = [r[0] for r in conn.execute("SELECT id FROM sessions WHERE ended_wall IS NOT NULL ORDER BY id")]
+    todo = [sid for sid in ended if sid not in done]
+    for sid in todo:
+        queue.put(sid, statements(session_metrics(conn, sid), lrs))
+    return len(todo)
