@@ -6,12 +6,13 @@ import json
 import threading
 import time
 
+from appliance_setup import make_appliance
+
 from appliance.daemon.notify import Notifier
 from appliance.daemon.pipeline import Appliance
 from appliance.daemon.reload import ProfileKeeper
 from appliance.records.ledger import open_readonly, verify
 from appliance.teaching.metrics import session_metrics
-from appliance_setup import make_appliance
 
 EXERCISE = """title: Cylinder drill
 case: ../cases/cylinder.yaml

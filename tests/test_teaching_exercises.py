@@ -7,13 +7,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from teaching_script import II, pose
 
 from appliance.cli import main
 from appliance.config import load_profile
 from appliance.config.exercise import ExerciseProfile
 from appliance.patient import anatomy, builtin
 from appliance.teaching.views import Beam, judge, target_centre, view_detail
-from teaching_script import II, pose
 
 REPO = Path(__file__).resolve().parents[1]
 VCUG = load_profile(REPO / "configs/exercises/vcug-child.yaml", ExerciseProfile)

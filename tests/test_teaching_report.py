@@ -7,11 +7,11 @@ import json
 import cv2
 import numpy as np
 import pytest
+from teaching_script import scripted_session
 
 from appliance.cli import main
 from appliance.records.ledger import open_readonly
 from appliance.teaching.report import dose_rate
-from teaching_script import scripted_session
 
 
 @pytest.fixture(scope="module")

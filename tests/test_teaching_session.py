@@ -2,10 +2,10 @@
 worked out by hand, against what the ledger-based metrics report."""
 
 import pytest
+from teaching_script import field_area_cm2, scripted_session
 
 from appliance.records.ledger import open_readonly, verify
 from appliance.teaching.metrics import session_metrics, trainee_sessions
-from teaching_script import field_area_cm2, scripted_session
 
 
 @pytest.fixture
@@ -75,3 +75,28 @@ def test_live_state_agrees_with_the_replay(session_ledger):
     finally:
         conn.close()
     assert kinds == ["trainee", "exercise_start", "task_met", "task_met", "task_skip", "exercise_end"]
+
+
+def test_roster_keys_pick_the_trainee_and_start_confirms():
+    from teaching_script import EXERCISE, II, KEYMAP
+
+    from appliance.console.state import Console
+    from appliance.teaching.live import LiveTeaching
+    from drivers.input_event import InputEvent
+
+    console = Console(II, KEYMAP, t0=0.0)
+    live = LiveTeaching(KEYMAP, EXERCISE, view_period_s=0.2, trainees=("Ann", "Ben"))
+    out = []
+    for t, key in ((0.1, "KEY_TAB"), (0.2, "KEY_TAB")):
+        out += live.handle(console, InputEvent(t, "keypad", key, True))
+    assert out == [] and live.status(0.3).trainee == "Ben? (start to confirm)"
+    out = live.handle(console, InputEvent(0.4, "keypad", "KEY_NUMLOCK", True))
+    assert [(e.kind, e.detail.get("name"), e.detail.get("source")) for e in out][:1] == [("trainee", "Ben", "keypad")]
+    assert out[1].kind == "exercise_start" and out[1].detail["title"] == "three spheres"
+    status = live.status(0.5)
+    assert status.trainee == "Ben" and status.task == "task 1/3: A" and status.state == "current"
+    # A second start while the exercise runs does nothing; end ends it once.
+    assert live.handle(console, InputEvent(0.6, "keypad", "KEY_NUMLOCK", True)) == []
+    assert [e.kind for e in live.handle(console, InputEvent(0.7, "keypad", "KEY_BACKSPACE", True))] == ["exercise_end"]
+    assert live.handle(console, InputEvent(0.8, "keypad", "KEY_BACKSPACE", True)) == []
+    assert [t.state for t in live.progress.tasks] == ["not done"] * 3

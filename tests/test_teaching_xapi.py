@@ -19,9 +19,9 @@ import urllib.request
 
 import pytest
 from ruamel.yaml import YAML
+from teaching_script import REPO, scripted_session
 
 from appliance.cli import main
-from teaching_script import REPO, scripted_session
 
 ralph = pytest.importorskip("ralph", reason="ralph-malph is not installed: make setup installs the test extras")
 bcrypt = pytest.importorskip("bcrypt", reason="ralph-malph's bcrypt is not installed")

@@ -12,6 +12,7 @@ their sources are cited in the profile.
 from __future__ import annotations
 
 import math
+
 from pydantic import Field
 
 from .base import Section

@@ -39,7 +39,7 @@ class Exposure:
     start_t: float
     end_t: float | None = None
     beams: list[Beam] = field(default_factory=list)
-    scopes: list["Scope"] = field(default_factory=list)
+    scopes: list[Scope] = field(default_factory=list)
 
 
 @dataclass

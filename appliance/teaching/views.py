@@ -63,7 +63,7 @@ class Beam:
     camera: dict
 
     @classmethod
-    def of(cls, detail: dict) -> "Beam":
+    def of(cls, detail: dict) -> Beam:
         T = np.eye(4)
         T[:3, :] = np.asarray(detail["T_xray_from_ct"], dtype=float)
         return cls(T, int(detail["zoom"]), float(detail["fov_mm"]),
