@@ -86,3 +86,45 @@ def test_the_appliance_records_the_exercise_views_and_verdicts(tmp_path):
     assert [t["state"] for t in ex["tasks"]] == ["met", "not done"]
     assert m["metrics"]["exposures"] == 2 and m["metrics"]["blank_exposures"] == 0
     assert m["session"]["trainee"] == "Bo"
+
+
+def test_a_badge_readers_keys_name_the_trainee_and_never_reach_the_console(tmp_path):
+    """A keymap that maps KEY_F to fluoroscopy, and a badge that types "Fay": the name is
+    recorded, and no exposure starts."""
+    import queue
+
+    from appliance.config import FluoroscopeProfile, KeymapProfile, load_profile
+    from appliance.console.alarm_sound import AlarmSound
+    from appliance.console.state import Console
+    from appliance.daemon.handoff import LatestValue
+    from appliance.daemon.input_worker import InputWorker
+    from appliance.teaching.live import LiveTeaching
+    from appliance_setup import REPO
+    from drivers.input_event import NoInput
+    from drivers.scripted_input import ScriptedInput
+
+    fl = load_profile(REPO / "configs/fluoroscopes/generic-ii-carm.yaml", FluoroscopeProfile)
+    keymap = KeymapProfile(name="test", keys={"KEY_F": "fluoro", "KEY_KPPLUS": "save"})
+    script = tmp_path / "badge.jsonl"
+    script.write_text("\n".join([
+        '{"t": 0.1, "key": "KEY_LEFTSHIFT", "pressed": true}', '{"t": 0.11, "key": "KEY_F", "pressed": true}',
+        '{"t": 0.12, "key": "KEY_F", "pressed": false}', '{"t": 0.13, "key": "KEY_LEFTSHIFT", "pressed": false}',
+        '{"t": 0.14, "tap": "KEY_A", "tap_s": 0.01}', '{"t": 0.16, "tap": "KEY_Y", "tap_s": 0.01}',
+        '{"t": 0.18, "tap": "KEY_ENTER", "tap_s": 0.01}']) + "\n")
+    badge = ScriptedInput(script, t0=0.0)
+    badge.source = "badge"       # as the evdev BadgeReader names its events
+    now = [0.0]
+    console = Console(fl, keymap, t0=0.0)
+    events: queue.Queue = queue.Queue()
+    worker = InputWorker(console, [NoInput()], AlarmSound(), lambda: now[0], console_state=LatestValue("c"),
+                         events=events, fluoroscope=LatestValue("f"), exposure_factor=LatestValue("e"),
+                         teaching=LiveTeaching(keymap, None), teaching_status=LatestValue("t"), badge=badge)
+    for step in range(1, 40):
+        now[0] = step * 0.01
+        worker.step()
+    recorded = []
+    while not events.empty():
+        recorded.append(events.get_nowait().event)
+    kinds = [e.kind for e in recorded]
+    assert "fluoro_on" not in kinds and console.snapshot().runs == 0
+    assert [e.detail for e in recorded if e.kind == "trainee"] == [{"name": "Fay", "source": "badge"}]

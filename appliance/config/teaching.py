@@ -40,6 +40,9 @@ class Teaching(Section):
                                  "per this much console time; the first image of each exposure and every saved image "
                                  "are always recorded (s).")
     cue_s: float = Field(3.0, gt=0, le=60, description="How long the verdict after a save stays on screen (s, console clock).")
+    badge_reader: str | None = Field(None, description="A badge or barcode reader that types like a keyboard: its evdev "
+                                     "device (path, udev symlink, 'name:TEXT' or 'VVVV:PPPP'); what it types, ended by "
+                                     "Enter, is the trainee's name, and none of its keys reaches the console; omit for none.")
     lrs: Lrs | None = Field(None, description="Send each ended session's results to this LRS; omit for none.")
     trainees: list[str] = Field(default_factory=list, description="Roster the keymap's trainee_next key steps through; "
                                 "a badge or barcode reader that types like a keyboard needs none.")

@@ -31,7 +31,7 @@ class InputWorker(Worker):
                  events: queue.Queue[Recorded], fluoroscope: LatestValue[FluoroscopeProfile],
                  exposure_factor: LatestValue[float], teaching: LiveTeaching | None = None,
                  views: LatestValue[tuple[float, dict]] | None = None,
-                 teaching_status: LatestValue[TeachingStatus] | None = None):
+                 teaching_status: LatestValue[TeachingStatus] | None = None, badge: InputDevice | None = None):
         super().__init__("input", idle_s=0.0)
         self.console, self.devices, self.alarm, self.console_clock = console, devices, alarm, clock
         self.console_state, self.events = console_state, events
@@ -40,6 +40,8 @@ class InputWorker(Worker):
         self._exposure_seq = 0
         # Teaching runs on this thread beside the console: its records go through Console.note.
         self.teaching, self.views, self.teaching_status = teaching, views, teaching_status
+        # A badge reader types the trainee's name: its keys never reach the console.
+        self.badge = badge
         self._view_seq = 0
 
     def step(self) -> bool:
@@ -58,6 +60,9 @@ class InputWorker(Worker):
                 view, self._view_seq = shown
                 if view is not None:
                     out += _plain(teaching.offer_view(console, *view))
+        if teaching is not None and self.badge is not None:
+            for e in self.badge.poll(now):
+                out += _plain(teaching.handle(console, e))
         events = [e for device in self.devices for e in device.poll(now)]
         for e in events:
             done = console.handle(e)

@@ -124,7 +124,8 @@ class Appliance:
         self.input = InputWorker(parts.console, [parts.keypad, parts.pedal], parts.alarm, self.clock,
                                  console_state=self.console_state, events=self.events,
                                  fluoroscope=self._new_fluoroscope, exposure_factor=exposure_factor,
-                                 teaching=self.teaching, views=views, teaching_status=self.teaching_status)
+                                 teaching=self.teaching, views=views, teaching_status=self.teaching_status,
+                                 badge=parts.badge)
         self.records = RecordsWorker(self.ledger, keeper, parts, self.clock, events=self.events, shown=self.shown,
                                      saves=saves)
         self.stats = self.render.stats

@@ -29,6 +29,8 @@ _DIGITS = {f"KEY_{d}": d for d in "0123456789"}
 _PUNCT = {"KEY_SPACE": " ", "KEY_MINUS": "-", "KEY_DOT": ".", "KEY_APOSTROPHE": "'", "KEY_COMMA": ","}
 CHARACTER_KEYS = {**_LETTERS, **_DIGITS, **_PUNCT}
 SHIFT_KEYS = ("KEY_LEFTSHIFT", "KEY_RIGHTSHIFT")
+#: Every key a badge reader's events may carry.
+BADGE_KEYS = frozenset(CHARACTER_KEYS) | frozenset(SHIFT_KEYS) | {"KEY_ENTER", "KEY_BACKSPACE"}
 #: Longest name kept (characters): a badge reader that never sends Enter does not grow a record forever.
 MAX_NAME = 64
 
@@ -94,7 +96,7 @@ class LiveTeaching:
     def handle(self, console, event: InputEvent) -> list:
         """Teaching keys and badge characters (others are the console's); ledger events out."""
         t = event.t_monotonic
-        action = action_for(self.keymap, event.key)
+        action = None if event.source == "badge" else action_for(self.keymap, event.key)
         if action is None:
             name = self.names.feed(event)
             return self.set_trainee(console, t, name, "badge") if name else []
