@@ -66,6 +66,10 @@ def test_scripted_session_metrics_match_hand_worked_values(session_ledger):
 def test_live_state_agrees_with_the_replay(session_ledger):
     path, s = session_ledger
     assert s.teaching.exposures == 5
+    # The last save met task B: its cue is on screen for cue_s of wall-clock time, then gone.
+    import time
+    assert s.teaching.status().cue == "task met: B"
+    assert s.teaching.status(time.monotonic() + s.teaching.cue_s + 0.1).cue == ""
     assert [t.state for t in s.teaching.progress.tasks] == ["met", "met", "skipped"]
     conn = open_readonly(path)
     try:

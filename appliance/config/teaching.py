@@ -39,7 +39,7 @@ class Teaching(Section):
     view_period_s: float = Field(0.2, gt=0, le=10, description="While exposing, at most one image-geometry (view) record "
                                  "per this much console time; the first image of each exposure and every saved image "
                                  "are always recorded (s).")
-    cue_s: float = Field(3.0, gt=0, le=60, description="How long the verdict after a save stays on screen (s, console clock).")
+    cue_s: float = Field(3.0, gt=0, le=60, description="How long the verdict after a save stays on screen (s, wall clock).")
     badge_reader: str | None = Field(None, description="A badge or barcode reader that types like a keyboard: its evdev "
                                      "device (path, udev symlink, 'name:TEXT' or 'VVVV:PPPP'); what it types, ended by "
                                      "Enter, is the trainee's name, and none of its keys reaches the console; omit for none.")

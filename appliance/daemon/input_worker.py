@@ -85,7 +85,7 @@ class InputWorker(Worker):
         self.alarm.update(snapshot.alarm_sounding)
         self.console_state.put(snapshot)
         if teaching is not None and self.teaching_status is not None:
-            self.teaching_status.put(teaching.status(now))
+            self.teaching_status.put(teaching.status())
         self.sleep(INPUT_PERIOD_S)
         return bool(events or out)
 

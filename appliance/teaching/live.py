@@ -11,6 +11,7 @@ image saved, judged at once against the current task: a met task gives the on-sc
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 from drivers.input_event import InputEvent
@@ -166,11 +167,11 @@ class LiveTeaching:
         verdict = self.progress.save(t, n, Beam.of(view) if view is not None else None)
         if verdict is not None and verdict.met:
             out += console.note(t, "task_met", task=task.index, name=task.name, n=n)
-            self._cue = (f"task met: {task.name}", t)
+            self._cue = (f"task met: {task.name}", time.monotonic())
             if self.progress.finished:
                 out += console.note(t, "exercise_end", reason="all tasks done")
         elif verdict is not None:
-            self._cue = ("not yet: " + "; ".join(verdict.reasons[:2]), t)
+            self._cue = ("not yet: " + "; ".join(verdict.reasons[:2]), time.monotonic())
         return out
 
     def offer_view(self, console, t: float, view: dict) -> list:
@@ -182,7 +183,10 @@ class LiveTeaching:
         return console.note(t, "view", **view)
 
     # --- the screen -------------------------------------------------------------------------
-    def status(self, now: float) -> TeachingStatus:
+    def status(self, wall_now: float | None = None) -> TeachingStatus:
+        """What the screen shows now; the cue lasts `cue_s` of wall-clock time (time.monotonic), as the
+        saved-image flash does, whatever the console's clock rate."""
+        now = time.monotonic() if wall_now is None else wall_now
         cue, t_cue = self._cue
         trainee = self.trainee
         if self._roster_index is not None:
