@@ -50,7 +50,7 @@ class Patient(Section):
 class CaseProfile(Section):
     title: str = Field(min_length=1, description="Shown on screen and recorded with each session.")
     description: str = Field("", description="What the trainee should practise.")
-    builtin: Literal[BUILTIN_PATIENTS] | None = Field(
+    builtin: Literal[BUILTIN_PATIENTS] | None = Field(  # type: ignore[valid-type]  # the tuple's names
         None, description="Use a built-in generated patient instead of `phases`.")
     phases: list[Phase] | None = Field(None, description="The CT volumes with their time stamps, in time order.")
     at_end: Literal["loop", "hold"] = Field("loop", description="After the last phase: start again, or stay on it.")

@@ -20,8 +20,12 @@ class Detector(Section):
         description="An image intensifier has a circular field of view and vignetting; a flat panel is rectangular.")
     columns: int = Field(gt=0, le=8192, description="Image width (pixels).")
     rows: int = Field(gt=0, le=8192, description="Image height (pixels).")
-    pixel_pitch_mm: float = Field(gt=0, le=5, description="Pixel size at the detector (input phosphor) plane at the widest field of view (mm).")
-    vignetting: float = Field(0.0, ge=0, lt=1, description="Image intensifier brightness lost at the edge of the circular field relative to its centre (fraction, falls off as radius squared); 0 for flat panels.")
+    pixel_pitch_mm: float = Field(gt=0, le=5, description="Pixel size at the detector (input phosphor) plane at the "
+                                                          "widest field of view (mm).")
+    vignetting: float = Field(0.0, ge=0, lt=1,
+                              description="Image intensifier brightness lost at the edge of the circular field "
+                                          "relative to its centre (fraction, falls off as radius squared); 0 for "
+                                          "flat panels.")
 
 
 class Geometry(Section):
@@ -99,7 +103,8 @@ class Tube(Section):
 class Dose(Section):
     reference_point_from_isocentre_mm: float = Field(
         150.0, ge=0, description="Patient entrance reference point, toward the source from the isocentre (mm; IEC 60601-2-43 uses 150).")
-    alarm_period_s: float = Field(300.0, gt=0, description="Cumulative fluoroscopy time between audible alarms (s; 21 CFR 1020.32 requires 300).")
+    alarm_period_s: float = Field(300.0, gt=0, description="Cumulative fluoroscopy time between audible alarms "
+                                                           "(s; 21 CFR 1020.32 requires 300).")
 
 
 class Display(Section):
@@ -128,7 +133,8 @@ class AutomaticBrightness(Section):
 
 
 class Webcam(Section):
-    T_xray_from_webcam: RigidTransform = Field(IDENTITY, description="Pose of the webcam in the X-ray frame (4x4, mm), from `fluorosim calibrate xray`.")
+    T_xray_from_webcam: RigidTransform = Field(IDENTITY, description="Pose of the webcam in the X-ray frame "
+                                                                     "(4x4, mm), from `fluorosim calibrate xray`.")
     status: Literal["nominal", "calibrated"] = Field("nominal", description="'nominal' until measured.")
 
 
@@ -154,7 +160,9 @@ class FluoroscopeProfile(Section):
         fovs = [z.fov_mm for z in self.zoom_levels]
         for i in range(1, len(fovs)):
             if not fovs[i] < fovs[i - 1]:
-                yield ("zoom_levels", i, "fov_mm"), f"must be less than zoom_levels[{i - 1}].fov_mm ({fovs[i - 1]} mm): zoom levels go from widest to narrowest"
+                yield (("zoom_levels", i, "fov_mm"),
+                       f"must be less than zoom_levels[{i - 1}].fov_mm ({fovs[i - 1]} mm): zoom levels go from widest "
+                       f"to narrowest")
         widest = max(self.detector.columns, self.detector.rows) * self.detector.pixel_pitch_mm
         if fovs[0] > widest * 1.0001:
             yield ("zoom_levels", 0, "fov_mm"), f"{fovs[0]} mm exceeds the detector ({widest:.1f} mm = pixels x pixel_pitch_mm)"

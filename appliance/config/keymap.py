@@ -21,7 +21,8 @@ Action = Literal[
 class KeymapProfile(Section):
     name: str = Field(min_length=1, description="The keypad this map is for.")
     keys: dict[str, Action] = Field(default_factory=dict, description="evdev key names (KEY_*, BTN_*) to actions.")
-    hid_usages: dict[int, Action] = Field(default_factory=dict, description="HID keyboard-page usage ids (integers) to actions, for hidapi keypads.")
+    hid_usages: dict[int, Action] = Field(default_factory=dict, description="HID keyboard-page usage ids (integers) "
+                                                                            "to actions, for hidapi keypads.")
 
     def problems(self):
         for name in self.keys:

@@ -37,7 +37,8 @@ class Marker(Section):
 
 class PhantomProfile(Section):
     name: str = Field(min_length=1, description="Shown on screen.")
-    aruco_dictionary: Literal[tuple(ARUCO_DICTIONARIES)] = Field(description="OpenCV predefined dictionary the markers come from.")
+    aruco_dictionary: Literal[tuple(ARUCO_DICTIONARIES)] = Field(  # type: ignore[valid-type]  # the keys as a Literal
+        description="OpenCV predefined dictionary the markers come from.")
     marker_size_mm: float = Field(gt=0, le=500, description="Printed side length of the black marker square (mm).")
     root_marker_id: int = Field(ge=0, description="The marker whose frame is the phantom frame.")
     box: Box

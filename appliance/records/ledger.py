@@ -331,16 +331,16 @@ class Ledger:
             last = self._conn.execute("SELECT max(t_wall) FROM events WHERE session_id = ?", (sid,)).fetchone()[0]
             if last is None:  # a session row without its start event cannot come from this code; keep it visible
                 last = self._conn.execute("SELECT started_wall FROM sessions WHERE id = ?", (sid,)).fetchone()[0]
-                self._transaction(lambda: self._conn.execute(
+                self._transaction(lambda sid=sid, last=last: self._conn.execute(
                     "UPDATE sessions SET ended_wall = ?, end_reason = 'recovered-empty' WHERE id = ?", (last, sid)))
                 continue
-            self._transaction(lambda: self._close_session(sid, last, "recovered"))
+            self._transaction(lambda sid=sid, last=last: self._close_session(sid, last, "recovered"))
         return open_ids
 
     def close(self) -> None:
         if self._conn is not None:
             self._conn.close()
-            self._conn = None
+            self._conn = None  # type: ignore[assignment]  # closed: every later call fails, as sqlite3's would
             os.close(self._lock_fd)
 
     def __enter__(self):
