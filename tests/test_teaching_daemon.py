@@ -93,13 +93,14 @@ def test_a_badge_readers_keys_name_the_trainee_and_never_reach_the_console(tmp_p
     recorded, and no exposure starts."""
     import queue
 
+    from appliance_setup import REPO
+
     from appliance.config import FluoroscopeProfile, KeymapProfile, load_profile
     from appliance.console.alarm_sound import AlarmSound
     from appliance.console.state import Console
     from appliance.daemon.handoff import LatestValue
     from appliance.daemon.input_worker import InputWorker
     from appliance.teaching.live import LiveTeaching
-    from appliance_setup import REPO
     from drivers.input_event import NoInput
     from drivers.scripted_input import ScriptedInput
 

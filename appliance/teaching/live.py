@@ -132,6 +132,7 @@ class LiveTeaching:
         if self.progress is None or self.progress.finished:
             return []
         task = self.progress.skip(t)
+        assert task is not None     # not finished: there is a current task
         out = console.note(t, "task_skip", task=task.index, name=task.name)
         if self.progress.finished:
             out += console.note(t, "exercise_end", reason="all tasks done")
@@ -164,6 +165,7 @@ class LiveTeaching:
         if self.progress is None or self.progress.finished:
             return out
         task = self.progress.current
+        assert task is not None     # not finished: there is a current task
         verdict = self.progress.save(t, n, Beam.of(view) if view is not None else None)
         if verdict is not None and verdict.met:
             out += console.note(t, "task_met", task=task.index, name=task.name, n=n)

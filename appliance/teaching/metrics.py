@@ -137,7 +137,7 @@ def session_metrics(conn: sqlite3.Connection, session_id: int) -> dict:
     exposures: list[Exposure] = []
     open_exposure: Exposure | None = None
     save_kinds: dict[int, str] = {}
-    series = {"t": [], "air_kerma_mgy": [], "dap_gy_cm2": [], "fluoro_time_s": []}
+    series: dict[str, list[float]] = {"t": [], "air_kerma_mgy": [], "dap_gy_cm2": [], "fluoro_time_s": []}
     saves_out = []
     t = 0.0
     t0 = events[0]["t_monotonic"] if events and events[0]["t_monotonic"] is not None else 0.0
@@ -198,16 +198,16 @@ def session_metrics(conn: sqlite3.Connection, session_id: int) -> dict:
                 s.held_saves += d.get("image") == "held"
         elif kind == "save_view":
             n = int(d.get("n", 0))
-            beam = Beam.of(d["view"]) if d.get("view") else None
-            if beam is not None and open_exposure is not None:
-                open_exposure.beams.append(beam)
+            saved = Beam.of(d["view"]) if d.get("view") else None
+            if saved is not None and open_exposure is not None:
+                open_exposure.beams.append(saved)
             verdict = None
             task_name = None
             if live is not None and live["progress"].current is not None:
                 task = live["progress"].current
                 task_name = task.name
                 target = live["exercise"].tasks[task.index].target
-                on = beam is not None and shows(beam, target)
+                on = saved is not None and shows(saved, target)
                 for s in here[1:]:
                     if on:
                         s.on_target += 1
@@ -217,9 +217,9 @@ def session_metrics(conn: sqlite3.Connection, session_id: int) -> dict:
                     whole.on_target += 1
                 else:
                     whole.off_target += 1
-                verdict = live["progress"].save(t, n, beam)
+                verdict = live["progress"].save(t, n, saved)
             saves_out.append({"n": n, "t_s": t - t0, "image": save_kinds.get(n, "live"), "task": task_name,
-                              "verdict": None if verdict is None else verdict.as_dict(), "tracked": beam is not None})
+                              "verdict": None if verdict is None else verdict.as_dict(), "tracked": saved is not None})
         elif kind == "exercise_start":
             close_live(t)
             exercise = ExerciseProfile.model_validate(d["profile"])
@@ -278,7 +278,9 @@ def _exercise_out(run: dict, t0: float) -> dict:
         tasks.append({"name": task_run.name, "state": task_run.state,
                       "started_s": None if task_run.started_t is None else task_run.started_t - t0,
                       "ended_s": None if task_run.ended_t is None else task_run.ended_t - t0,
-                      "time_to_met_s": (task_run.ended_t - task_run.started_t if task_run.state == "met" else None),
+                      "time_to_met_s": (task_run.ended_t - task_run.started_t
+                                        if task_run.state == "met" and task_run.ended_t is not None
+                                        and task_run.started_t is not None else None),
                       "metrics": tf,
                       "saves": [{"n": n, "t_s": ts - t0, "verdict": None if v is None else v.as_dict()}
                                 for ts, n, v in task_run.saves]})

@@ -170,7 +170,7 @@ STYLE = ("body{font-family:sans-serif;margin:1.5em;max-width:1100px}table{border
 
 def _metric_rows(scope: str, fig: dict) -> list[list]:
     rows = []
-    for key, label, unit in SHOWN:
+    for key, _label, unit in SHOWN:
         if key in fig:
             rows.append([scope, key, fig[key], unit or REFERENCE_METRICS.get(key, "")])
     for z, s in fig.get("zoom_time_s", {}).items():

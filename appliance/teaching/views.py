@@ -132,10 +132,17 @@ class Beam:
         return ok & inside
 
 
+def _box(target: Target) -> tuple[np.ndarray, np.ndarray]:
+    box = target.box
+    assert box is not None, "a target is a sphere or a box (ExerciseProfile.problems checks it)"
+    return np.asarray(box.min_mm, dtype=float), np.asarray(box.max_mm, dtype=float)
+
+
 def target_centre(target: Target) -> np.ndarray:
     if target.sphere is not None:
         return np.asarray(target.sphere.centre_mm, dtype=float)
-    return (np.asarray(target.box.min_mm, dtype=float) + np.asarray(target.box.max_mm, dtype=float)) / 2.0
+    lo, hi = _box(target)
+    return (lo + hi) / 2.0
 
 
 #: Directions of the points on a sphere target that are checked besides its centre: the six
@@ -151,7 +158,7 @@ def target_points(target: Target) -> np.ndarray:
     c = target_centre(target)
     if target.sphere is not None:
         return np.vstack([c, c + target.sphere.radius_mm * _SPHERE_DIRECTIONS])
-    lo, hi = np.asarray(target.box.min_mm, float), np.asarray(target.box.max_mm, float)
+    lo, hi = _box(target)
     corners = [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
     faces = []
     for axis in range(3):
