@@ -83,3 +83,17 @@ def test_bad_requests_are_one_line(ledger, tmp_path, capsys, argv, message):
     assert main(argv + ["--ledger", str(ledger), "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1
+
+
+def test_an_exercise_record_this_version_cannot_read_is_one_line(tmp_path, capsys):
+    from appliance.records.ledger import Ledger
+
+    path = tmp_path / "ledger.sqlite"
+    with Ledger(path) as ledger:
+        ledger.start_session("trainee", "child", "II", 1.7e9, t_monotonic=0.0)
+        from appliance.console.state import ConsoleEvent
+        ledger.record([ConsoleEvent(1.0, "exercise_start", {"title": "x", "profile": {"title": "x", "tasks": "?"}})])
+        ledger.end_session(1.7e9 + 2)
+    assert main(["report", "session", "1", "--ledger", str(path), "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "records an exercise this fluorosim cannot read" in err[0]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from ..errors import FluorosimError
@@ -23,7 +24,7 @@ def run_session(args) -> int:
         index = write_session_report(conn, args.session, _out(args, path), images_dir=path.parent / "images")
     finally:
         conn.close()
-    print(index)
+    print(os.path.normpath(index))
     return 0
 
 
@@ -40,7 +41,7 @@ def run_trainee(args) -> int:
         index = write_trainee_report(conn, args.name, _out(args, path), since, until)
     finally:
         conn.close()
-    print(index)
+    print(os.path.normpath(index))
     return 0
 
 

@@ -25,6 +25,8 @@ import json
 import sqlite3
 from dataclasses import dataclass, field
 
+from pydantic import ValidationError
+
 from ..config.exercise import ExerciseProfile
 from ..errors import FluorosimError
 from .progress import ExerciseProgress
@@ -222,7 +224,11 @@ def session_metrics(conn: sqlite3.Connection, session_id: int) -> dict:
                               "verdict": None if verdict is None else verdict.as_dict(), "tracked": saved is not None})
         elif kind == "exercise_start":
             close_live(t)
-            exercise = ExerciseProfile.model_validate(d["profile"])
+            try:
+                exercise = ExerciseProfile.model_validate(d["profile"])
+            except (ValidationError, KeyError):
+                raise FluorosimError(f"session {session_id}: event {e['id']} records an exercise this fluorosim cannot "
+                                     "read (written by another version?); update fluorosim to report it") from None
             progress = ExerciseProgress(exercise, t)
             targets = [task.target for task in exercise.tasks]
             scope = Scope(targets=targets, start_t=t)
