@@ -12,7 +12,7 @@ import SimpleITK as sitk
 from appliance.config.fluoroscope import FluoroscopeProfile
 from appliance.config.loading import load_profile
 from appliance.geometry import make_transform, rotation_about
-from appliance.xray.analytic import box_chords, box_volume, pixel_rays_ct
+from appliance.xray.truth.analytic import box_chords, box_volume, pixel_rays_ct
 
 ROOT = Path(__file__).resolve().parents[1]
 PROFILE = ROOT / "configs" / "fluoroscopes" / "generic-flat-detector.yaml"

@@ -14,7 +14,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from .base import IDENTITY, RigidTransform, Section, matrix
+from .base import IDENTITY, Findings, RigidTransform, Section, matrix
 from .phantom import ARUCO_DICTIONARIES
 
 
@@ -107,7 +107,7 @@ class CalibrationPhantomProfile(Section):
     fit: FitOptions = Field(default_factory=FitOptions)
     acceptance: Acceptance = Field(default_factory=Acceptance)
 
-    def problems(self):
+    def problems(self) -> Findings:
         if self.marker.aruco_dictionary not in ARUCO_DICTIONARIES:
             yield ("marker", "aruco_dictionary"), f"must be one of {', '.join(ARUCO_DICTIONARIES)}"
         elif self.marker.id >= ARUCO_DICTIONARIES[self.marker.aruco_dictionary]:
@@ -153,7 +153,7 @@ class CalibrationPhantomProfile(Section):
     def large_mask(self) -> np.ndarray:
         """True for the large balls."""
         d = self.diameters()
-        return d > (d.min() + d.max()) / 2
+        return np.asarray(d > (d.min() + d.max()) / 2)
 
     def T_phantom_from_marker(self) -> np.ndarray:
         return matrix(self.marker.T_phantom_from_marker)

@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import Field
 
-from .base import IDENTITY, RigidTransform, Section
+from .base import IDENTITY, Findings, RigidTransform, Section
 
 #: Procedurally generated patients that ship with the appliance (see appliance/patient/).
 BUILTIN_PATIENTS = ("child-torso",)
@@ -60,7 +60,7 @@ class CaseProfile(Section):
     breathing: Breathing | None = None
     patient: Patient = Field(default_factory=Patient, description="Demographics recorded in dose reports.")
 
-    def problems(self):
+    def problems(self) -> Findings:
         if (self.builtin is None) == (self.phases is None):
             yield ("phases",), "give either `phases` (your CT volumes) or `builtin` (a generated patient), not both or neither"
         if self.phases is not None:

@@ -12,7 +12,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from ..geometry import camera_matrix
-from .base import IDENTITY, RigidTransform, Section, matrix
+from .base import IDENTITY, Findings, RigidTransform, Section, matrix
 
 
 class Detector(Section):
@@ -67,7 +67,7 @@ class ZoomLevel(Section):
         description="Reference air-kerma rate for each mode named in tube.modes (mGy/min).")
 
     @model_validator(mode="after")
-    def _positive_rates(self):
+    def _positive_rates(self) -> ZoomLevel:
         for mode, rate in self.air_kerma_rate_mgy_per_min.items():
             if not rate > 0:
                 raise ValueError(f"air_kerma_rate_mgy_per_min.{mode} must be greater than 0")
@@ -93,7 +93,7 @@ class Tube(Section):
     modes: list[Mode] = Field(min_length=1, description="Fluoroscopy modes offered by the console, first is the default.")
 
     @model_validator(mode="after")
-    def _unique_modes(self):
+    def _unique_modes(self) -> Tube:
         names = [m.name for m in self.modes]
         if len(set(names)) != len(names):
             raise ValueError(f"modes: names must be unique, got {names}")
@@ -153,7 +153,7 @@ class FluoroscopeProfile(Section):
     abc: AutomaticBrightness = Field(default_factory=AutomaticBrightness)
     webcam: Webcam = Field(default_factory=Webcam)
 
-    def problems(self):
+    def problems(self) -> Findings:
         """Checks across fields, as (location, message) pairs so errors point at the right line."""
         if self.geometry.source_to_isocentre_mm >= self.geometry.source_to_image_mm:
             yield ("geometry", "source_to_isocentre_mm"), "must be less than source_to_image_mm"

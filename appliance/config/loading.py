@@ -62,7 +62,7 @@ def kind_of(located: Located) -> str | None:
     return None
 
 
-def _strip_optional(tp):
+def _strip_optional(tp: Any) -> Any:
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
         args = [a for a in typing.get_args(tp) if a is not type(None)]
@@ -114,7 +114,7 @@ def _message(err: Any, model: type[BaseModel]) -> str:
     if kind not in ("value_error", "assertion_error") and "input" in err and not isinstance(err["input"], (dict, list)):
         shown = repr(err["input"])
         msg += f" (got {shown[:60]})"
-    return msg
+    return str(msg)
 
 
 def validate_located(located: Located, model: type[M]) -> tuple[M | None, list[Problem]]:

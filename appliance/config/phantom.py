@@ -7,7 +7,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from .base import IDENTITY, RigidTransform, Section, matrix
+from .base import IDENTITY, Findings, RigidTransform, Section, matrix
 
 #: OpenCV's predefined ArUco dictionaries and how many markers each holds.
 ARUCO_DICTIONARIES = {
@@ -44,7 +44,7 @@ class PhantomProfile(Section):
     box: Box
     markers: list[Marker] = Field(min_length=1, description="Every marker stuck on the box.")
 
-    def problems(self):
+    def problems(self) -> Findings:
         size = ARUCO_DICTIONARIES[self.aruco_dictionary]
         seen: dict[int, int] = {}
         for i, m in enumerate(self.markers):

@@ -16,6 +16,7 @@ import datetime as dt
 import io
 import json
 import sqlite3
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 from ..atomic_file import write_atomic
@@ -66,7 +67,7 @@ def events_of(conn: sqlite3.Connection, session_id: int) -> list[dict]:
                                           (session_id,))]
 
 
-def _csv_bytes(header, rows) -> bytes:
+def _csv_bytes(header: Sequence[str], rows: Iterable[Sequence[object]]) -> bytes:
     buffer = io.StringIO(newline="")
     writer = csv.writer(buffer, lineterminator="\r\n")
     writer.writerow(header)

@@ -21,6 +21,8 @@ from pydicom.dataset import Dataset
 from pydicom.sequence import Sequence
 
 from .. import __version__
+from ..config.case import CaseProfile
+from ..config.fluoroscope import FluoroscopeProfile
 from .dicom import ds_number as _ds_number
 from .dicom import set_simulated_patient
 from .dicom import uid as _uid
@@ -331,11 +333,11 @@ def session_report(session: dict, events: list[dict]) -> Dataset:
     return ds
 
 
-def patient_of(case) -> dict:
+def patient_of(case: CaseProfile) -> dict:
     """What a session records about its virtual patient (CaseProfile -> dict) for the reports."""
-    return case.patient.model_dump()
+    return dict(case.patient.model_dump())
 
 
-def equipment_of(fluoroscope) -> dict:
+def equipment_of(fluoroscope: FluoroscopeProfile) -> dict:
     """What a session records about its machine (FluoroscopeProfile -> dict) for the reports."""
     return {"manufacturer": fluoroscope.manufacturer, "model": fluoroscope.model, "serial": fluoroscope.name}

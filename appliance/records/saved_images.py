@@ -36,7 +36,7 @@ def _as_display(image: np.ndarray) -> np.ndarray:
     if a.dtype == np.uint8 or a.dtype == np.uint16:
         return a
     if np.issubdtype(a.dtype, np.floating):
-        return np.round(np.clip(np.nan_to_num(a), 0.0, 1.0) * 255.0).astype(np.uint8)
+        return np.asarray(np.round(np.clip(np.nan_to_num(a), 0.0, 1.0) * 255.0), dtype=np.uint8)
     raise ValueError(f"unsupported image type {a.dtype}; give uint8, uint16 or float in 0..1")
 
 
