@@ -15,7 +15,7 @@ import math
 
 from pydantic import Field
 
-from .base import Section
+from .base import Findings, Section
 
 Vector3 = tuple[float, float, float]
 
@@ -101,7 +101,7 @@ class ExerciseProfile(Section):
     references: dict[str, Reference | list[Reference]] = Field(
         default_factory=dict, description="Published values per metric (keys of REFERENCE_METRICS), each with its source.")
 
-    def problems(self):
+    def problems(self) -> Findings:
         for i, task in enumerate(self.tasks):
             t = task.target
             if (t.sphere is None) == (t.box is None):
