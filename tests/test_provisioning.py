@@ -15,7 +15,7 @@ from appliance.config import ApplianceProfile, load_profile, validate_paths
 
 REPO = Path(__file__).resolve().parents[1]
 INSTALL = REPO / "provisioning" / "install.sh"
-PROFILE_KINDS = ("fluoroscopes", "cases", "phantoms", "keymaps", "webcams")
+PROFILE_KINDS = ("fluoroscopes", "cases", "phantoms", "keymaps", "webcams", "exercises")
 
 
 def run_install(*args, user: str | None = None) -> subprocess.CompletedProcess:
