@@ -126,10 +126,10 @@ def typed(text):
     return out + [("KEY_ENTER", True), ("KEY_ENTER", False)]
 
 
-def scripted_session(path: Path) -> "Session":
+def scripted_session(path: Path, t_wall: float = 1.7e9) -> "Session":
     """Session 1 of a fresh ledger at `path`: the script the metrics tests work out by hand."""
     with Ledger(path) as ledger:
-        ledger.start_session("trainee", "child", II.name, 1.7e9, t_monotonic=0.0)
+        ledger.start_session("trainee", "child", II.name, t_wall, t_monotonic=0.0)
         s = Session(ledger)
         # The badge reader types "Ada Lovelace" and Enter before anything else.
         for i, (key, pressed) in enumerate(typed("Ada Lovelace")):
@@ -148,5 +148,5 @@ def scripted_session(path: Path) -> "Session":
         s.expose(18.0, 19.0, P_A)                  # 5: after the exercise
         s.advance(20.0)
         ledger.record(s.console.end(20.0))
-        ledger.end_session(1.7e9 + 20.0)
+        ledger.end_session(t_wall + 20.0)
     return s

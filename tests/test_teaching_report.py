@@ -97,3 +97,23 @@ def test_an_exercise_record_this_version_cannot_read_is_one_line(tmp_path, capsy
     assert main(["report", "session", "1", "--ledger", str(path), "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "records an exercise this fluorosim cannot read" in err[0]
+
+
+def test_trainee_report_follows_the_sessions_in_the_period(tmp_path):
+    import datetime as dt
+
+    path = tmp_path / "ledger.sqlite"
+    day = dt.datetime(2026, 3, 2, 10, 0).astimezone()
+    for days in (0, 7, 14):
+        scripted_session(path, t_wall=(day + dt.timedelta(days=days)).timestamp())
+    assert main(["report", "trainee", "Ada Lovelace", "--ledger", str(path), "--out", str(tmp_path / "all")]) == 0
+    with open(tmp_path / "all" / "trainee-ada-lovelace" / "sessions.csv", newline="") as f:
+        assert [r["session"] for r in csv.DictReader(f)] == ["1", "2", "3"]
+    # From the second week's day to the day before the third session's (a date as --until includes it).
+    assert main(["report", "trainee", "Ada Lovelace", "--ledger", str(path), "--out", str(tmp_path / "some"),
+                 "--since", "2026-03-09", "--until", "2026-03-15"]) == 0
+    with open(tmp_path / "some" / "trainee-ada-lovelace" / "sessions.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["session"] for r in rows] == ["2"] and rows[0]["fluoro_time_s"] == "9.0"
+    data = json.loads((tmp_path / "some" / "trainee-ada-lovelace" / "report.json").read_text())
+    assert [t["state"] for t in data["sessions"][0]["exercises"][0]["tasks"]] == ["met", "met", "skipped"]
