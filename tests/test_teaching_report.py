@@ -56,6 +56,7 @@ def test_session_report_figures_are_the_ledgers(ledger, tmp_path, capsys):
     assert cv2.imread(str(folder / "thumb-0001.png"), cv2.IMREAD_GRAYSCALE).shape == (200, 200)
     page = (folder / "index.html").read_text()
     assert "Ada Lovelace" in page and "B: not met - not collimated" in page and "(image file not found)" in page
+    assert "<h2>Exercise 1: three spheres</h2><p>test</p>" in page
     assert "exercise 1" in (folder / "references.csv").read_text()
 
 

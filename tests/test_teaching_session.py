@@ -94,11 +94,13 @@ def test_roster_keys_pick_the_trainee_and_start_confirms():
     for t, key in ((0.1, "KEY_TAB"), (0.2, "KEY_TAB")):
         out += live.handle(console, InputEvent(t, "keypad", key, True))
     assert out == [] and live.status(0.3).trainee == "Ben? (start to confirm)"
+    # Before the start the screen shows what the exercise asks.
+    assert live.status(0.3).cue == "three spheres: test" and live.status(0.3).task == "press start for the exercise"
     out = live.handle(console, InputEvent(0.4, "keypad", "KEY_NUMLOCK", True))
     assert [(e.kind, e.detail.get("name"), e.detail.get("source")) for e in out][:1] == [("trainee", "Ben", "keypad")]
     assert out[1].kind == "exercise_start" and out[1].detail["title"] == "three spheres"
     status = live.status(0.5)
-    assert status.trainee == "Ben" and status.task == "task 1/3: A" and status.state == "current"
+    assert status.trainee == "Ben" and status.task == "task 1/3: A" and status.state == "current" and status.cue == ""
     # A second start while the exercise runs does nothing; end ends it once.
     assert live.handle(console, InputEvent(0.6, "keypad", "KEY_NUMLOCK", True)) == []
     assert [e.kind for e in live.handle(console, InputEvent(0.7, "keypad", "KEY_BACKSPACE", True))] == ["exercise_end"]

@@ -197,6 +197,9 @@ class LiveTeaching:
             trainee = self.names.typed + "_"
         if self.progress is None:
             task, state = ("press start for the exercise" if self.exercise is not None else ""), ""
+            if self.exercise is not None and not self._exposing and not cue:
+                # Before the start, and never over a live image: what the exercise asks.
+                cue, t_cue = f"{self.exercise.title}: {' '.join(self.exercise.briefing.split())}", now
         else:
             task, state = self.progress.status(), ("done" if self.progress.finished else "current")
         return TeachingStatus(self.exposures, trainee, task, state, cue if now - t_cue < self.cue_s else "")

@@ -281,7 +281,7 @@ def _exercise_out(run: dict, t0: float) -> dict:
     tasks = []
     for task_run, scope in zip(progress.tasks, run["tasks"]):
         tf = scope.figures()
-        tasks.append({"name": task_run.name, "state": task_run.state,
+        tasks.append({"name": task_run.name, "state": task_run.state, "instruction": ex.tasks[task_run.index].instruction,
                       "started_s": None if task_run.started_t is None else task_run.started_t - t0,
                       "ended_s": None if task_run.ended_t is None else task_run.ended_t - t0,
                       "time_to_met_s": (task_run.ended_t - task_run.started_t
@@ -294,7 +294,7 @@ def _exercise_out(run: dict, t0: float) -> dict:
     for key, value in ex.references.items():
         values = value if isinstance(value, list) else [value]
         refs[key] = [r.model_dump() for r in values]
-    return {"title": ex.title, "path": run["path"], "started_s": run["start_t"] - t0,
+    return {"title": ex.title, "briefing": ex.briefing, "path": run["path"], "started_s": run["start_t"] - t0,
             "ended_s": None if progress.t_end is None else progress.t_end - t0,
             "metrics": fig, "tasks": tasks, "references": refs}
 

@@ -236,7 +236,9 @@ def write_session_report(conn: sqlite3.Connection, session_id: int, out_dir: Pat
     if ref_rows:
         parts += ["<h2>Against the references</h2><p>z: (value - reference) / sd.</p>", _table(ref_header, ref_rows)]
     for i, ex in enumerate(m["exercises"], 1):
-        parts.append(f"<h2>Exercise {i}: {html.escape(ex['title'])}</h2>")
+        items = "".join(f"<li><b>{html.escape(t['name'])}</b>: {html.escape(t['instruction'])} "
+                        f"<i>({html.escape(t['state'])})</i></li>" for t in ex["tasks"])
+        parts.append(f"<h2>Exercise {i}: {html.escape(ex['title'])}</h2><p>{html.escape(ex['briefing'])}</p><ol>{items}</ol>")
     if task_rows:
         parts += ["<h2>Tasks</h2>", _table(task_header, task_rows)]
     parts += ["<h2>Saved images</h2>", f"<div class='thumbs'>{''.join(thumbs) or '<p>none</p>'}</div>",
