@@ -181,8 +181,10 @@ class LiveTeaching:
         self._latest_view = view
         if t - self._last_view_t < self.view_period_s:
             return []
-        self._last_view_t = t
-        return console.note(t, "view", **view)
+        out = console.note(t, "view", **view)
+        # The console records it no earlier than its own time: space the records by that time.
+        self._last_view_t = out[-1].t_monotonic
+        return out
 
     # --- the screen -------------------------------------------------------------------------
     def status(self, wall_now: float | None = None) -> TeachingStatus:
