@@ -16,7 +16,6 @@ centre from that ray, at the target.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -224,7 +223,3 @@ def judge(task, beam: Beam) -> Verdict:
             reasons.append(f"case time {when}, not {ph.label or 'the window'} ({ph.start_s:g}-{ph.end_s:g} s)")
     return Verdict(not reasons, in_field, whole, off, angle, tuple(reasons))
 
-
-def angle_between_deg(a, b) -> float:
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    return math.degrees(math.acos(float(np.clip(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)), -1.0, 1.0))))
