@@ -25,6 +25,7 @@ COMMAND_MODULES = (
     "appliance.records.commands",
     "appliance.patient.commands",
     "appliance.daemon.commands",
+    "appliance.teaching.commands",
 )
 
 

@@ -36,7 +36,7 @@ APT_PACKAGES=(
     alsa-utils                                        # the fluoroscopy time alarm
     fbset                                             # to check and set the framebuffer mode
 )
-PROFILE_KINDS=(fluoroscopes cases phantoms keymaps webcams)
+PROFILE_KINDS=(fluoroscopes cases phantoms keymaps webcams exercises)
 
 usage() {
     echo "usage: $0 [--dry-run] [--root DIR]" >&2

@@ -11,7 +11,7 @@ from appliance.console.state import Console
 from appliance.errors import FluorosimError
 from appliance.records.ledger import Ledger, open_readonly, verify
 from drivers.input_event import NoInput
-from drivers.scripted_input import ScriptedInput
+from drivers.scripted_input import ScriptedInput, parse_script
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / "configs/scripts/demo-session.jsonl"
@@ -72,7 +72,9 @@ def test_inputs_from_the_appliance_profile(tmp_path):
         "devices": config.appliance.devices.model_copy(update={
             "keypad": config.appliance.devices.keypad.model_copy(update={"source": "scripted", "script": str(SCRIPT)})})})})
     keypad, _ = open_inputs(scripted, now=10.0)
-    assert isinstance(keypad, ScriptedInput) and keypad.poll(12.0)[0].t_monotonic == 12.0
+    # The script's times count from the console time it was opened at (10 s here).
+    first = min(t for t, _, _ in parse_script(SCRIPT.read_text()))
+    assert isinstance(keypad, ScriptedInput) and keypad.poll(10.0 + first)[0].t_monotonic == 10.0 + first
     bad = tmp_path / "bad.jsonl"
     bad.write_text('{"t": 1, "tap": "save"}\n{"t": 2, "tap"}\n')
     broken = scripted.__class__(**{**scripted.__dict__, "appliance": scripted.appliance.model_copy(update={

@@ -16,7 +16,7 @@ from appliance.records.identity import read_device_uid
 
 REPO = Path(__file__).resolve().parents[1]
 INSTALL = REPO / "provisioning" / "install.sh"
-PROFILE_KINDS = ("fluoroscopes", "cases", "phantoms", "keymaps", "webcams")
+PROFILE_KINDS = ("fluoroscopes", "cases", "phantoms", "keymaps", "webcams", "exercises")
 
 
 def run_install(*args, user: str | None = None) -> subprocess.CompletedProcess:

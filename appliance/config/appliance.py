@@ -12,6 +12,7 @@ from pydantic import Field
 from .base import Section
 from .rendering import Rendering
 from .dicom import Dicom
+from .teaching import Teaching
 
 
 class Camera(Section):
@@ -107,3 +108,4 @@ class ApplianceProfile(Section):
     rendering: Rendering = Field(default_factory=Rendering, description="Projection cache and progressive resolution.")
     dicom: Dicom = Field(default_factory=Dicom, description="Identity on the DICOM network and where images and dose "
                          "reports are sent.")
+    teaching: Teaching = Field(default_factory=Teaching, description="Exercises, the shot counter and trainee names.")

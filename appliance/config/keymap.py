@@ -14,6 +14,8 @@ Action = Literal[
     "zoom_1", "zoom_2", "zoom_3", "zoom_4", "zoom_next", "zoom_prev",
     "mode_next", "save", "invert", "alarm_reset", "hold_breath", "resume_breath",
     "window_wider", "window_narrower", "level_up", "level_down", "window_reset",
+    # Teaching (appliance/teaching/live.py): run an exercise, pick the trainee from the roster.
+    "exercise_start", "exercise_skip", "exercise_end", "trainee_next",
 ]
 
 

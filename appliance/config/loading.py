@@ -19,6 +19,7 @@ from pydantic import BaseModel, ValidationError
 from .appliance import ApplianceProfile
 from .calibration_phantom import CalibrationPhantomProfile
 from .case import CaseProfile
+from .exercise import ExerciseProfile
 from .fluoroscope import FluoroscopeProfile
 from .keymap import KeymapProfile
 from .phantom import PhantomProfile
@@ -36,12 +37,13 @@ KINDS: dict[str, type[BaseModel]] = {
     "keymap": KeymapProfile,
     "webcam": WebcamProfile,
     "calibration-phantom": CalibrationPhantomProfile,
+    "exercise": ExerciseProfile,
 }
 
 #: Folder under configs/ -> kind of the profiles in it.
 KIND_OF_FOLDER = {"fluoroscopes": "fluoroscope", "cases": "case", "phantoms": "phantom",
                   "keymaps": "keymap", "webcams": "webcam",
-                  "calibration-phantoms": "calibration-phantom"}
+                  "calibration-phantoms": "calibration-phantom", "exercises": "exercise"}
 
 #: A top-level key that only one kind has, to recognise a profile outside configs/.
 _KIND_BY_KEY = {"devices": "appliance", "detector": "fluoroscope", "markers": "phantom",
@@ -185,7 +187,11 @@ def _references(kind: str, obj: Any) -> list[tuple[tuple, str, str | None]]:
             refs.append((("devices", "keypad", "script"), obj.devices.keypad.script, None))
         if obj.devices.camera.trajectory:
             refs.append((("devices", "camera", "trajectory"), obj.devices.camera.trajectory, None))
+        if obj.teaching.exercise:
+            refs.append((("teaching", "exercise"), obj.teaching.exercise, "exercise"))
         return refs
+    if kind == "exercise":
+        return [(("case",), obj.case, "case")]
     if kind == "case" and obj.phases:
         return [(("phases", i, "volume"), ph.volume, None) for i, ph in enumerate(obj.phases)]
     return []
@@ -290,6 +296,8 @@ class ApplianceConfig:
     webcam: WebcamProfile
     webcam_path: Path
     data_dir: Path
+    exercise: ExerciseProfile | None = None
+    exercise_path: Path | None = None
 
     def resolve(self, written: str) -> Path:
         """A path written in the appliance profile."""
@@ -313,4 +321,6 @@ def load_appliance(path: str | Path) -> ApplianceConfig:
         keymap=load_profile(resolve(path, a.keymap), KeymapProfile),
         webcam=load_profile(wc, WebcamProfile), webcam_path=wc,
         data_dir=resolve(path, a.data_dir),
+        exercise=load_profile(resolve(path, a.teaching.exercise), ExerciseProfile) if a.teaching.exercise else None,
+        exercise_path=resolve(path, a.teaching.exercise) if a.teaching.exercise else None,
     )

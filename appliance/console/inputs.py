@@ -52,6 +52,22 @@ def open_pedal(config: ApplianceConfig, now: float):
                        heartbeat_line=pedal.heartbeat_line, silence_timeout_s=pedal.silence_timeout_s, now=now)
 
 
+class BadgeReader(EvdevKeypad):
+    """A badge or barcode reader that types like a keyboard: only characters, Shift and Enter pass."""
+
+    source = "badge"
+
+
+def open_badge_reader(config: ApplianceConfig, now: float):
+    """`teaching.badge_reader` of the appliance profile (a NoInput when it names none)."""
+    from ..teaching.live import BADGE_KEYS
+
+    source = config.appliance.teaching.badge_reader
+    if source is None:
+        return NoInput()
+    return BadgeReader(source, grab=True, key_names=BADGE_KEYS, now=now)
+
+
 def open_inputs(config: ApplianceConfig, now: float) -> list:
     """The keypad and pedal (either may be a NoInput), ready to poll with the console's clock."""
     return [open_keypad(config, now), open_pedal(config, now)]

@@ -410,6 +410,15 @@ class Console:
         self.exposure_factor = float(factor)
         return out
 
+    def note(self, t: float, kind: str, **detail) -> list[ConsoleEvent]:
+        """Record something that is not a console action (an image's geometry, the trainee's
+        name, an exercise step) at `t`, with the running totals, so the ledger keeps it in order."""
+        out: list[ConsoleEvent] = []
+        t = max(t, self._t)
+        self._advance(t, out)
+        self._emit(out, t, kind, **detail)
+        return out
+
     def end(self, now: float) -> list[ConsoleEvent]:
         """Stop at `now` (session over, shutting down): an exposure in progress ends here, so its
         time and dose are recorded before the ledger closes the session."""

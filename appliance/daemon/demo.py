@@ -120,9 +120,10 @@ def run_demo(config_path: Path, *, case: Path | None = None, seconds: float | No
             sheet_path = write_png(snap_dir / "contact-sheet.png",
                                    contact_sheet([(captions.get(n, n), read_png(p)) for n, p in shots]))
         exports = export_logs(app, cfg.data_dir / "exports")
+        report = teaching_report(app, cfg.data_dir / "reports")
 
         _say("[4/4] summary")
-        for line in summary_lines(app, run_s, shots, sheet_path, exports):
+        for line in summary_lines(app, run_s, shots, sheet_path, exports) + report_lines(app, report):
             _say("      " + line)
         return 0
     finally:
@@ -165,6 +166,31 @@ def export_logs(app, out_dir: Path) -> dict[str, list[Path]]:
         return paths
     finally:
         conn.close()
+
+
+def teaching_report(app, out_dir: Path) -> Path | None:
+    """This session's instructor report: what `fluorosim report session N` writes."""
+    from ..records.ledger import open_readonly
+    from ..teaching.report import write_session_report
+
+    if app.session_id is None:
+        return None
+    conn = open_readonly(app.ledger.path)
+    try:
+        return write_session_report(conn, app.session_id, out_dir, images_dir=app.config.data_dir / "images")
+    finally:
+        conn.close()
+
+
+def report_lines(app, report: Path | None) -> list[str]:
+    progress = app.teaching.progress
+    lines = []
+    if progress is not None:
+        lines.append(f"exercise:           {progress.exercise.title}: {progress.met_count()}/{len(progress.tasks)} tasks met, "
+                     f"{app.teaching.exposures} exposures")
+    if report is not None:
+        lines.append(f"teaching report:    {shown(report)}")
+    return lines
 
 
 def summary_lines(app, run_s: float, shots, sheet_path, exports) -> list[str]:

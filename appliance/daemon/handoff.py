@@ -95,6 +95,7 @@ class PhaseValue:
     prepared_b: PreparedVolume | None
     weight: float             # weight of `prepared_b` in [0, 1)
     generation: int           # which renderer prepared it: values of a replaced renderer are not drawn
+    t_case_s: float | None = None  # the case time it stands for (s), for the teaching records' phase windows
 
 
 @dataclass(frozen=True)

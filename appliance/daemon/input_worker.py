@@ -10,6 +10,7 @@ from drivers.input_event import InputDevice
 from ..config.fluoroscope import FluoroscopeProfile
 from ..console.alarm_sound import AlarmSound
 from ..console.state import Console, ConsoleEvent, ConsoleState
+from ..teaching.live import LiveTeaching, TeachingStatus
 from .handoff import LatestValue, Recorded
 from .worker import Worker
 
@@ -28,13 +29,20 @@ class InputWorker(Worker):
     def __init__(self, console: Console, devices: Sequence[InputDevice], alarm: AlarmSound,
                  clock: Callable[[], float], *, console_state: LatestValue[ConsoleState],
                  events: queue.Queue[Recorded], fluoroscope: LatestValue[FluoroscopeProfile],
-                 exposure_factor: LatestValue[float]):
+                 exposure_factor: LatestValue[float], teaching: LiveTeaching | None = None,
+                 views: LatestValue[tuple[float, dict]] | None = None,
+                 teaching_status: LatestValue[TeachingStatus] | None = None, badge: InputDevice | None = None):
         super().__init__("input", idle_s=0.0)
         self.console, self.devices, self.alarm, self.console_clock = console, devices, alarm, clock
         self.console_state, self.events = console_state, events
         self.fluoroscope, self.exposure_factor = fluoroscope, exposure_factor
         self._fluoroscope_seq = 0
         self._exposure_seq = 0
+        # Teaching runs on this thread beside the console: its records go through Console.note.
+        self.teaching, self.views, self.teaching_status = teaching, views, teaching_status
+        # A badge reader types the trainee's name: its keys never reach the console.
+        self.badge = badge
+        self._view_seq = 0
 
     def step(self) -> bool:
         now = self.console_clock()
@@ -45,11 +53,24 @@ class InputWorker(Worker):
             fluoroscope, self._fluoroscope_seq = switched
             if fluoroscope is not None:
                 out += _plain(console.set_fluoroscope(fluoroscope))
+        teaching = self.teaching
+        if teaching is not None and self.views is not None:
+            shown = self.views.newer(self._view_seq)
+            if shown is not None:
+                view, self._view_seq = shown
+                if view is not None:
+                    out += _plain(teaching.offer_view(console, *view))
+        if teaching is not None and self.badge is not None:
+            for e in self.badge.poll(now):
+                out += _plain(teaching.handle(console, e))
         events = [e for device in self.devices for e in device.poll(now)]
         for e in events:
-            for ce in console.handle(e):
+            done = console.handle(e)
+            for ce in done:
                 # A save is written with the console's state at that press (its count names the file).
                 out.append(Recorded(ce, console.snapshot() if ce.kind == "save" else None))
+            if teaching is not None:
+                out += _plain(teaching.after(console, done) + teaching.handle(console, e))
         # After the presses: the new tube output applies from `now`, and a press stamped before
         # `now` must not be moved to `now` by it (that would add or drop fluoroscopy time).
         exposure = self.exposure_factor.newer(self._exposure_seq)
@@ -63,14 +84,20 @@ class InputWorker(Worker):
         snapshot = console.snapshot()
         self.alarm.update(snapshot.alarm_sounding)
         self.console_state.put(snapshot)
+        if teaching is not None and self.teaching_status is not None:
+            self.teaching_status.put(teaching.status())
         self.sleep(INPUT_PERIOD_S)
         return bool(events or out)
 
     def teardown(self) -> None:
         if not self.stopping:
             return  # crashed: the supervisor restarts this worker with the same console
-        # An exposure in progress ends now, so its time and dose reach the ledger.
-        for item in _plain(self.console.end(self.console_clock())):
+        # An exercise still running and an exposure in progress end now, so they reach the ledger.
+        now = self.console_clock()
+        if self.teaching is not None:
+            for item in _plain(self.teaching.end(self.console, now)):
+                self.events.put(item)
+        for item in _plain(self.console.end(now)):
             self.events.put(item)
         self.console_state.put(self.console.snapshot())
 

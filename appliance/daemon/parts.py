@@ -22,7 +22,7 @@ from ..config import ApplianceConfig, resolve
 from ..config.base import matrix
 from ..config.fluoroscope import FluoroscopeProfile
 from ..console.alarm_sound import AlarmSound
-from ..console.inputs import open_inputs
+from ..console.inputs import open_badge_reader, open_inputs
 from ..console.state import Console
 from ..display.compositor import Compositor, Overlay
 from ..display.target import open_target
@@ -99,6 +99,7 @@ class Parts:
     compositor: Compositor
     display: Display
     alarm: AlarmSound
+    badge: InputDevice | None = None      # teaching's badge reader: its keys go to the trainee's name only
     closed: bool = False
     #: Counts replacements of the renderer or the case: phases prepared under an older one are not drawn.
     generation: int = 0
@@ -126,8 +127,9 @@ class Parts:
         if self.closed:
             return
         self.closed = True
+        badge = self.badge.close if self.badge is not None else (lambda: None)
         for name, close in (("camera", self.camera.stop), ("keypad", self.keypad.close), ("pedal", self.pedal.close),
-                            ("alarm", self.alarm.stop), ("phase loader", self.timeline.close),
+                            ("badge reader", badge), ("alarm", self.alarm.stop), ("phase loader", self.timeline.close),
                             ("display", self.display.close)):
             try:
                 close()
@@ -182,7 +184,7 @@ def open_parts(cfg: ApplianceConfig, console_clock: Callable[[], float]) -> Part
             renderer=renderer,
             timeline=timeline,
             console=Console(cfg.fluoroscope, cfg.keymap, t0=now),
-            keypad=keypad, pedal=pedal,
+            keypad=keypad, pedal=pedal, badge=open_badge_reader(cfg, now),
             compositor=compositor,
             display=display,
             alarm=AlarmSound(),

@@ -57,6 +57,6 @@ class PhaseWorker(Worker):
         except FluorosimError:
             self.sleep(NOT_READY_RETRY_S)
             return False
-        self.phases.put(PhaseValue(a, b, float(weight), generation))
+        self.phases.put(PhaseValue(a, b, float(weight), generation, t))
         self.sleep(PHASE_PERIOD_S)
         return True

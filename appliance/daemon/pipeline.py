@@ -11,6 +11,10 @@ wired into supervised workers, one class each, handing each other typed values.
                             saved images, ended sessions' dose reports    -> DICOM send queue (ledger file)
     dicom-send DicomSendWorker  DICOM send queue -> C-STORE to the PACS and the dose registry
 
+Teaching rides on two of them: the render worker hands each live image's geometry to the
+input worker (`views`), whose LiveTeaching records it through the console and sends the shot
+counter and task line back (`teaching_status`).
+
 Each worker owns its state; this module only opens the parts, makes the slots between the
 workers and hands them out. Only console events travel through a queue (each is a dose
 record and none may be lost); everything else is the newest value, so a slow renderer
@@ -39,6 +43,7 @@ from ..config.fluoroscope import FluoroscopeProfile
 from ..console.state import ConsoleState
 from ..errors import FluorosimError
 from ..records.deferred_ledger import open_ledger
+from ..teaching.live import TeachingStatus, live_teaching_for
 from .capture_worker import CaptureWorker
 from .clock import SimClock
 from .handoff import LatestValue, PhaseValue, Recorded, SavedImage, ShownFrame, TrackedPose
@@ -117,16 +122,22 @@ class Appliance:
         exposure_factor: LatestValue[float] = LatestValue("exposure factor")              # render
         saves: LatestValue[SavedImage] = LatestValue("saves")                             # records
         self._new_fluoroscope: LatestValue[FluoroscopeProfile] = LatestValue("fluoroscope")  # reload
+        views: LatestValue[tuple[float, dict]] = LatestValue("views")                     # render
+        self.teaching_status: LatestValue[TeachingStatus] = LatestValue("teaching")       # input
+        self.teaching = live_teaching_for(cfg)
 
         self.capture = CaptureWorker(parts.camera, parts.tracker, self.poses)
         self.phase = PhaseWorker(parts, self.console_state, self.phases)
         self.render = RenderWorker(parts, keeper, poses=self.poses, phases=self.phases,
                                    console_state=self.console_state, saves=saves, shown=self.shown,
                                    exposure_factor=exposure_factor, banners=lambda: self.supervisor.banners(),
-                                   on_first_frame=lambda: self.supervisor.first_frame.set(), on_shown=on_shown)
+                                   on_first_frame=lambda: self.supervisor.first_frame.set(), on_shown=on_shown,
+                                   views=views, teaching=self.teaching_status)
         self.input = InputWorker(parts.console, [parts.keypad, parts.pedal], parts.alarm, self.clock,
                                  console_state=self.console_state, events=self.events,
-                                 fluoroscope=self._new_fluoroscope, exposure_factor=exposure_factor)
+                                 fluoroscope=self._new_fluoroscope, exposure_factor=exposure_factor,
+                                 teaching=self.teaching, views=views, teaching_status=self.teaching_status,
+                                 badge=parts.badge)
         self.records = RecordsWorker(self.ledger, keeper, parts, self.clock, events=self.events, shown=self.shown,
                                      saves=saves, native=self.render.native_image)
         self.sender = DicomSendWorker(self.ledger.path, keeper)

@@ -23,6 +23,8 @@ from ..config.fluoroscope import FluoroscopeProfile
 from ..console.state import ConsoleState
 from ..display.compositor import Overlay
 from ..errors import FluorosimError
+from ..teaching.live import TeachingStatus
+from ..teaching.views import view_detail
 from ..xray.renderer import Frame, View
 from .frame_stats import FrameStats
 from .handoff import LatestValue, PhaseValue, SavedImage, ShownFrame, TrackedPose
@@ -55,14 +57,19 @@ def view_for(cfg: ApplianceConfig, state: ConsoleState) -> View:
 
 
 def overlay_for(cfg: ApplianceConfig, state: ConsoleState, *, live: bool, saved_flash: bool, warnings: list[str],
-                fps: float | None) -> Overlay:
-    """What the compositor draws over the image: the console's readings and the session's names."""
-    return Overlay(live=live, zoom=state.zoom, fov_mm=state.fov_mm, collimation_mm=state.collimated_mm,
+                fps: float | None, teaching: TeachingStatus | None = None) -> Overlay:
+    """What the compositor draws over the image: the console's readings, the session's names and,
+    with an exercise or the shot counter, the teaching lines."""
+    shots = teaching.exposures if teaching is not None and cfg.appliance.teaching.shot_counter else None
+    return Overlay(shots=shots, task=teaching.task if teaching is not None else "",
+                   cue=teaching.cue if teaching is not None else "",
+                   live=live, zoom=state.zoom, fov_mm=state.fov_mm, collimation_mm=state.collimated_mm,
                    fluoro_time_s=state.fluoro_time_s, air_kerma_mgy=state.air_kerma_mgy,
                    air_kerma_rate_mgy_per_min=state.air_kerma_rate_mgy_per_min,
                    dap_gy_cm2=state.dap_gy_cm2, mode=state.mode, alarm=state.alarm_sounding,
                    saved_flash=saved_flash, invert=state.invert, breath_hold=state.breath_hold,
-                   case=cfg.case.title, operator=cfg.appliance.operator, fluoroscope=cfg.fluoroscope.name,
+                   case=cfg.case.title, operator=(teaching.trainee if teaching is not None and teaching.trainee
+                                                  else cfg.appliance.operator), fluoroscope=cfg.fluoroscope.name,
                    warnings=list(warnings), fps=fps)
 
 
@@ -78,12 +85,17 @@ class RenderWorker(Worker):
                  phases: LatestValue[PhaseValue], console_state: LatestValue[ConsoleState],
                  saves: LatestValue[SavedImage], shown: LatestValue[np.ndarray], exposure_factor: LatestValue[float],
                  banners: Callable[[], list[str]], on_first_frame: Callable[[], None],
-                 on_shown: Callable[[ShownFrame], None] | None = None):
+                 on_shown: Callable[[ShownFrame], None] | None = None,
+                 views: LatestValue[tuple[float, dict]] | None = None,
+                 teaching: LatestValue[TeachingStatus] | None = None):
         super().__init__("render", idle_s=0.0)
         self.parts, self.keeper = parts, keeper
         self.poses, self.phases, self.console_state, self.saves = poses, phases, console_state, saves
         self.shown, self.exposure_factor = shown, exposure_factor
         self.banners, self.on_first_frame, self.on_shown = banners, on_first_frame, on_shown
+        # Teaching: the geometry of each live image goes to the input worker (its records), the
+        # shot counter and task line come back.
+        self.views, self.teaching = views, teaching
         self.stats = FrameStats()
         #: Why rendering left the profile's OpenCL device (None while it has not), for the health check.
         self.fault: str | None = None
@@ -110,10 +122,15 @@ class RenderWorker(Worker):
         live = False
         if (tracked is not None and tracked.pose.ok and phase is not None
                 and phase.generation == self.parts.generation and state.image_due(self._drawn)):
-            frame = self._render(cfg, tracked, phase, state)
+            T_xray_from_ct = (cfg.fluoroscope.T_xray_from_webcam() @ tracked.pose.T_webcam_from_phantom
+                              @ np.asarray(cfg.case.T_phantom_from_ct, dtype=np.float64))
+            frame = self._render(cfg, T_xray_from_ct, phase, state)
             if frame is not None:
                 self._image, self._drawn, live = frame.image, state, True
                 self._send_exposure_factor(frame.exposure_factor)
+                if self.views is not None:
+                    self.views.put((state.t, view_detail(self.parts.renderer.fluoroscope, T_xray_from_ct, state.zoom,
+                                                         state.collimated_mm, phase.t_case_s)))
         hold_period = 1.0 / cfg.appliance.daemon.hold_refresh_hz
         if not live and now - self._last_compose < hold_period:
             # Nothing new to draw: wait for the next pose rather than spin.
@@ -122,8 +139,9 @@ class RenderWorker(Worker):
         banners = self.banners()
         saved, _ = self.saves.get()
         saved_flash = saved is not None and now < saved.t_saved + SAVED_FLASH_S
+        teaching = self.teaching.get()[0] if self.teaching is not None else None
         overlay = overlay_for(cfg, state, live=live, saved_flash=saved_flash, warnings=banners,
-                              fps=self.stats.fps(now))
+                              fps=self.stats.fps(now), teaching=teaching)
         self.parts.display.show(self.parts.compositor.compose(self._image, overlay))
         t_shown = time.monotonic()
         self._last_compose = t_shown
@@ -138,10 +156,8 @@ class RenderWorker(Worker):
                                      live, t_shown, latency, banners, saved_flash))
         return True
 
-    def _render(self, cfg: ApplianceConfig, tracked: TrackedPose, phase: PhaseValue,
+    def _render(self, cfg: ApplianceConfig, T_xray_from_ct: np.ndarray, phase: PhaseValue,
                 state: ConsoleState) -> Frame | None:
-        T_xray_from_ct = (cfg.fluoroscope.T_xray_from_webcam() @ tracked.pose.T_webcam_from_phantom
-                          @ np.asarray(cfg.case.T_phantom_from_ct, dtype=np.float64))
         blend = (phase.prepared_b, phase.weight) if phase.prepared_b is not None else None
         view = view_for(cfg, state)
         self._request = (phase.prepared_a, T_xray_from_ct, view, blend)

@@ -82,6 +82,11 @@ class Overlay:
     fluoroscope: str = ""
     warnings: list[str] = field(default_factory=list)
     fps: float | None = None
+    # Teaching (appliance/teaching/live.py): the shot counter (None: not shown), the current
+    # task line, and the cue after a save ("task met: ..." or why not).
+    shots: int | None = None
+    task: str = ""
+    cue: str = ""
 
 
 def fluoro_time_clock(seconds: float) -> str:
@@ -249,6 +254,10 @@ class Compositor:
                  WHITE),
                 (f"FLUORO  {fluoro_time_clock(overlay.fluoro_time_s)}   {fluoro_time_minutes(overlay.fluoro_time_s)}",
                  YELLOW if overlay.alarm else WHITE)]
+        if overlay.shots is not None:
+            left.append((f"SHOTS  {overlay.shots}", WHITE))
+        if overlay.task:
+            left.append((overlay.task.upper(), GREEN))
         texts += self._corner_lines(left, "bl")
         marker = [("LIVE" if overlay.live else "HOLD", BLACK if overlay.live else WHITE)]
         texts += self._corner_lines(marker, "br", scale=self.big_scale, font=FONT_BOLD, thickness=self.thickness + 1,
@@ -406,7 +415,10 @@ class Compositor:
         for w in warnings:
             y = self._banner(frame, w.upper() if len(w) < SHORT_WARNING_CHARS else w, y, AMBER, BLACK)
         if overlay.saved_flash:
-            self._banner(frame, "IMAGE SAVED", max(y, round(self.height * 0.2)), GREEN, BLACK)
+            y = self._banner(frame, "IMAGE SAVED", max(y, round(self.height * 0.2)), GREEN, BLACK)
+        if overlay.cue:
+            met = overlay.cue.startswith("task met")
+            self._banner(frame, overlay.cue.upper(), max(y, round(self.height * 0.2)), GREEN if met else AMBER, BLACK)
         if overlay.alarm and (now % ALARM_FLASH_PERIOD_S) < ALARM_FLASH_PERIOD_S / 2:
             self._banner(frame, f"FLUOROSCOPY TIME ALARM  {fluoro_time_clock(overlay.fluoro_time_s)}  -  PRESS ALARM RESET",
                          self.height - self.margin - 3 * self.line, RED, WHITE, from_bottom=True)
