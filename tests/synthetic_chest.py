@@ -39,13 +39,34 @@ def dome_z(x, y):
     return DOME_APEX_Z - DOME_DROP_MM * np.minimum(((np.abs(x) - LUNG_X) ** 2 + y ** 2) / DOME_RADIUS_MM ** 2, 1.5)
 
 
-def chest(ribs: bool = True) -> Volume:
+#: Label ids of chest_labels(): the two lungs and the spine.
+LUNG_LABELS, SPINE_LABEL = (10, 11), 30
+
+
+def _lungs(x, y, z):
+    return (((np.abs(x) - LUNG_X) / 40.0) ** 2 + (y / 45.0) ** 2 + ((z - 60.0) / 90.0) ** 2 <= 1.0) & (z > dome_z(x, y))
+
+
+def _spine(x, y, z):
+    return (np.abs(x) < 12) & (y > 30) & (y < 55) & (np.abs(z) < 135)
+
+
+def chest_labels() -> np.ndarray:
+    """A label map of chest(): right lung 10, left lung 11, spine 30, else 0."""
+    T, x, y, z = grid()
+    lab = np.zeros(x.shape, np.int16)
+    lungs = _lungs(x, y, z)
+    lab[lungs & (x < 0)], lab[lungs & (x > 0)] = LUNG_LABELS
+    lab[_spine(x, y, z)] = SPINE_LABEL
+    return lab
+
+
+def chest(ribs: bool = True, lung_hu: float = -850.0) -> Volume:
     T, x, y, z = grid()
     hu = np.full(x.shape, -1000.0, np.float32)
     hu[(x / 110.0) ** 2 + (y / 70.0) ** 2 <= 1.0] = 40.0
-    lung = (((np.abs(x) - LUNG_X) / 40.0) ** 2 + (y / 45.0) ** 2 + ((z - 60.0) / 90.0) ** 2 <= 1.0) & (z > dome_z(x, y))
-    hu[lung] = -850.0
-    hu[(np.abs(x) < 12) & (y > 30) & (y < 55) & (np.abs(z) < 135)] = 700.0
+    hu[_lungs(x, y, z)] = lung_hu
+    hu[_spine(x, y, z)] = 700.0
     if ribs:
         for zr, s in RIBS:
             p, q = rib_ends(zr, s)

@@ -31,6 +31,7 @@ import numpy as np
 
 from ..config.case import Materials, Respiration
 from ..errors import FluorosimError
+from ..geometry import rotation_about
 from .respiration import BreathState
 from .volume import Volume
 
@@ -47,19 +48,11 @@ class Rib:
     reach_mm: float                         # farthest voxel from the joint (mm)
 
 
-def rotation(axis, angle_deg: float) -> np.ndarray:
-    """3x3 rotation by `angle_deg` about the unit vector `axis` (right-hand rule)."""
-    a = np.asarray(axis, float)
-    a = a / np.linalg.norm(a)
-    t = math.radians(angle_deg)
-    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + math.sin(t) * K + (1 - math.cos(t)) * K @ K
-
-
 def rib_transform(head_ct, side: int, gamma_deg: float, lambda_deg: float) -> np.ndarray:
     """T_ct_moved_from_ct_rest (4x4) of a rib: lambda about -x (the front goes up), then gamma
     about the anteroposterior axis that lifts the side (-y on the left, +y on the right)."""
-    R = rotation((0.0, -float(side), 0.0), gamma_deg) @ rotation((-1.0, 0.0, 0.0), lambda_deg)
+    R = (rotation_about((0.0, -float(side), 0.0), math.radians(gamma_deg))
+         @ rotation_about((-1.0, 0.0, 0.0), math.radians(lambda_deg)))
     p = np.asarray(head_ct, float)
     T = np.eye(4)
     T[:3, :3] = R
@@ -133,7 +126,7 @@ class BreathingAnatomy:
             # medial edges the base rises with the lung's own outline, not the diaphragm.
             depth = lungs.sum(axis=0)[cols]
             deep = base_z[depth >= 0.4 * depth.max()]
-            self.dome_low_z, self.dome_top_z = float(np.percentile(base_z, 2)), float(np.percentile(deep, 98))
+            self.dome_low_z, self.dome_top_z = float(np.percentile(base_z, 0.5)), float(np.percentile(deep, 98))
         lz = z_k[np.nonzero(lungs.any(axis=(1, 2)))[0]]
         self.lung_top_z = float(lz.max())
         # --- lateral footprint of what moves: the lungs (and liver) seen along z, softened
@@ -175,6 +168,8 @@ class BreathingAnatomy:
         for idx, sl in enumerate(objects, start=1):
             if sl is None:
                 continue
+            # One empty voxel round the piece, so interpolation at its faces blends toward nothing.
+            sl = tuple(slice(max(a.start - 1, 0), min(a.stop + 1, n)) for a, n in zip(sl, hu.shape))
             mine = pieces[sl] == idx
             if mine.sum() < 8:
                 continue
