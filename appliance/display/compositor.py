@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from ..console.state import minutes_and_tenths
+
 FONT = cv2.FONT_HERSHEY_SIMPLEX
 FONT_BOLD = cv2.FONT_HERSHEY_DUPLEX
 
@@ -83,9 +85,9 @@ def fluoro_time_clock(seconds: float) -> str:
 
 
 def fluoro_time_minutes(seconds: float) -> str:
-    """Fluoroscopy time in minutes and completed tenths, as clinical units display it: 2.6 min."""
-    tenths = int(math.floor(max(seconds, 0.0) / 6.0 + 1e-9))
-    return f"{tenths // 10}.{tenths % 10} min"
+    """Fluoroscopy time in minutes and completed tenths, as clinical units display it: 2.6 min
+    (the console's count of tenths, with the unit)."""
+    return f"{minutes_and_tenths(seconds)} min"
 
 
 def dose_number(value: float) -> str:

@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from drivers.camera import RenderSettings, SceneRenderer, TexturedQuad
+from drivers.camera_scene import RenderSettings, SceneRenderer, TexturedQuad
 
 from ..config.loading import load_profile
 from ..config.phantom import PhantomProfile

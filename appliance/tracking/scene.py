@@ -7,7 +7,8 @@ from typing import Callable
 
 import numpy as np
 
-from drivers.camera import RenderSettings, SyntheticCamera
+from drivers.camera import SyntheticCamera
+from drivers.camera_scene import RenderSettings
 
 from ..config.phantom import PhantomProfile
 from ..config.webcam import WebcamProfile
