@@ -60,7 +60,7 @@ def test_dome_moves_by_the_amplitude_between_end_expiration_and_end_inspiration(
     column = int(round(cx + fx * -50.0 / SOD))
     r_apex = int(round(cy - fy * sc.DOME_APEX_Z / SOD))
     level = 0.5 * (exp[r_apex - 8, column] + exp[r_apex + 8, column])
-    rows = [dome_edge_row(img, column, level) for img in (exp, ins, half)]
+    rows = [dome_edge_row(img, column, level, r_apex - 12) for img in (exp, ins, half)]
     assert rows[1] - rows[0] == pytest.approx(fy * 15.0 / SOD, rel=0.1)
     assert (rows[2] - rows[0]) / (rows[1] - rows[0]) == pytest.approx(0.5, rel=0.1)
 

@@ -98,11 +98,12 @@ def test_spine_stays_still_and_soft_tissue_follows_the_tendon(anatomy, ct):
     assert d[0, 2] == pytest.approx(-15.0) and d[1, 2] == pytest.approx(0.0, abs=0.5) and d[2, 2] == 0.0
 
 
-def dome_edge_row(image, column, level):
-    """Sub-pixel row where the line integral of `column` climbs through `level`, from the lung down into the liver."""
+def dome_edge_row(image, column, level, start):
+    """Sub-pixel row, from `start` down, where the line integral of `column` climbs through
+    `level`: from the lung into the liver (`start` below the ribs' shadows)."""
     prof = image[:, column].astype(float)
     rows = np.flatnonzero((prof[:-1] < level) & (prof[1:] >= level))
-    r = rows[rows > len(prof) // 4][0]
+    r = rows[rows >= start][0]
     return r + (level - prof[r]) / (prof[r + 1] - prof[r])
 
 
@@ -122,7 +123,7 @@ def test_dome_in_the_rendered_image_follows_the_amplitude(anatomy, renderer):
             prof = image[:, column]
             r_apex = int(round(f.intrinsics.cy - f.intrinsics.fy * sc.DOME_APEX_Z / SOD))
             level = 0.5 * (prof[r_apex - 8] + prof[r_apex + 8])
-        rows[amp] = dome_edge_row(image, column, level)
+        rows[amp] = dome_edge_row(image, column, level, r_apex - 6)
     full, half = rows[15.0] - rows[0.0], rows[7.5] - rows[0.0]
     # The dome at depth SOD (the ct origin; the apex at y = 0): 15 mm -> fy * 15 / SOD pixels, downward.
     expect = f.intrinsics.fy * 15.0 / SOD

@@ -115,6 +115,9 @@ class CaseProfile(Section):
                 if not self.phases[i].time_s > self.phases[i - 1].time_s:
                     yield ("phases", i, "time_s"), f"must be later than phases[{i - 1}].time_s ({self.phases[i - 1].time_s} s)"
         if self.respiration is not None:
+            if self.phases is None or len(self.phases) != 1:
+                yield ("respiration",), ("needs a case with exactly one CT volume in `phases` (the end-expiration CT); "
+                                         "a 4D CT or the built-in patient breathes on its own timeline")
             for loc, message in self.respiration.problems():
                 yield ("respiration", *loc), message
         m = self.materials

@@ -13,6 +13,8 @@ Action = Literal[
     "collimate_h_open", "collimate_h_close", "collimate_v_open", "collimate_v_close",
     "zoom_1", "zoom_2", "zoom_3", "zoom_4", "zoom_next", "zoom_prev",
     "mode_next", "save", "invert", "alarm_reset", "hold_breath", "resume_breath",
+    # Controllable breathing (a case's respiration: section): rate and depth of the breath.
+    "breath_faster", "breath_slower", "breath_deeper", "breath_shallower",
 ]
 
 

@@ -94,6 +94,7 @@ class PhaseValue:
     prepared_b: PreparedVolume | None
     weight: float             # weight of `prepared_b` in [0, 1)
     generation: int           # which renderer prepared it: values of a replaced renderer are not drawn
+    breathing: str = ""       # the breathing model's line for the monitor (rate, depth, held); "" without one
 
 
 @dataclass(frozen=True)

@@ -51,7 +51,7 @@ def view_for(cfg: ApplianceConfig, state: ConsoleState) -> View:
 
 
 def overlay_for(cfg: ApplianceConfig, state: ConsoleState, *, live: bool, saved_flash: bool, warnings: list[str],
-                fps: float | None) -> Overlay:
+                fps: float | None, breathing: str = "") -> Overlay:
     """What the compositor draws over the image: the console's readings and the session's names."""
     return Overlay(live=live, zoom=state.zoom, fov_mm=state.fov_mm, collimation_mm=state.collimated_mm,
                    fluoro_time_s=state.fluoro_time_s, air_kerma_mgy=state.air_kerma_mgy,
@@ -59,7 +59,7 @@ def overlay_for(cfg: ApplianceConfig, state: ConsoleState, *, live: bool, saved_
                    dap_gy_cm2=state.dap_gy_cm2, mode=state.mode, alarm=state.alarm_sounding,
                    saved_flash=saved_flash, invert=state.invert, breath_hold=state.breath_hold,
                    case=cfg.case.title, operator=cfg.appliance.operator, fluoroscope=cfg.fluoroscope.name,
-                   warnings=list(warnings), fps=fps)
+                   warnings=list(warnings), fps=fps, breathing=breathing)
 
 
 class RenderWorker(Worker):
@@ -118,7 +118,7 @@ class RenderWorker(Worker):
         saved, _ = self.saves.get()
         saved_flash = saved is not None and now < saved.t_saved + SAVED_FLASH_S
         overlay = overlay_for(cfg, state, live=live, saved_flash=saved_flash, warnings=banners,
-                              fps=self.stats.fps(now))
+                              fps=self.stats.fps(now), breathing=phase.breathing if phase is not None else "")
         self.parts.display.show(self.parts.compositor.compose(self._image, overlay))
         t_shown = time.monotonic()
         self._last_compose = t_shown

@@ -31,7 +31,10 @@ def _volume_and_case(path: Path, phase_time_s: float | None, respiration: str | 
     if path.suffix.lower() in (".yaml", ".yml"):
         case = load_profile(path, CaseProfile)
         breathing = respiration_for(case, overrides, str(path))
-        if breathing is not None and case.phases is not None and len(case.phases) == 1:
+        if breathing is not None and (case.phases is None or len(case.phases) != 1):
+            raise FluorosimError(f"{path}: --respiration needs a case with exactly one CT volume in `phases`; "
+                                 "a 4D CT or the built-in patient breathes on its own timeline")
+        if breathing is not None:
             # One CT breathing under the model: the CT is end-expiration, moved to time T.
             ct = load_volume(resolve(path, case.phases[0].volume))
             return (breathing_ct(path, breathing, ct, case.materials, phase_time_s or 0.0),

@@ -1,0 +1,71 @@
+"""The breathing patient as the daemon draws it: depth states blended in projection space, live keys."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from appliance.config import FluoroscopeProfile, KeymapProfile, load_profile
+from appliance.config.case import Materials, Respiration
+from appliance.console.state import Console
+from appliance.patient.breathing_timeline import BreathingTimeline
+from appliance.xray.benchmark import flat_profile
+from appliance.xray.renderer import Renderer, View
+from drivers.input_event import InputEvent
+
+import synthetic_chest as sc
+from test_breathing_motion import SOD, T_XRAY_FROM_CT, dome_edge_row
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def timeline():
+    renderer = Renderer(flat_profile(128), Materials(), device="cpu")
+    ct = sc.chest()
+    tl = BreathingTimeline(lambda: ct, Respiration(), Materials(), renderer)
+    assert tl.wait_ready(120, all_phases=True)
+    yield tl
+    tl.close()
+
+
+def test_states_span_end_expiration_to_the_deepest_breath(timeline):
+    p = timeline.params
+    assert timeline.ready_count == p.depth_states
+    assert timeline.excursions[0] == 0 and timeline.excursions[-1] == pytest.approx(p.depth_max)
+    a, b, w = timeline.at(3.0)                       # end-expiration at 15/min
+    assert a is timeline._prepared[0] and b is None and w == 0
+    a, b, w = timeline.at(1.0)                       # end-inspiration: excursion 1
+    step = timeline.excursions[1]
+    k = int(1.0 / step)
+    assert a is timeline._prepared[k] and b is timeline._prepared[k + 1] and w == pytest.approx(1.0 / step - k)
+
+
+def test_blended_states_put_the_dome_where_the_breath_is(timeline):
+    """Displayed image of the blend at end-inspiration: the dome edge is fy * 15 / SOD pixels below
+    end-expiration's (within 10 %), though no state was drawn at exactly 15 mm."""
+    r = timeline.renderer
+    f = r.fluoroscope
+    column = int(round(f.intrinsics.cx + f.intrinsics.fx * -50.0 / SOD))
+    view = View(quantity="intensity", noise=False)
+    images = []
+    for t in (3.0, 1.0):
+        a, b, w = timeline.at(t)
+        images.append(-np.log(np.maximum(r.render(a, T_XRAY_FROM_CT, view, blend=None if b is None else (b, w)), 1e-6)))
+    r_apex = int(round(f.intrinsics.cy - f.intrinsics.fy * sc.DOME_APEX_Z / SOD))
+    level = 0.5 * (images[0][r_apex - 4, column] + images[0][r_apex + 4, column])
+    rows = [dome_edge_row(img, column, level, r_apex - 6) for img in images]
+    assert rows[1] - rows[0] == pytest.approx(f.intrinsics.fy * 15.0 / SOD, rel=0.1)
+
+
+def test_keys_count_presses_for_the_breathing_model():
+    fl = load_profile(ROOT / "configs" / "fluoroscopes" / "generic-ii-carm.yaml", FluoroscopeProfile)
+    keymap = load_profile(ROOT / "configs" / "keymaps" / "usb-numeric-keypad.yaml", KeymapProfile)
+    console = Console(fl, keymap, 0.0)
+    kinds = []
+    for t, key in ((1.0, "KEY_TAB"), (1.5, "KEY_TAB"), (2.0, "KEY_BACKSPACE"), (3.0, "KEY_KPEQUAL"), (4.0, "KEY_KPCOMMA"),
+                   (4.5, "KEY_KPCOMMA")):
+        kinds += [e.kind for e in console.handle(InputEvent(t, "scripted", key, True))]
+    s = console.snapshot()
+    assert (s.breath_rate_steps, s.breath_depth_steps) == (1, -1)
+    assert kinds.count("breath_rate") == 3 and kinds.count("breath_depth") == 3
