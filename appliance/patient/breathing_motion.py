@@ -48,6 +48,10 @@ class Rib:
     reach_mm: float                         # farthest voxel from the joint (mm)
 
 
+#: Slices warped at a time (bounds the temporaries of a clinical CT to tens of MB).
+SLAB_SLICES = 8
+
+
 def rib_transform(head_ct, side: int, gamma_deg: float, lambda_deg: float) -> np.ndarray:
     """T_ct_moved_from_ct_rest (4x4) of a rib: lambda about -x (the front goes up), then gamma
     about the anteroposterior axis that lifts the side (-y on the left, +y on the right)."""
@@ -161,7 +165,15 @@ class BreathingAnatomy:
         else:
             from_labels = True
         pieces, n = ndimage.label(rib_mask)
-        far = ndimage.distance_transform_edt(~spine, sampling=(abs(self.dz), sp[1], sp[0])) if spine.any() else None
+        # Distance to the spine only near it (a whole-CT distance map costs seconds on a clinical CT).
+        far = None
+        if spine.any():
+            reach = params.rib_head_max_mm + 2 * float(max(abs(self.dz), *sp))
+            lo_hi = [(int(ix.min()), int(ix.max())) for ix in np.nonzero(spine)]
+            grow = [int(math.ceil(reach / s)) for s in (abs(self.dz), sp[1], sp[0])]
+            crop = tuple(slice(max(a - g, 0), min(b + g + 1, n)) for (a, b), g, n in zip(lo_hi, grow, hu.shape))
+            far = np.full(hu.shape, np.inf, np.float32)
+            far[crop] = ndimage.distance_transform_edt(~spine[crop], sampling=(abs(self.dz), sp[1], sp[0]))
         self.ribs: list[Rib] = []
         moving = np.zeros(hu.shape, bool)
         objects = ndimage.find_objects(pieces)
@@ -224,16 +236,24 @@ class BreathingAnatomy:
         if ks.size == 0:
             return out
         k0, k1 = int(ks[0]), int(ks[-1]) + 1
-        # Tissue moves down by D w m: the voxel at z shows what was at z + D w m (w varies slowly).
-        shift_k = (np.float32(descent_mm / self.dz) * w[k0:k1, None, None]) * self.lateral[None]
-        src = np.arange(k0, k1, dtype=np.float32)[:, None, None] + shift_k
-        src = np.clip(src, 0, nz - 1)
-        lo = np.floor(src).astype(np.int32)
-        f = src - lo
-        hi = np.minimum(lo + 1, nz - 1)
-        a = np.take_along_axis(self.soft, lo, axis=0)
-        b = np.take_along_axis(self.soft, hi, axis=0)
-        out[k0:k1] = a + f * (b - a)
+        js, is_ = np.nonzero(self.lateral > 0)
+        if js.size == 0:
+            return out
+        cols = (slice(int(js.min()), int(js.max()) + 1), slice(int(is_.min()), int(is_.max()) + 1))
+        lateral = self.lateral[cols][None]
+        soft = self.soft[:, cols[0], cols[1]]
+        # Tissue moves down by D w m: the voxel at z shows what was at z + D w m (w varies
+        # slowly). In slabs, so the temporaries of a clinical CT stay small.
+        for s0 in range(k0, k1, SLAB_SLICES):
+            s1 = min(s0 + SLAB_SLICES, k1)
+            src = np.arange(s0, s1, dtype=np.float32)[:, None, None] + (np.float32(descent_mm / self.dz) * w[s0:s1, None, None]) * lateral
+            np.clip(src, 0, nz - 1, out=src)
+            lo = np.floor(src).astype(np.int32)
+            f = src - lo
+            hi = np.minimum(lo + 1, nz - 1)
+            a = np.take_along_axis(soft, lo, axis=0)
+            b = np.take_along_axis(soft, hi, axis=0)
+            out[s0:s1, cols[0], cols[1]] = a + f * (b - a)
         return out
 
     # -- the whole moved CT ------------------------------------------------------------
