@@ -69,3 +69,32 @@ def test_keys_count_presses_for_the_breathing_model():
     s = console.snapshot()
     assert (s.breath_rate_steps, s.breath_depth_steps) == (1, -1)
     assert kinds.count("breath_rate") == 3 and kinds.count("breath_depth") == 3
+
+
+def test_phase_worker_hands_the_presses_to_the_breathing_model(timeline):
+    """The daemon's phase worker, on the real timeline and a real console's state: two faster
+    presses raise the rate by two steps at the case time they are seen, shown on the overlay line."""
+    from types import SimpleNamespace
+
+    from appliance.daemon.handoff import LatestValue
+    from appliance.daemon.phase_worker import PhaseWorker
+
+    fl = load_profile(ROOT / "configs" / "fluoroscopes" / "generic-ii-carm.yaml", FluoroscopeProfile)
+    keymap = load_profile(ROOT / "configs" / "keymaps" / "usb-numeric-keypad.yaml", KeymapProfile)
+    console = Console(fl, keymap, 0.0)
+    for t, key in ((0.1, "KEY_TAB"), (0.2, "KEY_TAB"), (0.3, "KEY_KPEQUAL")):
+        console.handle(InputEvent(t, "scripted", key, True))
+    states, phases = LatestValue("console"), LatestValue("phases")
+    states.put(console.snapshot())
+    worker = PhaseWorker(SimpleNamespace(timeline=timeline, generation=0), states, phases)
+    before = timeline.control.at(0.0)
+    assert worker.step()
+    p = timeline.params
+    assert timeline.control.rate_per_min == p.rate_per_min + 2 * p.rate_step_per_min
+    assert timeline.control.depth_target == pytest.approx(1 + p.depth_step)
+    value, _ = phases.get()
+    assert value.breathing == f"RESP {p.rate_per_min + 2 * p.rate_step_per_min:.0f}/min  depth {1 + p.depth_step:.2f}"
+    # Seen once: a second look at the same state changes nothing.
+    assert worker.step() and timeline.control.rate_per_min == p.rate_per_min + 2 * p.rate_step_per_min
+    assert before.rate_per_min == p.rate_per_min
+    timeline.control = type(timeline.control)(p)        # leave the shared timeline as the other tests found it
