@@ -71,7 +71,9 @@ class Respiration(Section):
     abdomen_falloff_mm: float = Field(150.0, gt=0, le=400, description="Below the lowest point of the diaphragm the organs' displacement falls linearly to 0 over this distance (mm).")
     lateral_blur_mm: float = Field(12.0, ge=0, le=60, description="The moving region is the lungs' footprint in the axial plane, softened by a Gaussian of this sigma (mm), so the body wall outside it stays still.")
     spine_half_width_mm: float = Field(28.0, gt=0, le=80, description="Without spine labels: bone within this distance of the midline, behind the body's centre, is the (still) spine (mm).")
-    rib_head_max_mm: float = Field(30.0, gt=0, le=100, description="Without rib labels: a bone piece whose nearest point lies within this of the spine is a rib (mm); others stay still.")
+    rib_head_max_mm: float = Field(6.0, gt=0, le=100, description="Without rib labels: a bone piece whose nearest point lies within this of the spine is a rib (mm); others stay still.")
+    rib_min_length_mm: float = Field(40.0, gt=0, le=300, description="Without rib labels: a piece reaching less far than this from its joint (a transverse process) is not a rib (mm).")
+    rib_below_dome_mm: float = Field(30.0, ge=0, le=200, description="Without rib labels: rib joints lie no lower than this below the diaphragm's lowest point, which keeps the pelvis out (mm).")
     bone_fill_hu: float = Field(40.0, ge=-200, le=200, description="What a bone voxel becomes in the soft tissue that moves under it (HU, muscle).")
     depth_states: int = Field(6, ge=2, le=16, description="Breathing states the appliance precomputes between end-expiration and the deepest breath, blended in projection space.")
 
@@ -115,9 +117,11 @@ class CaseProfile(Section):
                 if not self.phases[i].time_s > self.phases[i - 1].time_s:
                     yield ("phases", i, "time_s"), f"must be later than phases[{i - 1}].time_s ({self.phases[i - 1].time_s} s)"
         if self.respiration is not None:
-            if self.phases is None or len(self.phases) != 1:
-                yield ("respiration",), ("needs a case with exactly one CT volume in `phases` (the end-expiration CT); "
-                                         "a 4D CT or the built-in patient breathes on its own timeline")
+            if self.phases is not None and len(self.phases) != 1:
+                yield ("respiration",), ("needs a case with exactly one CT volume in `phases` (the end-expiration CT) "
+                                         "or a built-in patient; a 4D CT breathes on its own timeline")
+            if self.builtin is not None and self.respiration.label_map:
+                yield ("respiration", "label_map"), "the built-in patient is segmented from its HU; leave out label_map"
             for loc, message in self.respiration.problems():
                 yield ("respiration", *loc), message
         m = self.materials

@@ -97,6 +97,8 @@ class BreathingAnatomy:
         self.z_k = z_k
         role = (params.labels or {})
         bone = hu >= materials.bone_min_hu
+        if materials.contrast_min_hu is not None:       # iodinated contrast is soft tissue that moves
+            bone &= hu < materials.contrast_min_hu
         body = hu > materials.air_max_hu
 
         # --- lungs: labels, else the air inside the body (not connected to the sides of the grid)
@@ -198,6 +200,9 @@ class BreathingAnatomy:
             head = ct[:, nearest]
             side = 1 if float(np.mean(ct[0])) >= xc else -1
             reach = float(np.linalg.norm(ct - head[:, None], axis=0).max())
+            if not from_labels and (reach < params.rib_min_length_mm
+                                    or head[2] < self.dome_low_z - params.rib_below_dome_mm):
+                continue
             alpha = mine.astype(np.float32)
             self.ribs.append(Rib(sl, hu[sl] * alpha, alpha, head, side, reach))
             moving[sl] |= mine
@@ -226,13 +231,26 @@ class BreathingAnatomy:
         out[:, 2] = -descent_mm * self.weight_z(p[:, 2]) * self.lateral[j, i]
         return out
 
-    def _soft_at(self, descent_mm: float) -> np.ndarray:
+    def soft_of(self, stage: Volume) -> np.ndarray:
+        """The soft tissue of another volume on the same grid that differs from this CT only in
+        soft tissue (a contrast study's later stage): this CT's soft layer with its changed voxels."""
+        hu = np.asarray(stage.hu)
+        if hu.shape != self.shape:
+            raise FluorosimError(f"{stage.source}: a stage of {stage.shape_xyz} voxels, the breathing CT has "
+                                 f"{self.shape[::-1]}; every stage must share one grid")
+        changed = hu != np.asarray(self.volume.hu)
+        soft = self.soft.copy()
+        soft[changed] = hu[changed]
+        return soft
+
+    def _soft_at(self, descent_mm: float, soft_layer: np.ndarray | None = None) -> np.ndarray:
+        base = self.soft if soft_layer is None else soft_layer
         if descent_mm == 0:
-            return self.soft.copy()
+            return base.copy()
         nz = self.shape[0]
         w = self.weight_z(self.z_k).astype(np.float32)
         ks = np.flatnonzero(w > 0)
-        out = self.soft.copy()
+        out = base.copy()
         if ks.size == 0:
             return out
         k0, k1 = int(ks[0]), int(ks[-1]) + 1
@@ -241,7 +259,7 @@ class BreathingAnatomy:
             return out
         cols = (slice(int(js.min()), int(js.max()) + 1), slice(int(is_.min()), int(is_.max()) + 1))
         lateral = self.lateral[cols][None]
-        soft = self.soft[:, cols[0], cols[1]]
+        soft = base[:, cols[0], cols[1]]
         # Tissue moves down by D w m: the voxel at z shows what was at z + D w m (w varies
         # slowly). In slabs, so the temporaries of a clinical CT stay small.
         for s0 in range(k0, k1, SLAB_SLICES):
@@ -257,11 +275,13 @@ class BreathingAnatomy:
         return out
 
     # -- the whole moved CT ------------------------------------------------------------
-    def hu_at(self, gamma_deg: float, lambda_deg: float, descent_mm: float) -> np.ndarray:
-        """float32 HU (nz, ny, nx) of the CT with the ribs turned and the soft tissue displaced."""
+    def hu_at(self, gamma_deg: float, lambda_deg: float, descent_mm: float,
+              soft_layer: np.ndarray | None = None) -> np.ndarray:
+        """float32 HU (nz, ny, nx) of the CT with the ribs turned and the soft tissue displaced
+        (`soft_layer`: another stage's soft tissue from `soft_of`, else this CT's)."""
         from scipy import ndimage
 
-        out = self._soft_at(descent_mm)
+        out = self._soft_at(descent_mm, soft_layer)
         Tinv = np.linalg.inv(self.T)
         sp = self.volume.spacing_mm
         nz, ny, nx = self.shape
@@ -285,9 +305,9 @@ class BreathingAnatomy:
         out[self.still] = self.still_hu
         return out
 
-    def volume_at(self, state: BreathState) -> Volume:
+    def volume_at(self, state: BreathState, soft_layer: np.ndarray | None = None) -> Volume:
         """The moved CT for a breath state, as a Volume (int16 HU) on the CT's grid."""
-        hu = self.hu_at(state.gamma_deg, state.lambda_deg, state.descent_mm)
+        hu = self.hu_at(state.gamma_deg, state.lambda_deg, state.descent_mm, soft_layer)
         return Volume(np.clip(np.rint(hu), -1024, 32767).astype(np.int16), self.volume.T_ct_from_voxel,
                       source=f"{self.volume.source} breathing ({state.excursion:.2f} of the breath)")
 

@@ -10,6 +10,7 @@ renderer's existing phase blend). Same interface as PhaseTimeline.
 
 from __future__ import annotations
 
+import bisect
 import logging
 import math
 import threading
@@ -25,18 +26,33 @@ log = logging.getLogger(__name__)
 
 
 class BreathingTimeline:
-    """The breathing patient: precomputed depth states, picked and weighted by the live breath."""
+    """The breathing patient: precomputed depth states, picked and weighted by the live breath.
 
-    def __init__(self, load_ct: Callable[[], Volume], params: Respiration, materials: Materials, renderer,
-                 load_labels: Callable[[Volume], object] | None = None, control: BreathingControl | None = None):
+    `source` is the end-expiration CT's loader, or the stages of a study on its own clock
+    (e.g. the built-in patient's VCUG: (time_s, loader) of each stage at end-expiration,
+    repeating every `cycle_s`); each stage gets its own depth states, the motion split once
+    from the first stage (later stages differ from it in soft tissue and contrast only).
+    """
+
+    def __init__(self, source, params: Respiration, materials: Materials, renderer,
+                 load_labels: Callable[[Volume], object] | None = None, control: BreathingControl | None = None,
+                 cycle_s: float | None = None):
         self.params = params
         self.control = control or BreathingControl(params)
         self.renderer = renderer
+        stages = [(0.0, source)] if callable(source) else list(source)
+        if not stages:
+            raise FluorosimError("a breathing timeline needs at least one CT")
+        self.stage_times = [float(t) for t, _ in stages]
+        self._loaders = [loader for _, loader in stages]
+        self.cycle_s = cycle_s if cycle_s is not None else math.inf
         n = params.depth_states
         #: Excursion (multiple of the profile's full breath) of each state.
         self.excursions = [params.depth_max * k / (n - 1) for k in range(n)]
-        self._load_ct, self._load_labels, self._materials = load_ct, load_labels, materials
-        self._prepared: list = [None] * n
+        self._load_labels, self._materials = load_labels, materials
+        self._states: list[list] = [[None] * n for _ in stages]
+        self._prepared = self._states[0]          # the first stage's states (what a one-CT case has)
+        self._wanted = 0
         self._error: str | None = None
         self._cond = threading.Condition()
         self._stop = False
@@ -52,19 +68,33 @@ class BreathingTimeline:
         return BreathState(0.0, 0.0, inspired, depth, self.params.rate_per_min, False,
                            g * excursion, lam * excursion, d * excursion - d * depth / 2.0, d * excursion)
 
+    def _next_stage(self) -> int | None:
+        n = len(self._states)
+        with self._cond:
+            for step in range(n):          # the stage wanted now, then the ones after it
+                j = (self._wanted + step) % n
+                if any(p is None for p in self._states[j]):
+                    return j
+        return None
+
     def _build(self) -> None:
         try:
-            ct = self._load_ct()
+            ct = self._loaders[0]()
             labels = self._load_labels(ct) if self._load_labels else None
             anatomy = BreathingAnatomy(ct, self.params, self._materials, labels)
-            for k, e in enumerate(self.excursions):
-                if self._stop:
+            while not self._stop:
+                j = self._next_stage()
+                if j is None:
                     return
-                prepared = self.renderer.prepare(anatomy.volume_at(self.state_of(e)))
-                prepared.time_s = e
-                with self._cond:
-                    self._prepared[k] = prepared
-                    self._cond.notify_all()
+                soft = None if j == 0 else anatomy.soft_of(self._loaders[j]())
+                for k, e in enumerate(self.excursions):
+                    if self._stop:
+                        return
+                    prepared = self.renderer.prepare(anatomy.volume_at(self.state_of(e), soft))
+                    prepared.time_s = self.stage_times[j]
+                    with self._cond:
+                        self._states[j][k] = prepared
+                        self._cond.notify_all()
         except FluorosimError as e:
             log.error("breathing states: %s", e)
             with self._cond:
@@ -81,20 +111,26 @@ class BreathingTimeline:
         self._thread.join(timeout=30)
 
     def wait_ready(self, timeout_s: float | None = None, all_phases: bool = False) -> bool:
-        """Block until end-expiration (or every state) is prepared; True when ready."""
+        """Block until the first stage's states (or every stage's) are prepared; True when ready."""
         def done():
             if self._error is not None:
                 return True
-            return all(p is not None for p in self._prepared) if all_phases else self._prepared[0] is not None
+            wanted = self._states if all_phases else self._states[:1]
+            return all(p is not None for stage in wanted for p in stage)
         with self._cond:
             self._cond.wait_for(done, timeout=timeout_s)
-            if self._error is not None and self._prepared[0] is None:
+            if self._error is not None and self._states[0][0] is None:
                 raise FluorosimError(f"the breathing patient cannot be prepared: {self._error}")
             return done()
 
     @property
     def ready_count(self) -> int:
-        return sum(p is not None for p in self._prepared)
+        return sum(p is not None for stage in self._states for p in stage)
+
+    def stage_at(self, t_s: float) -> int:
+        """Which stage of the study is on at case time `t_s` (s)."""
+        t = t_s % self.cycle_s if math.isfinite(self.cycle_s) else t_s
+        return max(bisect.bisect_right(self.stage_times, t) - 1, 0)
 
     def at(self, t_s: float):
         """(state, next state or None, weight of the next) for the breath at case time `t_s` (s)."""
@@ -102,26 +138,40 @@ class BreathingTimeline:
         step = self.excursions[1]
         i = min(int(e / step), len(self.excursions) - 1)
         w = e / step - i
+        j = self.stage_at(t_s)
         with self._cond:
-            a = self._prepared[i]
-            b = self._prepared[i + 1] if i + 1 < len(self._prepared) else None
-            if a is None:
-                ready = [k for k, p in enumerate(self._prepared) if p is not None and k <= i]
+            if self._wanted != j:
+                self._wanted = j
+            # A stage still being prepared: the latest earlier one that is ready stands in.
+            for jj in [j, *range(j - 1, -1, -1), *range(len(self._states) - 1, j, -1)]:
+                states = self._states[jj]
+                if states[i] is not None and (i + 1 >= len(states) or states[i + 1] is not None):
+                    break
+            else:
+                ready = [p for p in self._states[0][: i + 1] if p is not None]
                 if not ready:
                     raise FluorosimError("the breathing patient is still being prepared")
-                return self._prepared[ready[-1]], None, 0.0
+                return ready[-1], None, 0.0
+            a = states[i]
+            b = states[i + 1] if i + 1 < len(states) else None
         if b is None or w <= 0.0:
             return a, None, 0.0
         return a, b, float(w)
 
 
-def breathing_timeline(case_path, case, renderer) -> BreathingTimeline:
-    """The timeline of a one-CT case with a `respiration:` section."""
+def breathing_timeline(case_path, case, renderer, cache_dir=None) -> BreathingTimeline:
+    """The timeline of a case with a `respiration:` section: one CT, or the built-in patient's
+    VCUG stages at end-expiration (its own breathing left out, the contrast on its own clock)."""
     from ..config.loading import resolve
     from .breathing_motion import load_labels
     from .volume_io import load_volume
 
     params = case.respiration
+    if case.builtin is not None:
+        from .builtin import SEQUENCE_S, builtin_phases, timeline
+        phases = builtin_phases(case.builtin, cache_dir)
+        stages = [(spec.time_s, load) for spec, (_, load) in zip(timeline(), phases) if spec.breath == 0.0]
+        return BreathingTimeline(stages, params, case.materials, renderer, cycle_s=SEQUENCE_S)
     path = resolve(case_path, case.phases[0].volume)
     return BreathingTimeline(lambda: load_volume(path), params, case.materials, renderer,
                              load_labels=lambda ct: load_labels(case_path, params, ct))
