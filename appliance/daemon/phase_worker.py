@@ -63,7 +63,8 @@ class PhaseWorker(Worker):
             self.sleep(NOT_READY_RETRY_S)
             return False
         text = control.overlay_text(t) if control is not None else ""
-        self.phases.put(PhaseValue(a, b, float(weight), generation, text))
+        inspired = control.at(t).inspired if control is not None else None
+        self.phases.put(PhaseValue(a, b, float(weight), generation, text, inspired))
         self.sleep(PHASE_PERIOD_S)
         return True
 

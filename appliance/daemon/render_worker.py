@@ -130,7 +130,8 @@ class RenderWorker(Worker):
         self.on_first_frame()
         if self.on_shown is not None:
             self.on_shown(ShownFrame(self.parts.display.read_back, self._image, state, tracked if live else None,
-                                     live, t_shown, latency, banners, saved_flash))
+                                     live, t_shown, latency, banners, saved_flash,
+                                     phase.inspired if live and phase is not None else None))
         return True
 
     def _render(self, cfg: ApplianceConfig, tracked: TrackedPose, phase: PhaseValue,

@@ -73,6 +73,9 @@ def key_moments() -> list[Moment]:
         Moment("roll-plus-90", "roll +90 degrees", lambda f: _live(f) and (_pose_roll(f) or 0) > 75),
         Moment("roll-minus-90", "roll -90 degrees", lambda f: _live(f) and (_pose_roll(f) or 0) < -75),
         Moment("breath-hold", "breath hold", lambda f: _live(f) and bool(f.state.breath_hold)),
+        # A case breathing under the model: the pair a radiographer compares.
+        Moment("end-expiration", "end-expiration", lambda f: _live(f) and f.inspired is not None and f.inspired < 0.01),
+        Moment("end-inspiration", "end-inspiration", lambda f: _live(f) and f.inspired is not None and f.inspired > 0.99),
         Moment("saved", "image saved", lambda f: bool(f.saved_flash)),
         Moment("alarm", "5-minute alarm", lambda f: bool(f.state.alarm_sounding)),
         Moment("last-image-hold", "last-image hold", lambda f: not f.live and f.image is not None
