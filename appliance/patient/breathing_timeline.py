@@ -108,15 +108,16 @@ class BreathingTimeline:
 
     def close(self) -> None:
         self._stop = True
-        self._thread.join(timeout=30)
+        self._thread.join(timeout=5)
 
     def wait_ready(self, timeout_s: float | None = None, all_phases: bool = False) -> bool:
-        """Block until the first stage's states (or every stage's) are prepared; True when ready."""
+        """Block until end-expiration of the first stage (or every state of every stage) is prepared; True when ready."""
         def done():
             if self._error is not None:
                 return True
-            wanted = self._states if all_phases else self._states[:1]
-            return all(p is not None for stage in wanted for p in stage)
+            if not all_phases:
+                return self._states[0][0] is not None
+            return all(p is not None for stage in self._states for p in stage)
         with self._cond:
             self._cond.wait_for(done, timeout=timeout_s)
             if self._error is not None and self._states[0][0] is None:
