@@ -75,6 +75,9 @@ class Respiration(Section):
     rib_min_length_mm: float = Field(40.0, gt=0, le=300, description="Without rib labels: a piece reaching less far than this from its joint (a transverse process) is not a rib (mm).")
     rib_below_dome_mm: float = Field(30.0, ge=0, le=200, description="Without rib labels: rib joints lie no lower than this below the diaphragm's lowest point, which keeps the pelvis out (mm).")
     bone_fill_hu: float = Field(40.0, ge=-200, le=200, description="What a bone voxel becomes in the soft tissue that moves under it (HU, muscle).")
+    ct_end_expiration_s: float | None = Field(
+        None, ge=0, description="A 4D CT only: the time stamp of its end-expiration phase (s); its phases span one breath "
+                                "(breathing.period_s), and only rate and depth act on it.")
     depth_states: int = Field(6, ge=2, le=16, description="Breathing states the appliance precomputes between end-expiration and the deepest breath, blended in projection space.")
 
     def problems(self):
@@ -117,9 +120,12 @@ class CaseProfile(Section):
                 if not self.phases[i].time_s > self.phases[i - 1].time_s:
                     yield ("phases", i, "time_s"), f"must be later than phases[{i - 1}].time_s ({self.phases[i - 1].time_s} s)"
         if self.respiration is not None:
-            if self.phases is not None and len(self.phases) != 1:
-                yield ("respiration",), ("needs a case with exactly one CT volume in `phases` (the end-expiration CT) "
-                                         "or a built-in patient; a 4D CT breathes on its own timeline")
+            if self.phases is not None and len(self.phases) > 1:
+                if self.respiration.ct_end_expiration_s is None:
+                    yield ("respiration", "ct_end_expiration_s"), ("is required for a 4D CT: the time stamp of its "
+                                                                   "end-expiration phase")
+                elif self.respiration.ct_end_expiration_s not in [p.time_s for p in self.phases]:
+                    yield ("respiration", "ct_end_expiration_s"), "must be the time_s of one of the phases"
             if self.builtin is not None and self.respiration.label_map:
                 yield ("respiration", "label_map"), "the built-in patient is segmented from its HU; leave out label_map"
             for loc, message in self.respiration.problems():

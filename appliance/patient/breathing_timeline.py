@@ -168,6 +168,12 @@ def breathing_timeline(case_path, case, renderer, cache_dir=None) -> BreathingTi
     from .volume_io import load_volume
 
     params = case.respiration
+    if case.phases is not None and len(case.phases) > 1:
+        from .breathing_4d import FourDBreathing
+        from .timeline import PhaseTimeline
+        phases = [(ph.time_s, (lambda p=resolve(case_path, ph.volume): load_volume(p))) for ph in case.phases]
+        return FourDBreathing(PhaseTimeline(phases, renderer, at_end="loop"), params,  # type: ignore[return-value]
+                              params.ct_end_expiration_s)
     if case.builtin is not None:
         from .builtin import SEQUENCE_S, builtin_phases, timeline
         phases = builtin_phases(case.builtin, cache_dir)
