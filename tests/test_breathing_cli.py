@@ -101,3 +101,20 @@ def test_overrides_are_validated_against_the_section():
         respiration_for(case, parse_overrides("rate_per_min=50"), "case.yaml")
     plain = CaseProfile(title="t", phases=[{"volume": "ct.mha", "time_s": 0}])
     assert respiration_for(plain, {}, "case.yaml") is None
+
+
+def test_4d_ct_render_time_follows_the_breathing_rate(tmp_path):
+    """A 4-phase CT (one 4 s breath, end-expiration at 2 s) at 30 breaths/min: end-inspiration
+    (t = 1/(4f) = 0.5 s) shows the phase half a cycle from end-expiration, 0 s."""
+    from appliance.xray.analytic import box_volume
+    from appliance.xray.commands import _volume_and_case
+
+    for k in range(4):
+        vol = box_volume((8, 8, 8), (2.0, 2.0, 2.0), (2, 2, 2), (5, 5, 5), hu=100 * k)[0]
+        write_image(vol.hu, vol.T_ct_from_voxel, tmp_path / f"p{k}.mha")
+    (tmp_path / "4d.yaml").write_text(
+        "title: 4D\nphases:\n" + "".join(f"  - {{volume: p{k}.mha, time_s: {k}}}\n" for k in range(4))
+        + "respiration: {rate_per_min: 30, ct_end_expiration_s: 2}\n")
+    for t, expect_hu in ((1.5, 200), (0.5, 0), (1.0, 100), (2.5, 0)):
+        vol, _, _ = _volume_and_case(tmp_path / "4d.yaml", t)
+        assert vol.hu.max() == expect_hu, t

@@ -31,21 +31,23 @@ def _volume_and_case(path: Path, phase_time_s: float | None, respiration: str | 
     if path.suffix.lower() in (".yaml", ".yml"):
         case = load_profile(path, CaseProfile)
         breathing = respiration_for(case, overrides, str(path))
-        if breathing is not None and (case.phases is None or len(case.phases) != 1):
-            raise FluorosimError(f"{path}: --respiration needs a case with exactly one CT volume in `phases`; "
-                                 "a 4D CT or the built-in patient breathes on its own timeline")
-        if breathing is not None:
+        if case.phases is None:
+            raise FluorosimError(f"{path}: built-in patients are rendered by the appliance; "
+                                 "give a case with `phases` or a volume file")
+        if breathing is not None and len(case.phases) == 1:
             # One CT breathing under the model: the CT is end-expiration, moved to time T.
             ct = load_volume(resolve(path, case.phases[0].volume))
             return (breathing_ct(path, breathing, ct, case.materials, phase_time_s or 0.0),
                     case.materials, case.contrast)
-        if case.phases is None:
-            raise FluorosimError(f"{path}: built-in patients are rendered by the appliance; "
-                                 "give a case with `phases` or a volume file")
         times = [p.time_s for p in case.phases]
         t = 0.0 if phase_time_s is None else phase_time_s
+        period = times[-1] + (times[-1] - times[0]) / (len(times) - 1) - times[0] if len(times) > 1 else 0.0
+        if breathing is not None:
+            # A 4D CT: the breathing model's rate picks the time in the CT's own breath.
+            if breathing.ct_end_expiration_s is None:
+                raise FluorosimError(f"{path}: respiration.ct_end_expiration_s: is required for a 4D CT")
+            t = breathing.ct_end_expiration_s + period * ((breathing.rate_per_min / 60.0 * t - 0.75) % 1.0)
         if case.at_end == "loop" and len(times) > 1:
-            period = times[-1] + (times[-1] - times[0]) / (len(times) - 1) - times[0]
             t = times[0] + (t - times[0]) % period
         i = max([k for k, tk in enumerate(times) if tk <= t] or [0])
         return load_volume(resolve(path, case.phases[i].volume)), case.materials, case.contrast
