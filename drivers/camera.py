@@ -18,9 +18,10 @@ import logging
 import os
 import threading
 import time
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
+from enum import StrEnum
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -28,6 +29,15 @@ import numpy as np
 from .camera_scene import RenderSettings, SceneRenderer, box_marker_quads
 
 log = logging.getLogger(__name__)
+
+
+class CaptureState(StrEnum):
+    """A camera source's `state`, as the health check and the status line show it."""
+
+    STARTING = "starting"
+    OK = "ok"
+    LOST = "camera lost"
+
 # The service configures logging; a command-line tool reports `state` itself, on one line.
 log.addHandler(logging.NullHandler())
 
@@ -53,7 +63,7 @@ class CameraSource:
     stall_timeout_s: float | None = None
 
     def __init__(self) -> None:
-        self._state = "starting"
+        self._state: str = CaptureState.STARTING
         self._message = ""
         self.frames_captured = 0
         self._lock = threading.Lock()
@@ -77,14 +87,15 @@ class CameraSource:
 
     @property
     def state(self) -> str:
-        if self._state == "ok" and self._stalled():
-            return "camera lost"
+        if self._state == CaptureState.OK and self._stalled():
+            return CaptureState.LOST
         return self._state
 
     @property
     def message(self) -> str:
-        if self._state == "ok" and self._stalled():
-            return f"{self.name}: no frame for {time.monotonic() - self._frame.t_monotonic:.1f} s"
+        frame = self._frame
+        if self._state == CaptureState.OK and self._stalled() and frame is not None:
+            return f"{self.name}: no frame for {time.monotonic() - frame.t_monotonic:.1f} s"
         return self._message
 
     @property
@@ -113,11 +124,11 @@ class CameraSource:
                 return frame
             time.sleep(0.002)
 
-    def __enter__(self):
+    def __enter__(self) -> CameraSource:
         self.start()
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.stop()
 
     def _publish(self, image: np.ndarray, t: float, truth: np.ndarray | None = None) -> None:
@@ -129,7 +140,7 @@ class CameraSource:
 
     def _set_state(self, state: str, message: str = "") -> None:
         if state != self._state or message != self._message:
-            if state == "camera lost":
+            if state == CaptureState.LOST:
                 log.warning("%s", message)
             self._state, self._message = state, message
 
@@ -139,7 +150,7 @@ class CameraSource:
             self._run()
         except Exception as e:  # noqa: BLE001 - reported through state, see above
             log.exception("camera thread failed")
-            self._set_state("camera lost", f"camera thread failed: {e}")
+            self._set_state(CaptureState.LOST, f"camera thread failed: {e}")
 
     def _run(self) -> None:
         raise NotImplementedError
@@ -152,7 +163,8 @@ class V4L2Camera(CameraSource):
                  fourcc: str = "MJPG", stall_timeout_s: float = 2.0, retry_interval_s: float = 1.0) -> None:
         super().__init__()
         self.device, self.width, self.height, self.fps, self.fourcc = device, width, height, fps, fourcc
-        self.stall_timeout_s, self.retry_interval_s = stall_timeout_s, retry_interval_s
+        self.stall_timeout_s: float = stall_timeout_s
+        self.retry_interval_s = retry_interval_s
         self.open_attempts = 0
 
     @property
@@ -162,16 +174,16 @@ class V4L2Camera(CameraSource):
     def _open(self) -> cv2.VideoCapture | None:
         self.open_attempts += 1
         if not os.path.exists(self.device):
-            self._set_state("camera lost", f"camera {self.device}: no such device; check the cable and the udev "
+            self._set_state(CaptureState.LOST, f"camera {self.device}: no such device; check the cable and the udev "
                                            f"rule, retrying every {self.retry_interval_s:g} s")
             return None
         cap = cv2.VideoCapture(self.device, cv2.CAP_V4L2)
         if not cap.isOpened():
             cap.release()
-            self._set_state("camera lost", f"camera {self.device}: cannot be opened as a V4L2 capture device "
+            self._set_state(CaptureState.LOST, f"camera {self.device}: cannot be opened as a V4L2 capture device "
                                            f"(in use or not a camera?), retrying every {self.retry_interval_s:g} s")
             return None
-        cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*self.fourcc))
+        cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter.fourcc(*self.fourcc))
         cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.width)
         cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.height)
         cap.set(cv2.CAP_PROP_FPS, self.fps)
@@ -202,7 +214,7 @@ class V4L2Camera(CameraSource):
                     now = time.monotonic()
                     if not ok:
                         if now - last_frame > self.stall_timeout_s:
-                            self._set_state("camera lost", f"camera {self.device}: no frame for "
+                            self._set_state(CaptureState.LOST, f"camera {self.device}: no frame for "
                                                            f"{now - last_frame:.1f} s; reopening")
                             break
                         self._stop.wait(0.01)
@@ -212,7 +224,7 @@ class V4L2Camera(CameraSource):
                         continue
                     last_frame = now
                     self._publish(image, self._capture_time(cap, now))
-                    self._set_state("ok")
+                    self._set_state(CaptureState.OK)
             finally:
                 cap.release()
             self._stop.wait(self.retry_interval_s)
@@ -256,7 +268,7 @@ class FileCamera(CameraSource):
         next_t = time.monotonic()
         while not self._stop.is_set():
             if not self.path.exists():
-                self._set_state("camera lost", f"{self.path}: no such video file or image folder; retrying")
+                self._set_state(CaptureState.LOST, f"{self.path}: no such video file or image folder; retrying")
                 self._stop.wait(1.0)
                 continue
             produced = 0
@@ -268,10 +280,10 @@ class FileCamera(CameraSource):
                 self._stop.wait(max(0.0, next_t - time.monotonic()))
                 next_t = max(next_t + period, time.monotonic() - period)
                 self._publish(image, time.monotonic())
-                self._set_state("ok")
+                self._set_state(CaptureState.OK)
                 produced += 1
             if produced == 0:
-                self._set_state("camera lost", f"{self.path}: holds no readable frames; retrying")
+                self._set_state(CaptureState.LOST, f"{self.path}: holds no readable frames; retrying")
                 self._stop.wait(1.0)
             elif not self.loop:
                 self.finished = True
@@ -311,7 +323,7 @@ class SyntheticCamera(CameraSource):
             now = self.clock()
             image, truth = self.render_at(now - self.t0)
             self._publish(image, now, truth)
-            self._set_state("ok")
+            self._set_state(CaptureState.OK)
             next_t += period
             self._stop.wait(max(0.0, next_t - time.monotonic()))
             next_t = max(next_t, time.monotonic() - period)

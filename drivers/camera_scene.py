@@ -104,9 +104,9 @@ class SceneRenderer:
         """
         img = self.backdrop.copy()
         R, t = T_cam_from_box[:3, :3], T_cam_from_box[:3, 3]
-        half = np.zeros(3) if self.box_mm is None else np.array(self.box_mm) / 2
-        for n, u, v in (_FACES if self.box_mm is not None else ()):
-            n, u, v = (np.asarray(a, dtype=np.float64) for a in (n, u, v))
+        half: np.ndarray = np.zeros(3) if self.box_mm is None else np.array(self.box_mm) / 2
+        for face in (_FACES if self.box_mm is not None else ()):
+            n, u, v = (np.asarray(a, dtype=np.float64) for a in face)
             centre = n * half
             n_cam = R @ n
             c_cam = R @ centre + t
@@ -184,12 +184,12 @@ class SceneRenderer:
             # OpenCV's generator is four times faster than numpy's here; seeding it from this
             # renderer's own generator keeps a seeded camera's frames reproducible.
             cv2.setRNGSeed(int(self.rng.integers(2**31)))
-            cv2.randn(noise, 0.0, self.s.noise_sigma)
+            cv2.randn(noise, 0.0, self.s.noise_sigma)  # type: ignore[call-overload]  # stubs want arrays for scalars
             img = img + noise
         out = np.clip(img + 0.5, 0, 255).astype(np.uint8)
         if self.s.jpeg_quality is not None:
             ok, data = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(self.s.jpeg_quality)])
-            out = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
+            out = np.asarray(cv2.imdecode(data, cv2.IMREAD_GRAYSCALE), dtype=np.uint8)
         return out
 
 

@@ -227,7 +227,7 @@ def test_increments_sum_to_totals():
     rng = random.Random(3)
     evs, t = [], 0.0
     keys = ["KEY_KP5", "KEY_KP2", "KEY_KP9", "KEY_KP0", "KEY_KP7", "KEY_KP1"]
-    for i in range(40):
+    for _run in range(40):
         evs += console.handle(press(t, "pedal"))
         for _ in range(rng.randint(1, 20)):
             t += rng.uniform(0.01, 0.4)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import queue
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 from drivers.input_event import InputDevice
 

@@ -10,8 +10,9 @@ display that cannot be opened, or profiles that cannot be used, stop the start.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 from drivers.camera import CameraSource
 from drivers.framebuffer import Display
@@ -39,7 +40,7 @@ def patient_phases(cfg: ApplianceConfig, progress: Callable[[str], None] | None 
         from ..patient.builtin import builtin_phases
         return builtin_phases(case.builtin, cfg.data_dir / "cache", progress=progress)
     from ..patient.volume_io import load_volume
-    return [(ph.time_s, (lambda p=resolve(cfg.case_path, ph.volume): load_volume(p))) for ph in case.phases]
+    return [(ph.time_s, (lambda p=resolve(cfg.case_path, ph.volume): load_volume(p))) for ph in case.phases or ()]
 
 
 def rendered_fluoroscope(cfg: ApplianceConfig, fallback: bool = False) -> FluoroscopeProfile:
@@ -126,8 +127,9 @@ class Parts:
         if self.closed:
             return
         self.closed = True
-        for name, close in (("camera", self.camera.stop), ("keypad", self.keypad.close), ("pedal", self.pedal.close), ("alarm", self.alarm.stop),
-                            ("phase loader", self.timeline.close), ("display", self.display.close)):
+        for name, close in (("camera", self.camera.stop), ("keypad", self.keypad.close), ("pedal", self.pedal.close),
+                            ("alarm", self.alarm.stop), ("phase loader", self.timeline.close),
+                            ("display", self.display.close)):
             try:
                 close()
             except Exception as e:  # noqa: BLE001 - closing one part must not leave the others open

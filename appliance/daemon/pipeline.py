@@ -25,10 +25,12 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
+
+from drivers.camera import CaptureState
 
 from ..config import ApplianceConfig
 from ..config.fluoroscope import FluoroscopeProfile
@@ -127,7 +129,7 @@ class Appliance:
             health_checks=[
                 DiskSpace(cfg.data_dir, daemon.disk_min_free_mb),
                 CameraState(lambda: parts.camera),
-                TrackingState(lambda: self.capture.pose_ok if parts.camera.state == "ok" else None),
+                TrackingState(lambda: self.capture.pose_ok if parts.camera.state == CaptureState.OK else None),
                 InputDeviceState("keypad", lambda: parts.keypad),
                 InputDeviceState("pedal", lambda: parts.pedal),
                 renderer_fault_check(lambda: self.render.fault),
