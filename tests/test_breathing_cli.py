@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import SimpleITK as sitk
-
 import synthetic_chest as sc
 from test_breathing_motion import SOD, T_XRAY_FROM_CT, dome_edge_row
 from test_xray_cli import small_profile

@@ -1,19 +1,17 @@
 """The breathing anatomy on a CT that is not the built-in patient: rigid ribs, the dome in the image."""
 
-import math
 
 import numpy as np
 import pytest
+import synthetic_chest as sc
 from scipy.spatial.transform import Rotation
 
 from appliance.config.case import Materials, Respiration
 from appliance.geometry import make_transform
 from appliance.patient.breathing_motion import BreathingAnatomy
 from appliance.patient.respiration import BreathingControl, state_at
-from appliance.xray.benchmark import flat_profile
+from appliance.xray.bench import flat_profile
 from appliance.xray.renderer import Renderer, View
-
-import synthetic_chest as sc
 
 SOD = 750.0
 #: AP view: the beam runs anterior to posterior (+y), the patient's head at the top of the image.
@@ -67,14 +65,13 @@ def test_a_rib_moves_as_the_rigid_rotation_predicts(labelled, gamma, lam):
     anatomy = labelled
     moved = anatomy.hu_at(gamma, lam, 0.0)
     rest_hu = anatomy.hu_at(0.0, 0.0, 0.0)
-    T = anatomy.T
     _, x, y, z = sc.grid()
     for rib in anatomy.ribs:
         # This rib's neighbourhood: its side, outside the spine, within 15 mm of its head's height.
         near = (np.sign(x) == rib.side) & (np.abs(x) > 12.0) & (np.abs(z - rib.head_ct[2] + 8.0) < 17.0)
         pts = np.stack([x, y, z], axis=-1)
 
-        def centroid(hu):
+        def centroid(hu, near=near, pts=pts):
             # Bone coverage of each voxel: 0 in soft tissue (40 HU), 1 inside a rod (900 HU).
             w = np.clip((hu - 40.0) / 860.0, 0.0, 1.0) * near
             return (pts * w[..., None]).sum(axis=(0, 1, 2)) / w.sum()

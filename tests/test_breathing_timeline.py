@@ -4,17 +4,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import synthetic_chest as sc
+from test_breathing_motion import SOD, T_XRAY_FROM_CT, dome_edge_row
 
 from appliance.config import FluoroscopeProfile, KeymapProfile, load_profile
 from appliance.config.case import Materials, Respiration
 from appliance.console.state import Console
 from appliance.patient.breathing_timeline import BreathingTimeline
-from appliance.xray.benchmark import flat_profile
+from appliance.xray.bench import flat_profile
 from appliance.xray.renderer import Renderer, View
 from drivers.input_event import InputEvent
-
-import synthetic_chest as sc
-from test_breathing_motion import SOD, T_XRAY_FROM_CT, dome_edge_row
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -50,37 +50,67 @@ class Respiration(Section):
     end-inspiration is at t = 1/(4f) + k/f and end-expiration at t = 3/(4f) + k/f.
     """
 
-    diaphragm_mm: float = Field(15.0, ge=0, le=80, description="The central tendon's excursion, end-expiration to end-inspiration, superior-inferior (mm).")
-    rib_gamma_deg: float = Field(2.0, ge=0, le=15, description="Peak lateral-excursion (bucket-handle) rotation of each rib about its costovertebral joint (deg).")
-    rib_lambda_deg: float = Field(3.0, ge=0, le=15, description="Peak anteroposterior (pump-handle) rotation of each rib about its costovertebral joint (deg).")
+    diaphragm_mm: float = Field(
+        15.0, ge=0, le=80,
+        description="The central tendon's excursion, end-expiration to end-inspiration, superior-inferior (mm).")
+    rib_gamma_deg: float = Field(
+        2.0, ge=0, le=15,
+        description="Peak lateral-excursion (bucket-handle) rotation of each rib about its costovertebral joint (deg).")
+    rib_lambda_deg: float = Field(
+        3.0, ge=0, le=15,
+        description="Peak anteroposterior (pump-handle) rotation of each rib about its costovertebral joint (deg).")
     rate_per_min: float = Field(15.0, ge=0, le=60, description="Breaths per minute; 0 = held.")
     intercostal_share: float | None = Field(
         None, ge=0, le=1, description="Share of the breath the rib cage does (0-1, e.g. 0.75 or 0 for diaphragm alone); the ribs then "
                                       "turn by rib_*_deg x share / 0.5 and the tendon by diaphragm_mm x (1 - share) / 0.5, so 0.5 "
                                       "keeps the given amplitudes. Omit: the amplitudes as given.")
     label_map: str | None = Field(None, description="Optional label map (NIfTI/MHA) on the CT's grid, relative to this profile.")
-    labels: dict[Literal[RESPIRATION_ROLES], list[int]] | None = Field(
+    labels: dict[Literal[RESPIRATION_ROLES], list[int]] | None = Field(  # type: ignore[valid-type]  # the tuple's names
         None, description="Label ids per role (lungs, liver, spine, ribs, diaphragm) in label_map; an empty or missing role is "
                           "found from the HU thresholds instead.")
     rate_step_per_min: float = Field(3.0, gt=0, le=20, description="Faster/slower keys change the rate by this (breaths/min).")
     rate_max_per_min: float = Field(40.0, gt=0, le=80, description="Fastest rate the console allows: hyperventilation (breaths/min).")
-    depth_step: float = Field(0.25, gt=0, le=1, description="Deeper/shallower keys change the depth by this (fraction of the profile's amplitudes).")
+    depth_step: float = Field(
+        0.25, gt=0, le=1,
+        description="Deeper/shallower keys change the depth by this (fraction of the profile's amplitudes).")
     depth_max: float = Field(2.0, ge=1, le=4, description="Deepest breath the console allows (multiple of the profile's amplitudes).")
     depth_ramp_s: float = Field(1.0, gt=0, le=10, description="A depth change is eased in over this time, so the anatomy never jumps (s).")
-    lung_apex_falloff: Literal["linear"] = Field("linear", description="Lung tissue above the dome stretches: its displacement falls linearly to 0 at the apex.")
-    abdomen_falloff_mm: float = Field(150.0, gt=0, le=400, description="Below the lowest point of the diaphragm the organs' displacement falls linearly to 0 over this distance (mm).")
-    lateral_blur_mm: float = Field(12.0, ge=0, le=60, description="The moving region is the lungs' footprint in the axial plane, softened by a Gaussian of this sigma (mm), so the body wall outside it stays still.")
-    spine_half_width_mm: float = Field(28.0, gt=0, le=80, description="Without spine labels: bone within this distance of the midline, behind the body's centre, is the (still) spine (mm).")
-    rib_head_max_mm: float = Field(6.0, gt=0, le=100, description="Without rib labels: a bone piece whose nearest point lies within this of the spine is a rib (mm); others stay still.")
-    rib_min_length_mm: float = Field(40.0, gt=0, le=300, description="Without rib labels: a piece reaching less far than this from its joint (a transverse process) is not a rib (mm).")
-    rib_below_dome_mm: float = Field(30.0, ge=0, le=200, description="Without rib labels: rib joints lie no lower than this below the diaphragm's lowest point, which keeps the pelvis out (mm).")
-    bone_fill_hu: float = Field(40.0, ge=-200, le=200, description="What a bone voxel becomes in the soft tissue that moves under it (HU, muscle).")
+    abdomen_falloff_mm: float = Field(
+        150.0, gt=0, le=400,
+        description="Below the lowest point of the diaphragm the organs' displacement falls linearly to 0 over this "
+                    "distance (mm).")
+    lateral_blur_mm: float = Field(
+        12.0, ge=0, le=60,
+        description="The moving region is the lungs' footprint in the axial plane, softened by a Gaussian of this sigma "
+                    "(mm), so the body wall outside it stays still.")
+    spine_half_width_mm: float = Field(
+        28.0, gt=0, le=80,
+        description="Without spine labels: bone within this distance of the midline, behind the body's centre, is the "
+                    "(still) spine (mm).")
+    rib_head_max_mm: float = Field(
+        6.0, gt=0, le=100,
+        description="Without rib labels: a bone piece whose nearest point lies within this of the spine is a rib (mm); "
+                    "others stay still.")
+    rib_min_length_mm: float = Field(
+        40.0, gt=0, le=300,
+        description="Without rib labels: a piece reaching less far than this from its joint (a transverse process) is not "
+                    "a rib (mm).")
+    rib_below_dome_mm: float = Field(
+        30.0, ge=0, le=200,
+        description="Without rib labels: rib joints lie no lower than this below the diaphragm's lowest point, which "
+                    "keeps the pelvis out (mm).")
+    bone_fill_hu: float = Field(
+        40.0, ge=-200, le=200,
+        description="What a bone voxel becomes in the soft tissue that moves under it (HU, muscle).")
     ct_end_expiration_s: float | None = Field(
         None, ge=0, description="A 4D CT only: the time stamp of its end-expiration phase (s); its phases span one breath "
                                 "(breathing.period_s), and only rate and depth act on it.")
-    depth_states: int = Field(6, ge=2, le=16, description="Breathing states the appliance precomputes between end-expiration and the deepest breath, blended in projection space.")
+    depth_states: int = Field(
+        6, ge=2, le=16,
+        description="Breathing states the appliance precomputes between end-expiration and the deepest breath, blended in "
+                    "projection space.")
 
-    def problems(self):
+    def problems(self) -> Findings:
         if self.rate_per_min > self.rate_max_per_min:
             yield ("rate_per_min",), f"must not exceed rate_max_per_min ({self.rate_max_per_min:g} breaths/min)"
         if self.labels and self.label_map is None:

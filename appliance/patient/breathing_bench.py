@@ -28,7 +28,7 @@ def run(args) -> int:
     import numpy as np
 
     from ..config.case import Materials, Respiration
-    from ..xray.benchmark import flat_profile, pa_pose, synthetic_torso
+    from ..xray.bench import flat_profile, pa_pose, synthetic_torso
     from ..xray.renderer import Renderer, View
     from .breathing_motion import BreathingAnatomy
     from .breathing_timeline import BreathingTimeline

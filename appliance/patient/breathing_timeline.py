@@ -14,7 +14,7 @@ import bisect
 import logging
 import math
 import threading
-from typing import Callable
+from collections.abc import Callable
 
 from ..config.case import Materials, Respiration
 from ..errors import FluorosimError
