@@ -4,10 +4,13 @@ The CT is split once into three parts:
 
 - the still skeleton: the spine (labels, or bone within `spine_half_width_mm` of the
   midline behind the body's centre) and every bone piece that is not a rib;
-- the ribs: each bone piece that touches the spine (labels, or within `rib_head_max_mm`)
-  in the thorax, a rigid body turned about its costovertebral joint (the piece's point
-  nearest the spine) by lambda about the left-right axis (pump handle: the front rises)
-  and gamma about the anteroposterior axis (bucket handle: the side rises);
+- the ribs: each piece of the rib labels, or without them each bone piece within
+  `rib_head_max_mm` of the spine, at least `rib_min_length_mm` long, its joint no lower
+  than `rib_below_dome_mm` under the diaphragm; a rigid body turned about its
+  costovertebral joint (the piece's point nearest the spine) by lambda about the
+  left-right axis (pump handle: the front rises) and gamma about the anteroposterior axis
+  (bucket handle: the side rises). From HU alone, ribs touching the scapula move with it
+  as one piece, and the sternum stays still: give rib labels where that matters;
 - soft tissue (bone replaced by `bone_fill_hu`), displaced downward by the tendon's
   descent D times a smooth weight: 1 from the lowest point of the diaphragm to the top of
   its dome, falling linearly to 0 at the lung apices (the lungs stretch) and over
