@@ -105,8 +105,8 @@ def test_overrides_are_validated_against_the_section():
 def test_4d_ct_render_time_follows_the_breathing_rate(tmp_path):
     """A 4-phase CT (one 4 s breath, end-expiration at 2 s) at 30 breaths/min: end-inspiration
     (t = 1/(4f) = 0.5 s) shows the phase half a cycle from end-expiration, 0 s."""
-    from appliance.xray.truth.analytic import box_volume
     from appliance.xray.commands import _volume_and_case
+    from appliance.xray.truth.analytic import box_volume
 
     for k in range(4):
         vol = box_volume((8, 8, 8), (2.0, 2.0, 2.0), (2, 2, 2), (5, 5, 5), hu=100 * k)[0]
