@@ -335,3 +335,40 @@ def test_build_patient_command_and_previews(cache, volumes, tmp_path, capsys):
     blocked.write_text("")
     assert main(["build-patient", "--cache", str(root), "--previews", str(blocked / "p")]) == 2
     assert "cannot create the preview folder" in capsys.readouterr().err
+
+
+def test_controllable_breathing_on_the_builtin_patient(cache, volumes):
+    """configs/cases/child-torso-breathing.yaml: the ribs of T6-T12 are found as rigid pieces each
+    side beside the spine; the right dome (drawn at z = 45 mm) descends by the tendon's descent;
+    the full bladder's contrast stays on its own stage and moves at most by the fall-off's share."""
+    from appliance.config.case import CaseProfile
+    from appliance.patient.anatomy import RIGHT_DOME
+    from appliance.patient.breathing_motion import BreathingAnatomy
+    from appliance.patient.builtin import timeline
+
+    case = load_profile(ROOT / "configs" / "cases" / "child-torso-breathing.yaml", CaseProfile)
+    specs = timeline()
+    rest = volumes(0)
+    assert specs[0].breath == 0 and specs[12].breath == 0 and specs[12].stage == 3     # end-expiration, full bladder
+    anatomy = BreathingAnatomy(rest, case.respiration, case.materials)
+    lower = [r for r in anatomy.ribs if 0.0 < r.head_ct[2] < 90.0]
+    assert sorted(r.side for r in lower) == [-1] * 6 + [1] * 6
+    assert all(20.0 <= abs(r.head_ct[0]) <= 36.0 for r in lower)
+
+    def lung_base_z(hu):
+        ijk = np.rint(np.linalg.solve(rest.T_ct_from_voxel, [RIGHT_DOME[0], RIGHT_DOME[1], 0.0, 1.0])).astype(int)
+        col = hu[:, ijk[1], ijk[0]]
+        k = np.flatnonzero(col <= -600).min()         # lowest lung voxel of the column
+        return rest.T_ct_from_voxel[2, 3] + rest.T_ct_from_voxel[2, 2] * k
+    z0 = lung_base_z(np.asarray(rest.hu))
+    assert z0 == pytest.approx(RIGHT_DOME[2], abs=2 * 1.5)
+    full = volumes(12)
+    moved = anatomy.hu_at(2.0, 3.0, 12.0, anatomy.soft_of(full))
+    assert lung_base_z(moved) == pytest.approx(z0 - 12.0, abs=1.5)
+    # The bladder's contrast: its neck (where the fall-off has reached 0) stays; its top moves
+    # down by no more than the fall-off's share of the descent there.
+    z_k = rest.T_ct_from_voxel[2, 3] + rest.T_ct_from_voxel[2, 2] * np.arange(rest.hu.shape[0])
+    before = z_k[np.nonzero((np.asarray(full.hu) >= 2500).any(axis=(1, 2)))[0]]
+    after = z_k[np.nonzero((moved >= 2500).any(axis=(1, 2)))[0]]
+    assert after.min() == pytest.approx(before.min(), abs=1.5)
+    assert 0.0 <= before.max() - after.max() <= 12.0 * float(anatomy.weight_z(before.max())) + 1.5

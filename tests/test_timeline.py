@@ -86,3 +86,33 @@ def test_a_broken_first_phase_is_reported(renderer):
 def test_bad_time_stamps():
     with pytest.raises(FluorosimError, match="increase"):
         PhaseTimeline([(1.0, phase(0)), (0.5, phase(0))], renderer=None)
+
+
+def test_a_4d_ct_under_the_breathing_controls(renderer):
+    """Rate stretches the CT's cycle (end-expiration at the model's 3/4 of a breath), depth
+    blends the phase with end-expiration; a rate change keeps the CT time where it was."""
+    from appliance.config.case import Respiration
+    from appliance.patient.breathing_4d import FourDBreathing
+
+    tl = PhaseTimeline([(0.0, phase(0)), (1.0, phase(100)), (2.0, phase(200)), (3.0, phase(300))], renderer, "loop")
+    params = Respiration(rate_per_min=15, ct_end_expiration_s=2.0)     # 4 s breath, as the CT's 4 s cycle
+    breathing = FourDBreathing(tl, params, 2.0)
+    try:
+        assert breathing.wait_ready(10, all_phases=True)
+        # At 15/min end-expiration is t = 3 s: the CT's phase at 2.0 s.
+        a, b, w = breathing.at(3.0)
+        assert (a.time_s, b, w) == (2.0, None, 0.0)
+        # Half a breath later (end-inspiration): half the CT's cycle on, 0.0 s.
+        a, b, w = breathing.at(5.0)
+        assert (a.time_s, b, w) == (0.0, None, 0.0)
+        # Twice the rate: from t = 5 s, a quarter breath takes 0.5 s instead of 1 s.
+        breathing.control.set_rate(5.0, 30.0)
+        a, b, w = breathing.at(5.5)
+        assert (a.time_s, b, w) == (1.0, None, 0.0)
+        # Half depth: the phase blended half way with end-expiration.
+        breathing.control.set_depth(5.5, 0.5)
+        # 2 s on at 30/min is one breath: the CT's phase at 1.0 s again, now half way to end-expiration.
+        a, b, w = breathing.at(7.5)
+        assert (a.time_s, b.time_s, w) == (2.0, 1.0, pytest.approx(0.5))
+    finally:
+        breathing.close()

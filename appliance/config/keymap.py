@@ -16,6 +16,8 @@ Action = Literal[
     "window_wider", "window_narrower", "level_up", "level_down", "window_reset",
     # Teaching (appliance/teaching/live.py): run an exercise, pick the trainee from the roster.
     "exercise_start", "exercise_skip", "exercise_end", "trainee_next",
+    # Controllable breathing (a case's respiration: section): rate and depth of the breath.
+    "breath_faster", "breath_slower", "breath_deeper", "breath_shallower",
 ]
 
 

@@ -192,8 +192,11 @@ def _references(kind: str, obj: Any) -> list[tuple[tuple, str, str | None]]:
         return refs
     if kind == "exercise":
         return [(("case",), obj.case, "case")]
-    if kind == "case" and obj.phases:
-        return [(("phases", i, "volume"), ph.volume, None) for i, ph in enumerate(obj.phases)]
+    if kind == "case":
+        refs = [(("phases", i, "volume"), ph.volume, None) for i, ph in enumerate(obj.phases or [])]
+        if obj.respiration is not None and obj.respiration.label_map:
+            refs.append((("respiration", "label_map"), obj.respiration.label_map, None))
+        return refs
     return []
 
 

@@ -58,7 +58,7 @@ class ConsoleEvent:
 
 #: Kinds of ConsoleEvent, for readers of the ledger.
 EVENT_KINDS = ("fluoro_on", "fluoro_off", "pulse", "exposure", "zoom", "collimation", "mode", "invert", "save",
-               "hold_breath", "resume_breath", "alarm", "alarm_reset", "profile")
+               "hold_breath", "resume_breath", "alarm", "alarm_reset", "profile", "breath_rate", "breath_depth")
 
 
 @dataclass(frozen=True)
@@ -91,6 +91,8 @@ class ConsoleState:
     pulses: int = 0                 # pulses so far this session (counts images in the pulsed modes)
     window_scale: float = 1.0       # the radiographer's window: the automatic width times this
     level_shift: float = 0.0        # the radiographer's level: the centre moved by this fraction of the width
+    breath_rate_steps: int = 0      # faster minus slower presses so far (the breathing model applies each step)
+    breath_depth_steps: int = 0     # deeper minus shallower presses so far
 
     @property
     def held(self) -> bool:
@@ -137,6 +139,7 @@ class Console:
         self.invert = fluoroscope.display.invert
         self.window_scale, self.level_shift = 1.0, 0.0
         self.breath_hold = False
+        self.breath_rate_steps = self.breath_depth_steps = 0
         self._fluoro_holders: set[tuple[str, str]] = set()
         self.fluoro_on = False
         self.has_image = False
@@ -370,6 +373,12 @@ class Console:
             if self.breath_hold:
                 self.breath_hold = False
                 self._emit(out, t, "resume_breath")
+        elif action in ("breath_faster", "breath_slower"):
+            self.breath_rate_steps += 1 if action == "breath_faster" else -1
+            self._emit(out, t, "breath_rate", step=1 if action == "breath_faster" else -1)
+        elif action in ("breath_deeper", "breath_shallower"):
+            self.breath_depth_steps += 1 if action == "breath_deeper" else -1
+            self._emit(out, t, "breath_depth", step=1 if action == "breath_deeper" else -1)
         return out
 
     def _adjust_window(self, action: str) -> None:
@@ -480,4 +489,5 @@ class Console:
             runs=self.runs,
             new_image=self._frame_pulses > 0 if mode.pulse_rate_per_s else self._frame_exposed,
             pulses_this_frame=self._frame_pulses, kvp=fl.tube.kvp, ma=fl.tube.ma, pulses=self._pulse_count,
-            window_scale=self.window_scale, level_shift=self.level_shift)
+            window_scale=self.window_scale, level_shift=self.level_shift,
+            breath_rate_steps=self.breath_rate_steps, breath_depth_steps=self.breath_depth_steps)

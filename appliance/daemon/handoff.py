@@ -96,6 +96,8 @@ class PhaseValue:
     weight: float             # weight of `prepared_b` in [0, 1)
     generation: int           # which renderer prepared it: values of a replaced renderer are not drawn
     t_case_s: float | None = None  # the case time it stands for (s), for the teaching records' phase windows
+    breathing: str = ""       # the breathing model's line for the monitor (rate, depth, held); "" without one
+    inspired: float | None = None  # the breath: 0 end-expiration .. 1 end-inspiration (None: no breathing model)
 
 
 @dataclass(frozen=True)
@@ -128,3 +130,4 @@ class ShownFrame:
     latency_s: float | None
     banners: list[str]
     saved_flash: bool
+    inspired: float | None = None          # the breath of a live image (0 end-expiration, 1 end-inspiration)

@@ -84,6 +84,9 @@ def open_tracker(cfg: ApplianceConfig) -> Tracker:
 
 def open_timeline(cfg: ApplianceConfig, renderer: Renderer | ProgressiveRenderer) -> PhaseTimeline:
     """The active case's phases, loaded and prepared for `renderer` by the timeline's own thread."""
+    if cfg.case.respiration is not None:
+        from ..patient.breathing_timeline import breathing_timeline
+        return breathing_timeline(cfg.case_path, cfg.case, renderer, cfg.data_dir / "cache")  # type: ignore[return-value]  # same interface
     return PhaseTimeline(patient_phases(cfg), renderer, at_end=cfg.case.at_end)
 
 

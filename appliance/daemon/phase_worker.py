@@ -31,6 +31,8 @@ class PhaseWorker(Worker):
         self._hold_t: float | None = None
         self._case_started: LatestValue[float] = LatestValue("case started")
         self._case_started_seq = 0
+        # Console presses of the breathing keys already handed to the breathing model.
+        self._breath_steps = (0, 0)
 
     def restart_case(self) -> None:
         """The case was replaced (from another thread): its time starts again now."""
@@ -52,11 +54,26 @@ class PhaseWorker(Worker):
             t = self._hold_t
             self._hold_t = None
         generation = self.parts.generation
+        control = getattr(self.parts.timeline, "control", None)     # a breathing model, when the case has one
+        if control is not None and state is not None:
+            self._apply_breath_keys(control, state, t)
         try:
             a, b, weight = self.parts.timeline.at(t)
         except FluorosimError:
             self.sleep(NOT_READY_RETRY_S)
             return False
-        self.phases.put(PhaseValue(a, b, float(weight), generation, t))
+        text = control.overlay_text(t) if control is not None else ""
+        inspired = control.at(t).inspired if control is not None else None
+        self.phases.put(PhaseValue(a, b, float(weight), generation, t_case_s=t, breathing=text, inspired=inspired))
         self.sleep(PHASE_PERIOD_S)
         return True
+
+    def _apply_breath_keys(self, control, state: ConsoleState, t: float) -> None:
+        """Each faster/slower/deeper/shallower press since the last look, applied at case time t."""
+        rate, depth = state.breath_rate_steps, state.breath_depth_steps
+        done_rate, done_depth = self._breath_steps
+        for _ in range(abs(rate - done_rate)):
+            (control.faster if rate > done_rate else control.slower)(t)
+        for _ in range(abs(depth - done_depth)):
+            (control.deeper if depth > done_depth else control.shallower)(t)
+        self._breath_steps = (rate, depth)

@@ -57,7 +57,7 @@ def view_for(cfg: ApplianceConfig, state: ConsoleState) -> View:
 
 
 def overlay_for(cfg: ApplianceConfig, state: ConsoleState, *, live: bool, saved_flash: bool, warnings: list[str],
-                fps: float | None, teaching: TeachingStatus | None = None) -> Overlay:
+                fps: float | None, teaching: TeachingStatus | None = None, breathing: str = "") -> Overlay:
     """What the compositor draws over the image: the console's readings, the session's names and,
     with an exercise or the shot counter, the teaching lines."""
     shots = teaching.exposures if teaching is not None and cfg.appliance.teaching.shot_counter else None
@@ -70,7 +70,7 @@ def overlay_for(cfg: ApplianceConfig, state: ConsoleState, *, live: bool, saved_
                    saved_flash=saved_flash, invert=state.invert, breath_hold=state.breath_hold,
                    case=cfg.case.title, operator=(teaching.trainee if teaching is not None and teaching.trainee
                                                   else cfg.appliance.operator), fluoroscope=cfg.fluoroscope.name,
-                   warnings=list(warnings), fps=fps)
+                   warnings=list(warnings), fps=fps, breathing=breathing)
 
 
 class RenderWorker(Worker):
@@ -141,7 +141,8 @@ class RenderWorker(Worker):
         saved_flash = saved is not None and now < saved.t_saved + SAVED_FLASH_S
         teaching = self.teaching.get()[0] if self.teaching is not None else None
         overlay = overlay_for(cfg, state, live=live, saved_flash=saved_flash, warnings=banners,
-                              fps=self.stats.fps(now), teaching=teaching)
+                              fps=self.stats.fps(now), teaching=teaching,
+                              breathing=phase.breathing if phase is not None else "")
         self.parts.display.show(self.parts.compositor.compose(self._image, overlay))
         t_shown = time.monotonic()
         self._last_compose = t_shown
@@ -153,7 +154,8 @@ class RenderWorker(Worker):
         self.on_first_frame()
         if self.on_shown is not None:
             self.on_shown(ShownFrame(self.parts.display.read_back, self._image, state, tracked if live else None,
-                                     live, t_shown, latency, banners, saved_flash))
+                                     live, t_shown, latency, banners, saved_flash,
+                                     phase.inspired if live and phase is not None else None))
         return True
 
     def _render(self, cfg: ApplianceConfig, T_xray_from_ct: np.ndarray, phase: PhaseValue,

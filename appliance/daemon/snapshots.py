@@ -65,6 +65,28 @@ def _collimated(f: ShownFrame) -> bool:
     return bool(np.min(np.atleast_1d(np.asarray(c, dtype=float))) < f.state.fov_mm - 1e-6)
 
 
+#: The end-inspiration snapshot comes within this of the end-expiration one (s), so the camera
+#: has barely moved between the two and the pair shows the breath, not the path.
+BREATH_PAIR_S = 10.0
+
+
+def _breath_pair() -> list[Moment]:
+    """End-expiration, then the next end-inspiration within BREATH_PAIR_S: a case breathing under the model."""
+    taken: dict[str, float] = {}
+
+    def expiration(f) -> bool:
+        hit = _live(f) and f.inspired is not None and f.inspired < 0.03
+        if hit:
+            taken["t"] = f.t_wall
+        return hit
+
+    def inspiration(f) -> bool:
+        return ("t" in taken and f.t_wall - taken["t"] <= BREATH_PAIR_S and _live(f)
+                and f.inspired is not None and f.inspired > 0.97)
+    return [Moment("end-expiration", "end-expiration", expiration),
+            Moment("end-inspiration", "end-inspiration", inspiration)]
+
+
 def key_moments() -> list[Moment]:
     """The moments the demo shows, in the order they appear on the contact sheet."""
     moments = [Moment("first-live", "first live image", _live)]
@@ -76,6 +98,7 @@ def key_moments() -> list[Moment]:
         Moment("roll-plus-90", "roll +90 degrees", lambda f: _live(f) and (_pose_roll(f) or 0) > 75),
         Moment("roll-minus-90", "roll -90 degrees", lambda f: _live(f) and (_pose_roll(f) or 0) < -75),
         Moment("breath-hold", "breath hold", lambda f: _live(f) and bool(f.state.breath_hold)),
+        *_breath_pair(),
         Moment("saved", "image saved", lambda f: bool(f.saved_flash)),
         Moment("alarm", "5-minute alarm", lambda f: bool(f.state.alarm_sounding)),
         Moment("last-image-hold", "last-image hold", lambda f: not f.live and f.image is not None

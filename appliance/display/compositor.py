@@ -77,6 +77,7 @@ class Overlay:
     saved_flash: bool = False
     invert: bool = False               # shows the INVERT label; the image arrives already inverted
     breath_hold: bool = False
+    breathing: str = ""             # controllable breathing: rate and depth (empty: the case has none)
     case: str = ""
     operator: str = ""
     fluoroscope: str = ""
@@ -267,6 +268,8 @@ class Compositor:
             extra.append(("INVERT", WHITE))
         if overlay.breath_hold:
             extra.append(("BREATH HOLD", AMBER))
+        elif overlay.breathing:
+            extra.append((overlay.breathing, WHITE))
         if overlay.fps is not None:
             extra.append((f"{overlay.fps:.0f} fps", GREY))
         if extra:

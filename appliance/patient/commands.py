@@ -170,3 +170,6 @@ def register(commands, benches) -> None:
     b.add_argument("--name", default=NAMES[0], choices=NAMES)
     b.add_argument("--repeat", type=int, default=3, help="builds to take the median of (default 3)")
     b.set_defaults(run=run_bench)
+
+    from .breathing_bench import register as register_breathing_bench
+    register_breathing_bench(benches)

@@ -22,22 +22,37 @@ class PoseFile(Section):
     T_xray_from_ct: RigidTransform = Field(description="Maps the volume's physical (header) coordinates into the xray frame (4x4, mm).")
 
 
-def _volume_and_case(path: Path, phase_time_s: float | None):
+def _volume_and_case(path: Path, phase_time_s: float | None, respiration: str | None = None):
     """The volume to render and the case's materials/contrast (defaults for a bare volume)."""
+    from ..patient.breathing_case import breathing_ct, parse_overrides, respiration_for
     from ..patient.volume_io import load_volume
 
+    overrides = parse_overrides(respiration)
     if path.suffix.lower() in (".yaml", ".yml"):
         case = load_profile(path, CaseProfile)
+        breathing = respiration_for(case, overrides, str(path))
         if case.phases is None:
             raise FluorosimError(f"{path}: built-in patients are rendered by the appliance; "
                                  "give a case with `phases` or a volume file")
+        if breathing is not None and len(case.phases) == 1:
+            # One CT breathing under the model: the CT is end-expiration, moved to time T.
+            ct = load_volume(resolve(path, case.phases[0].volume))
+            return (breathing_ct(path, breathing, ct, case.materials, phase_time_s or 0.0),
+                    case.materials, case.contrast)
         times = [p.time_s for p in case.phases]
         t = 0.0 if phase_time_s is None else phase_time_s
+        period = times[-1] + (times[-1] - times[0]) / (len(times) - 1) - times[0] if len(times) > 1 else 0.0
+        if breathing is not None:
+            # A 4D CT: the breathing model's rate picks the time in the CT's own breath.
+            if breathing.ct_end_expiration_s is None:
+                raise FluorosimError(f"{path}: respiration.ct_end_expiration_s: is required for a 4D CT")
+            t = breathing.ct_end_expiration_s + period * ((breathing.rate_per_min / 60.0 * t - 0.75) % 1.0)
         if case.at_end == "loop" and len(times) > 1:
-            period = times[-1] + (times[-1] - times[0]) / (len(times) - 1) - times[0]
             t = times[0] + (t - times[0]) % period
         i = max([k for k, tk in enumerate(times) if tk <= t] or [0])
         return load_volume(resolve(path, case.phases[i].volume)), case.materials, case.contrast
+    if overrides:
+        raise FluorosimError("--respiration needs --volume to be a case profile (.yaml)")
     if phase_time_s is not None:
         raise FluorosimError("--phase-time needs --volume to be a case profile (.yaml) listing phases")
     return load_volume(path), Materials(), None
@@ -73,7 +88,7 @@ def run_render(args) -> int:
         raise FluorosimError(f"{out}: folder {out.parent} does not exist; create it or choose another output")
     fluoroscope = load_profile(args.fluoroscope, FluoroscopeProfile)
     pose = load_profile(args.pose, PoseFile)
-    volume, materials, contrast = _volume_and_case(Path(args.volume), args.phase_time)
+    volume, materials, contrast = _volume_and_case(Path(args.volume), args.phase_time, args.respiration)
     renderer = Renderer(fluoroscope, materials, contrast, device=args.device)
     prepared = renderer.prepare(volume)
     view = View(zoom=args.zoom, quantity=args.quantity, noise=fluoroscope.display.noise and not args.no_noise,
@@ -112,6 +127,8 @@ def register(commands, benches) -> None:
     p.add_argument("--zoom", type=int, default=1, choices=(1, 2, 3, 4))
     p.add_argument("--phase-time", type=float, default=None, metavar="SECONDS",
                    help="time in the case's 4D timeline (with a case profile as --volume)")
+    p.add_argument("--respiration", default=None, metavar="KEY=VALUE[,KEY=VALUE...]",
+                   help="override keys of the case's respiration: section (e.g. diaphragm_mm=7.5,rate_per_min=20)")
     p.add_argument("--mono", action="store_true", help="one energy (the spectrum's effective energy) instead of the spectrum")
     p.add_argument("--no-noise", action="store_true", help="leave out quantum noise")
     p.add_argument("--seed", type=int, default=None, help="seed of the quantum noise")

@@ -1,0 +1,124 @@
+"""The breathing patient as the daemon draws it: depth states blended in projection space, live keys."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import synthetic_chest as sc
+from test_breathing_motion import SOD, T_XRAY_FROM_CT, dome_edge_row
+
+from appliance.config import FluoroscopeProfile, KeymapProfile, load_profile
+from appliance.config.case import Materials, Respiration
+from appliance.console.state import Console
+from appliance.patient.breathing_timeline import BreathingTimeline
+from appliance.xray.bench import flat_profile
+from appliance.xray.renderer import Renderer, View
+from drivers.input_event import InputEvent
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def timeline():
+    renderer = Renderer(flat_profile(128), Materials(), device="cpu")
+    ct = sc.chest()
+    tl = BreathingTimeline(lambda: ct, Respiration(), Materials(), renderer)
+    assert tl.wait_ready(120, all_phases=True)
+    yield tl
+    tl.close()
+
+
+def test_states_span_end_expiration_to_the_deepest_breath(timeline):
+    p = timeline.params
+    assert timeline.ready_count == p.depth_states
+    assert timeline.excursions[0] == 0 and timeline.excursions[-1] == pytest.approx(p.depth_max)
+    a, b, w = timeline.at(3.0)                       # end-expiration at 15/min
+    assert a is timeline._prepared[0] and b is None and w == 0
+    a, b, w = timeline.at(1.0)                       # end-inspiration: excursion 1
+    step = timeline.excursions[1]
+    k = int(1.0 / step)
+    assert a is timeline._prepared[k] and b is timeline._prepared[k + 1] and w == pytest.approx(1.0 / step - k)
+
+
+def test_blended_states_put_the_dome_where_the_breath_is(timeline):
+    """Displayed image of the blend at end-inspiration: the dome edge is fy * 15 / SOD pixels below
+    end-expiration's (within 10 %), though no state was drawn at exactly 15 mm."""
+    r = timeline.renderer
+    f = r.fluoroscope
+    column = int(round(f.intrinsics.cx + f.intrinsics.fx * -50.0 / SOD))
+    view = View(quantity="intensity", noise=False)
+    images = []
+    for t in (3.0, 1.0):
+        a, b, w = timeline.at(t)
+        images.append(-np.log(np.maximum(r.render(a, T_XRAY_FROM_CT, view, blend=None if b is None else (b, w)), 1e-6)))
+    r_apex = int(round(f.intrinsics.cy - f.intrinsics.fy * sc.DOME_APEX_Z / SOD))
+    level = 0.5 * (images[0][r_apex - 4, column] + images[0][r_apex + 4, column])
+    rows = [dome_edge_row(img, column, level, r_apex - 6) for img in images]
+    assert rows[1] - rows[0] == pytest.approx(f.intrinsics.fy * 15.0 / SOD, rel=0.1)
+
+
+def test_keys_count_presses_for_the_breathing_model():
+    fl = load_profile(ROOT / "configs" / "fluoroscopes" / "generic-ii-carm.yaml", FluoroscopeProfile)
+    keymap = load_profile(ROOT / "configs" / "keymaps" / "usb-numeric-keypad.yaml", KeymapProfile)
+    console = Console(fl, keymap, 0.0)
+    kinds = []
+    for t, key in ((1.0, "KEY_F11"), (1.5, "KEY_F11"), (2.0, "KEY_F12"), (3.0, "KEY_KPEQUAL"), (4.0, "KEY_KPCOMMA"),
+                   (4.5, "KEY_KPCOMMA")):
+        kinds += [e.kind for e in console.handle(InputEvent(t, "scripted", key, True))]
+    s = console.snapshot()
+    assert (s.breath_rate_steps, s.breath_depth_steps) == (1, -1)
+    assert kinds.count("breath_rate") == 3 and kinds.count("breath_depth") == 3
+
+
+def test_phase_worker_hands_the_presses_to_the_breathing_model(timeline):
+    """The daemon's phase worker, on the real timeline and a real console's state: two faster
+    presses raise the rate by two steps at the case time they are seen, shown on the overlay line."""
+    from types import SimpleNamespace
+
+    from appliance.daemon.handoff import LatestValue
+    from appliance.daemon.phase_worker import PhaseWorker
+
+    fl = load_profile(ROOT / "configs" / "fluoroscopes" / "generic-ii-carm.yaml", FluoroscopeProfile)
+    keymap = load_profile(ROOT / "configs" / "keymaps" / "usb-numeric-keypad.yaml", KeymapProfile)
+    console = Console(fl, keymap, 0.0)
+    for t, key in ((0.1, "KEY_F11"), (0.2, "KEY_F11"), (0.3, "KEY_KPEQUAL")):
+        console.handle(InputEvent(t, "scripted", key, True))
+    states, phases = LatestValue("console"), LatestValue("phases")
+    states.put(console.snapshot())
+    worker = PhaseWorker(SimpleNamespace(timeline=timeline, generation=0), states, phases)
+    before = timeline.control.at(0.0)
+    assert worker.step()
+    p = timeline.params
+    assert timeline.control.rate_per_min == p.rate_per_min + 2 * p.rate_step_per_min
+    assert timeline.control.depth_target == pytest.approx(1 + p.depth_step)
+    value, _ = phases.get()
+    assert value.breathing == f"RESP {p.rate_per_min + 2 * p.rate_step_per_min:.0f}/min  depth {1 + p.depth_step:.2f}"
+    # Seen once: a second look at the same state changes nothing.
+    assert worker.step() and timeline.control.rate_per_min == p.rate_per_min + 2 * p.rate_step_per_min
+    assert before.rate_per_min == p.rate_per_min
+    timeline.control = type(timeline.control)(p)        # leave the shared timeline as the other tests found it
+
+
+def test_snapshot_pair_end_expiration_then_end_inspiration(tmp_path):
+    """The pair is the first live end-expiration and the next end-inspiration within BREATH_PAIR_S."""
+    from types import SimpleNamespace
+
+    from appliance.daemon.snapshots import BREATH_PAIR_S, Snapshotter, key_moments, read_png
+
+    snap = Snapshotter(tmp_path, key_moments())
+    state = SimpleNamespace(zoom=1, fov_mm=230.0, collimation_mm=(230.0, 230.0), invert=False, breath_hold=False,
+                            alarm_sounding=False, fluoro_on=True)
+
+    def frame(value, t, inspired):
+        rgb = np.full((8, 8, 3), value, np.uint8)
+        return SimpleNamespace(rgb_source=lambda: rgb, image=rgb, state=state, pose=None, live=True, t_wall=t,
+                               banners=[], saved_flash=False, inspired=inspired)
+    for f in (frame(10, 0.0, 0.99), frame(20, 1.0, 0.01), frame(30, 2.0 + BREATH_PAIR_S, 0.99),
+              frame(40, 3.0, 0.5)):
+        snap(f)
+    assert (read_png(snap.taken["end-expiration"]) == 20).all()
+    assert "end-inspiration" not in snap.taken                  # too late after end-expiration
+    snap2 = Snapshotter(tmp_path / "b", key_moments())
+    for f in (frame(50, 0.0, 0.0), frame(60, 1.5, 1.0)):
+        snap2(f)
+    assert (read_png(snap2.taken["end-inspiration"]) == 60).all()
