@@ -9,9 +9,9 @@ import pytest
 from appliance.config.case import Materials
 from appliance.errors import FluorosimError
 from appliance.patient.timeline import PhaseTimeline
-from appliance.xray.analytic import box_volume
-from appliance.xray.benchmark import flat_profile
+from appliance.xray.bench import flat_profile
 from appliance.xray.renderer import Renderer
+from appliance.xray.truth.analytic import box_volume
 
 
 @pytest.fixture(scope="module")

@@ -3,7 +3,7 @@
 import pytest
 
 from appliance.config.case import Materials
-from appliance.xray.benchmark import accuracy_cases, accuracy_table, flat_profile
+from appliance.xray.bench import accuracy_cases, accuracy_table, flat_profile
 from appliance.xray.renderer import Renderer
 
 

@@ -32,8 +32,8 @@ FLUOROSCOPE = ROOT / "configs" / "fluoroscopes" / "generic-ii-carm.yaml"
 def rendered(phantom):
     """Four renderer images at 512x512 (the shipped C-arm read out at half resolution, so the
     test stays fast) of a machine off its nominal profile, with the webcam's marker readings."""
-    from appliance.calibration import scenario
-    from appliance.calibration.rendered_phantom import render_phantom_images
+    from appliance.calibration.truth import scenario
+    from appliance.calibration.truth.rendered_phantom import render_phantom_images
     from appliance.config import FluoroscopeProfile
     from appliance.xray.renderer import at_resolution
 
@@ -70,7 +70,7 @@ def test_renderer_puts_each_ball_where_the_opencv_model_says(rendered):
 
 
 def test_calibration_from_renderer_images_meets_the_issue_figures(rendered):
-    from appliance.calibration import scenario
+    from appliance.calibration.truth import scenario
     from appliance.calibration.xray_calibration import calibrate
 
     small, nominal, machine, _, images, readings, centre, radius = rendered

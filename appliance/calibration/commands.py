@@ -56,7 +56,7 @@ def run_print_phantom(args) -> int:
 
 
 def run_bench(args) -> int:
-    from .benchmark import run_benchmark
+    from .bench import run_benchmark
 
     return run_benchmark(args)
 

@@ -117,7 +117,7 @@ def run_render(args) -> int:
 
 
 def run_bench(args) -> int:
-    from .benchmark import run
+    from .bench import run
 
     return run(args)
 

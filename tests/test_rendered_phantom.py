@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from appliance.calibration.rendered_phantom import phantom_volume
+from appliance.calibration.truth.rendered_phantom import phantom_volume
 from appliance.config import load_profile
 from appliance.config.calibration_phantom import CalibrationPhantomProfile
 from appliance.geometry import apply

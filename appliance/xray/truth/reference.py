@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import invert
+from ...geometry import invert
 
 
 def path_lengths(hu_shape_zyx, T_ct_from_voxel, source_ct, target_ct):

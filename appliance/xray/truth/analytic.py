@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import invert
-from ..patient.volume import Volume
+from ...geometry import invert
+from ...patient.volume import Volume
 
 
 def pixel_rays_ct(K: np.ndarray, T_xray_from_ct: np.ndarray, rows: int, cols: int):

@@ -22,7 +22,7 @@ from ..config.commands import default_config_dir
 from ..config.fluoroscope import FluoroscopeProfile
 from ..config.loading import load_profile
 from ..geometry import apply
-from . import scenario, shadowgraph
+from .truth import scenario, shadowgraph
 from .xray_calibration import calibrate
 
 #: The targets a calibration must meet, as (figure, limit, unit). A calibration that says
@@ -101,7 +101,7 @@ def _shadowgraph_images(phantom, fluoroscope, machine, poses, rng):
 
 
 def _renderer_images(phantom, fluoroscope, machine, poses, rng):
-    from .rendered_phantom import render_phantom_images
+    from .truth.rendered_phantom import render_phantom_images
     return render_phantom_images(phantom, fluoroscope, machine, poses, rng)
 
 
@@ -121,7 +121,7 @@ def run_benchmark(args) -> int:
         make = _shadowgraph_images if source == "shadowgraph" else _renderer_images
         if source == "renderer":
             try:
-                from . import rendered_phantom  # noqa: F401
+                from .truth import rendered_phantom  # noqa: F401
             except ImportError as e:
                 print(f"[renderer] skipped: the DRR renderer is not available here ({e})")
                 status = 1

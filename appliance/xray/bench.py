@@ -87,7 +87,7 @@ def flat_profile(size: int = 128):
 
 def accuracy_cases():
     """(name, volume, closed-form chord function(source, dirs) -> mm, min path mm, pose)."""
-    from .analytic import box_chords, box_volume, ellipsoid_chords, ellipsoid_volume
+    from .truth.analytic import box_chords, box_volume, ellipsoid_chords, ellipsoid_volume
 
     shape, sp = (48, 64, 64), (1.5, 1.25, 2.5)
     lo_i, hi_i = (9, 14, 6), (52, 47, 40)
@@ -110,9 +110,9 @@ def accuracy_cases():
 def accuracy_table(renderer, cases, with_reference: bool = True):
     """Rows of (case, method, max rel error, mean rel error, pixels) against closed form;
     and kernel vs NumPy reference (max relative) on the same voxel grid."""
-    from . import reference
-    from .analytic import pixel_rays_ct
     from .renderer import View, zoomed_K
+    from .truth import reference
+    from .truth.analytic import pixel_rays_ct
 
     rows_out = []
     rows, cols = renderer.shape

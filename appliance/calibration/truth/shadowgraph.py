@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..config.calibration_phantom import CalibrationPhantomProfile
-from ..geometry import apply
+from ...config.calibration_phantom import CalibrationPhantomProfile
+from ...geometry import apply
 
 #: Linear attenuation of steel near 60 keV (1/mm): mu/rho ~0.2 cm^2/g times 7.8 g/cm^3.
 STEEL_MU_PER_MM = 0.15

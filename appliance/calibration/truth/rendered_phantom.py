@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..config.calibration_phantom import CalibrationPhantomProfile
-from ..config.fluoroscope import FluoroscopeProfile
-from ..patient.volume import Volume
+from ...config.calibration_phantom import CalibrationPhantomProfile
+from ...config.fluoroscope import FluoroscopeProfile
+from ...patient.volume import Volume
 from .shadowgraph import burn_in_text
 
 AIR_HU = -1000
@@ -84,8 +84,8 @@ def render_phantom_images(phantom: CalibrationPhantomProfile, fluoroscope: Fluor
     renderer with the true machine's K and distortion: what the monitor shows (inverted, so
     air is bright as on a clinical frame grab), with noise, focal-spot blur, vignetting, the
     intensifier circle and burned-in text. Returns (images, circle centre (u, v), radius px)."""
-    from ..config.case import Materials
-    from ..xray.renderer import Renderer, View
+    from ...config.case import Materials
+    from ...xray.renderer import Renderer, View
 
     true_profile = machine_profile(fluoroscope, machine.K, machine.dist)
     # Calibration exposures are taken at a fixed technique (ABC locked), as on the real unit:

@@ -14,9 +14,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..config.calibration_phantom import CalibrationPhantomProfile
-from ..config.fluoroscope import FluoroscopeProfile
-from ..geometry import invert, make_transform, rotation_about, rotation_angle_deg
+from ...config.calibration_phantom import CalibrationPhantomProfile
+from ...config.fluoroscope import FluoroscopeProfile
+from ...geometry import invert, make_transform, rotation_about, rotation_angle_deg
 
 
 @dataclass(frozen=True)
