@@ -10,10 +10,10 @@ import cv2
 import numpy as np
 import pytest
 
-from appliance.calibration import scenario, shadowgraph
 from appliance.calibration.blobs import detect_blobs
 from appliance.calibration.field_of_view import find_field_of_view
 from appliance.calibration.fit import centroid_offsets
+from appliance.calibration.truth import scenario, shadowgraph
 from appliance.config import FluoroscopeProfile, load_profile
 from appliance.config.calibration_phantom import CalibrationPhantomProfile
 from appliance.geometry import apply

@@ -137,7 +137,8 @@ def register(commands, benches) -> None:
                                     "whether it looks like a CT in HU; and with --at the value at a point. LPS: +x toward "
                                     "the patient's left, +y posterior, +z superior, as ITK reads every format.")
     i.add_argument("ct", metavar="CT", help="DICOM series folder, .nii/.nii.gz, .mha/.mhd or .nrrd")
-    i.add_argument("--at", metavar="X,Y,Z", help="also print the HU at this point (LPS mm; write --at=-12,5,30 when it starts with a minus)")
+    i.add_argument("--at", metavar="X,Y,Z",
+                   help="also print the HU at this point (LPS mm; write --at=-12,5,30 when it starts with a minus)")
     i.set_defaults(run=run_inspect)
     p = case.add_parser("place", help="write a case profile that puts a point of a CT at the X-ray isocentre",
                         description="Compute T_phantom_from_ct so that TARGET (LPS mm, see `case inspect`) lies at the "
@@ -145,7 +146,8 @@ def register(commands, benches) -> None:
                                     "patient's head along the box and the beam entering PA (supine), AP (prone) or LAT "
                                     "(left side toward the detector). Writes the case profile and a preview PNG.")
     p.add_argument("ct", metavar="CT", help="DICOM series folder, .nii/.nii.gz, .mha/.mhd or .nrrd")
-    p.add_argument("--target", required=True, metavar="X,Y,Z", help="the point to centre, in the CT's LPS mm (write --target=-12,5,30 when it starts with a minus)")
+    p.add_argument("--target", required=True, metavar="X,Y,Z",
+                   help="the point to centre, in the CT's LPS mm (write --target=-12,5,30 when it starts with a minus)")
     p.add_argument("--beam", default="PA", choices=("PA", "AP", "LAT"), help="how the beam sees the patient (default PA)")
     p.add_argument("--out", metavar="CASE.yaml", help="write the case profile here (default: print it)")
     p.add_argument("--preview", metavar="PNG", help="preview picture (default: CASE-preview.png beside --out)")

@@ -134,7 +134,8 @@ def register(commands, benches) -> None:
     p.add_argument("--volume", required=True, metavar="PATH",
                    help="DICOM series folder, .nii/.nii.gz, .mha/.mhd or .nrrd; or a case profile (.yaml) with phases")
     p.add_argument("--fluoroscope", required=True, metavar="PROFILE.yaml")
-    p.add_argument("--pose", required=True, metavar="POSE.yaml", help="YAML with T_xray_from_ct: a 4x4 rigid transform (mm) from the CT's LPS frame into the xray frame "
+    p.add_argument("--pose", required=True, metavar="POSE.yaml",
+                   help="YAML with T_xray_from_ct: a 4x4 rigid transform (mm) from the CT's LPS frame into the xray frame "
                         "(described above)")
     p.add_argument("--quantity", required=True, choices=("line-integral", "intensity", "display"))
     p.add_argument("--output", required=True, metavar="OUT.{npy,png}")
