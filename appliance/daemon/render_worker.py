@@ -147,9 +147,10 @@ class RenderWorker(Worker):
         except Exception as e:  # noqa: BLE001 - an OpenCL fault must not end the appliance
             if is_cpu(self.parts.renderer):
                 raise
-            self.fault = f"{type(e).__name__}: {e}"[:FAULT_CHARS]
             log.error("renderer failed on %s (%s); falling back to the CPU device", self.parts.renderer_device, e)
             self.parts.fall_back_to_cpu(cfg)
+            # Reported once it is true: the banner says rendering is on the CPU.
+            self.fault = f"{type(e).__name__}: {e}"[:FAULT_CHARS]
             return None
 
     def _send_exposure_factor(self, factor: float) -> None:
