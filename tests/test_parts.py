@@ -31,3 +31,18 @@ def test_render_matrix_and_cpu_fallback_scale_the_fluoroscope():
     assert fl.intrinsics.cx == pytest.approx((511.5 + 0.5) / 4 - 0.5)
     assert rendered_fluoroscope(cfg, fallback=True).detector.columns == daemon.cpu_fallback_matrix_px
     assert rendered_fluoroscope(with_daemon(render_matrix_px=128), fallback=True).detector.columns == 128
+
+
+def test_the_screen_file_is_under_the_data_dir_in_force(tmp_path):
+    import os
+
+    from appliance.daemon.reload import ProfileKeeper
+    from appliance.display.target import screen_file
+
+    profile = Path(__file__).resolve().parents[1] / "configs" / "appliance-bench.yaml"
+    cfg = ProfileKeeper(profile, data_dir=tmp_path / "out").current     # as `bench e2e --out` runs it
+    assert screen_file(cfg.path, cfg.appliance, cfg.data_dir) == tmp_path / "out" / "screen.raw"
+    # Without an override, the profile's own data_dir (../var/bench from configs/).
+    written = screen_file(cfg.path, cfg.appliance)
+    assert written is not None
+    assert os.path.normpath(written) == os.path.normpath(profile.parent / ".." / "var" / "bench" / "screen.raw")

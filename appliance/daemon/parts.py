@@ -160,7 +160,8 @@ def open_parts(cfg: ApplianceConfig, console_clock: Callable[[], float]) -> Part
     The display comes first and shows that the appliance is starting; the console and its
     inputs come last, after the renderer is warm, so a scripted session starts on time.
     """
-    display = open_target(cfg.path, cfg.appliance)
+    # Under the data_dir in force: `bench e2e --out` and the tests may override the profile's.
+    display = open_target(cfg.path, cfg.appliance, data_dir=cfg.data_dir)
     compositor = Compositor(display.width, display.height,
                             circular_fov=cfg.fluoroscope.detector.kind == "image_intensifier")
     display.show(compositor.compose(None, Overlay(case=cfg.case.title, operator=cfg.appliance.operator,

@@ -10,21 +10,25 @@ from ..config import ApplianceProfile, resolve
 from ..errors import FluorosimError
 
 
-def screen_file(profile_path: str | Path, profile: ApplianceProfile) -> Path | None:
-    """The file a 'file' display target writes (relative paths are under data_dir), else None."""
+def screen_file(profile_path: str | Path, profile: ApplianceProfile, data_dir: Path | None = None) -> Path | None:
+    """The file a 'file' display target writes (relative paths are under data_dir: the profile's,
+    or `data_dir` where the command line overrides it), else None."""
     d = profile.devices.display
     if d.target != "file":
         return None
     if not d.path:
         raise FluorosimError(f"{profile_path}: devices.display.path is needed when devices.display.target is 'file'")
     p = Path(d.path).expanduser()
-    return p if p.is_absolute() else resolve(Path(profile_path), profile.data_dir) / p
+    if p.is_absolute():
+        return p
+    return (data_dir if data_dir is not None else resolve(Path(profile_path), profile.data_dir)) / p
 
 
-def open_target(profile_path: str | Path, profile: ApplianceProfile, read_only: bool = False) -> Display:
+def open_target(profile_path: str | Path, profile: ApplianceProfile, read_only: bool = False, *,
+                data_dir: Path | None = None) -> Display:
     """The configured display; `read_only` to look at what another process shows without disturbing it."""
     d = profile.devices.display
-    path = screen_file(profile_path, profile)
+    path = screen_file(profile_path, profile, data_dir)
     try:
         if path is not None and not read_only:
             path.parent.mkdir(parents=True, exist_ok=True)
