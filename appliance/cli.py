@@ -24,6 +24,7 @@ COMMAND_MODULES = (
     "appliance.calibration.commands",
     "appliance.records.commands",
     "appliance.patient.commands",
+    "appliance.patient.case_commands",
     "appliance.daemon.commands",
     "appliance.teaching.commands",
 )

@@ -62,21 +62,43 @@ def _state(**kw):
 
 def test_each_moment_is_taken_once_from_the_first_frame_that_shows_it(tmp_path):
     snap = Snapshotter(tmp_path, key_moments())
+    alarm_on = np.full((9, 8, 3), 50, np.uint8)
+    alarm_on[6:, :] = (220, 0, 0)                       # the red banner in the lower third
     frames = [
-        _Frame(np.full((8, 8, 3), 10, np.uint8), _state()),
-        _Frame(np.full((8, 8, 3), 20, np.uint8), _state()),
-        _Frame(np.full((8, 8, 3), 30, np.uint8), _state(zoom=3, fov_mm=130.0, collimation_mm=(130.0, 130.0))),
-        _Frame(np.full((8, 8, 3), 40, np.uint8), _state(collimation_mm=(120.0, 230.0))),
-        _Frame(np.full((8, 8, 3), 50, np.uint8), _state(alarm_sounding=True)),
-        _Frame(np.full((8, 8, 3), 60, np.uint8), _state(alarm_sounding=False, fluoro_on=False), live=False),
-        _Frame(np.full((8, 8, 3), 70, np.uint8), _state(), pose=SimpleNamespace(pose=SimpleNamespace(
+        _Frame(np.full((9, 8, 3), 10, np.uint8), _state()),
+        _Frame(np.full((9, 8, 3), 10, np.uint8), _state()),     # the same pixels again: no second name for them
+        _Frame(np.full((9, 8, 3), 20, np.uint8), _state()),
+        _Frame(np.full((9, 8, 3), 30, np.uint8), _state(zoom=3, fov_mm=130.0, collimation_mm=(130.0, 130.0))),
+        _Frame(np.full((9, 8, 3), 40, np.uint8), _state(collimation_mm=(120.0, 230.0))),
+        _Frame(np.full((9, 8, 3), 45, np.uint8), _state(alarm_sounding=True)),   # banner in its dark half
+        _Frame(alarm_on, _state(alarm_sounding=True)),
+        _Frame(np.full((9, 8, 3), 60, np.uint8), _state(alarm_sounding=False, fluoro_on=False), live=False),
+        _Frame(np.full((9, 8, 3), 65, np.uint8), _state(alarm_sounding=False, fluoro_on=False), live=False),
+        _Frame(np.full((9, 8, 3), 70, np.uint8), _state(), pose=SimpleNamespace(pose=SimpleNamespace(
             ok=True, T_webcam_from_phantom=_pose(88.0)))),
     ]
     for f in frames:
         snap(f)
-    expect = {"first-live": 10, "zoom-1": 10, "zoom-3": 30, "collimated": 40, "alarm": 50,
-              "alarm-reset": 60, "last-image-hold": 60, "roll-plus-90": 70}
+    expect = {"first-live": 10, "zoom-1": 20, "zoom-3": 30, "collimated": 40, "alarm": alarm_on,
+              "alarm-reset": 60, "last-image-hold": 65, "roll-plus-90": 70}
     assert set(snap.taken) == set(expect)
     for name, value in expect.items():
         assert (read_png(snap.taken[name]) == value).all(), name
     assert snap.taken["zoom-3"].name == "03-zoom-3.png"
+    pictures = [read_png(p).tobytes() for p in snap.taken.values()]
+    assert len(set(pictures)) == len(pictures), "no snapshot is a copy of another"
+
+
+@pytest.mark.parametrize("width, height", [(1280, 1024), (1920, 1080)])
+def test_the_alarm_banner_is_read_from_the_composed_screen_in_both_flash_phases(width, height):
+    from appliance.daemon.snapshots import alarm_banner_shown
+    from appliance.display.compositor import ALARM_FLASH_PERIOD_S, Compositor, Overlay
+
+    overlay = Overlay(live=True, zoom=1, fov_mm=230.0, collimation_mm=None, fluoro_time_s=301.0, air_kerma_mgy=1.0,
+                      dap_gy_cm2=0.1, mode="continuous", alarm=True, saved_flash=False, invert=False, breath_hold=False,
+                      case="c", operator="o", fluoroscope="f", warnings=["tracking lost: bring the box markers into view"],
+                      fps=20.0)
+    comp = Compositor(width, height)
+    image = np.random.default_rng(0).uniform(0, 1, (256, 256)).astype(np.float32)
+    assert alarm_banner_shown(comp.compose(image, overlay, now=5.0 + 0.1 * ALARM_FLASH_PERIOD_S))
+    assert not alarm_banner_shown(comp.compose(image, overlay, now=5.0 + 0.7 * ALARM_FLASH_PERIOD_S))

@@ -128,3 +128,13 @@ def test_kill_during_atomic_writes_never_leaves_a_partial_profile(tmp_path):
     leftovers = [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]
     # A kill between mkstemp and rename may leave a hidden temporary file; never a damaged profile.
     assert all(name.endswith(".tmp") for name in leftovers), leftovers
+
+
+def test_an_editor_that_does_not_exist_is_one_line_and_the_profile_untouched(config_copy, tmp_path):
+    path = config_copy / "fluoroscopes" / "generic-ii-carm.yaml"
+    before = path.read_bytes()
+    result = run_edit(path, "no-such-editor-here --wait")
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "EDITOR=no-such-editor-here --wait: no such program" in lines[0]
+    assert path.read_bytes() == before and not list(path.parent.glob(".*edit-*"))

@@ -123,3 +123,34 @@ def test_render_and_bench_are_registered():
     args = build_parser().parse_args(["render", "--volume", "v.nii", "--fluoroscope", "f.yaml", "--pose", "p.yaml",
                                       "--quantity", "intensity", "--output", "o.npy", "--zoom", "4", "--phase-time", "1.5"])
     assert (args.zoom, args.phase_time, args.quantity) == (4, 1.5, "intensity")
+
+
+def test_size_renders_the_same_field_on_another_matrix(case):
+    d, lo, hi, T = case
+    r = fluorosim("render", "--volume", "box.nii.gz", "--fluoroscope", "flat256.yaml", "--pose", "pose.yaml",
+                  "--quantity", "line-integral", "--output", "small.npy", "--size", "96x64", cwd=d)
+    assert r.returncode == 0, r.stderr
+    assert "casting 96 x 64 rays" in r.stdout and "preparing 24 x 24 x 20 voxels" in r.stdout
+    mu = float(r.stdout.split("mu_water = ")[1].split()[0])
+    img = np.load(d / "small.npy")
+    assert img.shape == (64, 96)
+    # The 256 x 256 field read out at 96 x 64: pixels 256/96 and 256/64 times as big, edges kept.
+    f = load_profile(d / "flat256.yaml", FluoroscopeProfile)
+    sx, sy = 96 / 256, 64 / 256
+    K = np.array([[f.intrinsics.fx * sx, 0, (f.intrinsics.cx + 0.5) * sx - 0.5],
+                  [0, f.intrinsics.fy * sy, (f.intrinsics.cy + 0.5) * sy - 0.5], [0, 0, 1]])
+    s, dirs = pixel_rays_ct(K, T, 64, 96)
+    truth = box_chords(s, dirs, lo, hi) * mu
+    sel = truth > 10 * mu
+    assert sel.sum() > 100 and (np.abs(img[sel] - truth[sel]) / truth[sel]).max() < 0.005
+    bad = fluorosim("render", "--volume", "box.nii.gz", "--fluoroscope", "flat256.yaml", "--pose", "pose.yaml",
+                    "--quantity", "line-integral", "--output", "x.npy", "--size", "0", cwd=d)
+    assert bad.returncode == 2 and "16 to 8192" in bad.stderr
+
+
+def test_render_help_defines_the_xray_frame_of_the_pose_file(case):
+    d, _, _, _ = case
+    r = fluorosim("render", "--help", cwd=d)
+    text = " ".join(r.stdout.split())
+    assert "focal spot at the origin" in text and "+z along the principal ray toward the detector" in text
+    assert "LPS" in text

@@ -41,19 +41,12 @@ class Blobs:
                      np.concatenate([p.strength for p in parts]))
 
 
-def attenuation_image(image: np.ndarray, fov: FieldOfView) -> np.ndarray:
-    """The image turned so balls are bright, constant outside the field (float32).
-
-    Balls are the extremes of the exposed disc: in an intensity frame the darkest pixels, in
-    a log-attenuation display the brightest. Whichever tail reaches farther from the median
-    is the balls' side.
-    """
+def attenuation_image(image: np.ndarray, fov: FieldOfView, dark_balls: bool) -> np.ndarray:
+    """The image turned so balls are bright, zero at the field's median, zero outside it (float32)."""
     img = np.asarray(image, dtype=np.float32)
     inside = fov.mask(img.shape, margin_px=2.0)
-    values = img[inside]
-    med = float(np.median(values))
-    lo, hi = np.percentile(values, [0.05, 99.95])
-    out = img - med if (hi - med) > (med - lo) else med - img
+    med = float(np.median(img[inside]))
+    out = med - img if dark_balls else img - med
     out[~inside] = 0.0
     return out
 
@@ -70,8 +63,20 @@ def _response_stack(a: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
     return stack
 
 
-def _refine_centre(a: np.ndarray, u: float, v: float, radius: float) -> tuple[float, float]:
-    """Background-subtracted centroid in a disc of 1.5 radii, re-centred three times."""
+def _refine_centre(image: np.ndarray, u: float, v: float, radius: float, dark_balls: bool) -> tuple[float, float]:
+    """Centroid of the shadow's attenuation against its own local background, in a disc of
+    1.5 radii, re-centred three times.
+
+    The background is a plane fitted to a ring around the shadow (it follows vignetting,
+    glare and a plate's edge). In an intensity frame the weight is -ln(I / background):
+    the ball's attenuation, whatever the brightness there. Weighing the darkness instead
+    (background - I) scales each side of a shadow by the local brightness, and the
+    intensifier's fall-off toward the edge then pulls every centre toward the middle of
+    the field, by up to a tenth of a pixel, which is enough to bias fx and the principal
+    point. A log-attenuation display (balls bright) is already additive: there the weight
+    is the value above the plane.
+    """
+    a = np.asarray(image)
     rows, cols = a.shape
     for _ in range(3):
         half = int(np.ceil(2.4 * radius)) + 2
@@ -84,11 +89,16 @@ def _refine_centre(a: np.ndarray, u: float, v: float, radius: float) -> tuple[fl
         disc = r <= 1.5 * radius
         if ring.sum() < 8 or disc.sum() < 4:
             break
-        # A plane through the ring removes a background slope (a plate's edge, vignetting).
         A = np.stack([uu[ring] - u, vv[ring] - v, np.ones(ring.sum())], axis=1)
         coef, *_ = np.linalg.lstsq(A, patch[ring], rcond=None)
         background = coef[0] * (uu - u) + coef[1] * (vv - v) + coef[2]
-        w = np.clip(patch - background, 0.0, None) * disc
+        if dark_balls:
+            if not coef[2] > 0:
+                break
+            w = -np.log(np.clip(patch / np.maximum(background, 1e-12), 1e-6, None))
+        else:
+            w = patch - background
+        w = np.clip(w, 0.0, None) * disc
         total = w.sum()
         if not total > 0:
             break
@@ -97,8 +107,14 @@ def _refine_centre(a: np.ndarray, u: float, v: float, radius: float) -> tuple[fl
 
 
 def detect_blobs(image: np.ndarray, fov: FieldOfView, detection: Detection) -> Blobs:
-    """Ball shadows inside `fov`, strongest first."""
-    a = attenuation_image(image, fov)
+    """Ball shadows inside `fov`, strongest first.
+
+    Whether the balls are dark (an intensity frame) or bright (a log display) is decided by
+    the balls: blobs are sought both ways on the same scale-space stack, and the polarity
+    that finds more round blobs of the phantom's sizes wins. An image's histogram tails
+    cannot tell it: faint balls lose against noise, glare or a bright rim.
+    """
+    a = attenuation_image(image, fov, dark_balls=False)
     n_scales = int(np.ceil(np.log2(detection.max_diameter_px / detection.min_diameter_px) * detection.scales_per_octave)) + 1
     # One scale beyond each end, so a peak at the first or last wanted scale is a true maximum.
     step = 2.0 ** (1.0 / detection.scales_per_octave)
@@ -109,6 +125,25 @@ def detect_blobs(image: np.ndarray, fov: FieldOfView, detection: Detection) -> B
     sample = inside[::2, ::2]
     noise = np.array([1.4826 * np.median(np.abs(s[::2, ::2][sample] - np.median(s[::2, ::2][sample]))) for s in stack])
     noise = np.maximum(noise, 1e-12)
+    bright = _candidates(stack, sigmas, noise, inside, fov, detection, step)
+    stack = np.negative(stack, out=stack)
+    dark = _candidates(stack, sigmas, noise, inside, fov, detection, step)
+    dark_balls = (len(dark[0]), dark[2].sum()) >= (len(bright[0]), bright[2].sum())
+    uv, d, strength = dark if dark_balls else bright
+    # Two shadows close enough to share a centroid window or background ring (a steep tilt
+    # lays one plate's ball beside the other's) would pull each other's centres: drop both.
+    gap = np.linalg.norm(uv[:, None] - uv[None], axis=2)
+    np.fill_diagonal(gap, np.inf)
+    crowded = (gap < 1.15 * d[:, None] + 0.5 * d[None, :]).any(axis=1)
+    keep = ~crowded
+    img = np.asarray(image, dtype=np.float32)
+    refined = np.array([_refine_centre(img, u, v, r, dark_balls) for (u, v), r in zip(uv[keep], d[keep] / 2)]).reshape(-1, 2)
+    return Blobs(refined, d[keep], strength[keep])
+
+
+def _candidates(stack: np.ndarray, sigmas: np.ndarray, noise: np.ndarray, inside: np.ndarray, fov: FieldOfView,
+                detection: Detection, step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(uv (n, 2), diameters (n,), strengths (n,)) of the round scale-space maxima of `stack`."""
     normalised = stack / noise[:, None, None]
     # 3x3x3 maxima: a 3x3 dilation per scale, then compare with the scales either side.
     kernel = np.ones((3, 3), np.uint8)
@@ -143,15 +178,8 @@ def detect_blobs(image: np.ndarray, fov: FieldOfView, detection: Detection) -> B
         kept_uv.append((float(ui), float(vi)))
         kept_d.append(diameter)
         kept_s.append(float(si))
-    uv, d = np.array(kept_uv, dtype=np.float64).reshape(-1, 2), np.array(kept_d, dtype=np.float64)
-    # Two shadows close enough to share a centroid window or background ring (a steep tilt
-    # lays one plate's ball beside the other's) would pull each other's centres: drop both.
-    gap = np.linalg.norm(uv[:, None] - uv[None], axis=2)
-    np.fill_diagonal(gap, np.inf)
-    crowded = (gap < 1.15 * d[:, None] + 0.5 * d[None, :]).any(axis=1)
-    keep = ~crowded
-    refined = np.array([_refine_centre(a, u, v, r) for (u, v), r in zip(uv[keep], d[keep] / 2)]).reshape(-1, 2)
-    return Blobs(refined, d[keep], np.array(kept_s, dtype=np.float64)[keep])
+    return (np.array(kept_uv, dtype=np.float64).reshape(-1, 2), np.array(kept_d, dtype=np.float64),
+            np.array(kept_s, dtype=np.float64))
 
 
 def _round_enough(response: np.ndarray, u: int, v: int, max_axis_ratio: float) -> bool:

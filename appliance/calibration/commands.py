@@ -91,7 +91,7 @@ def register(commands, benches) -> None:
                                        "calibrate from them, and print the errors of fx, fy, principal point, "
                                        "distortion, reprojection and T_xray_from_webcam, with median stage timings.")
     b.add_argument("--images", type=int, default=8, help="images per calibration (default 8)")
-    b.add_argument("--runs", type=int, default=3, help="independent calibrations (default 3)")
+    b.add_argument("--runs", type=int, default=10, help="independent calibrations, each with its own noise seed (default 10)")
     b.add_argument("--seed", type=int, default=1)
     b.add_argument("--source", choices=("shadowgraph", "renderer", "both"), default="both",
                    help="who makes the images: the analytic shadowgraph, the project's DRR renderer, or both")

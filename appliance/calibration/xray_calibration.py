@@ -117,7 +117,8 @@ def calibrate(images: list[tuple[str, np.ndarray]], phantom: CalibrationPhantomP
     if not views:
         return CalibrationResult(outcomes, None, None, ["no image could be used"], dict(timings))
     t0 = time.perf_counter()
-    fit = _fit_with_tangential_choice(views, K0, dist0, phantom)
+    fit, free = _fit_with_tangential_choice(views, K0, dist0, phantom)
+    _honest_principal_point_sigma(fit, free)
     timings["fit"].append(time.perf_counter() - t0)
     by_name = {o.name: o for o in outcomes}
     for name, reason in fit.rejected:
@@ -133,26 +134,57 @@ def calibrate(images: list[tuple[str, np.ndarray]], phantom: CalibrationPhantomP
 
 
 def _fit_with_tangential_choice(views: list[View], K0: np.ndarray, dist0: np.ndarray,
-                                phantom: CalibrationPhantomProfile) -> Fit:
-    """Fit with p1 = p2 = 0 and/or free, as `phantom.fit.tangential` says; 'auto' keeps the
-    free fit only when an F-test finds its lower residuals significant."""
+                                phantom: CalibrationPhantomProfile) -> tuple[Fit, Fit | None]:
+    """(the fit to report, the fit with p1 and p2 free or None when it failed).
+
+    The first has p1 = p2 = 0 and/or free, as `phantom.fit.tangential` says; 'auto' keeps the
+    free fit only when an F-test finds its lower residuals significant. The free fit is made
+    in every mode, as the principal point's honest uncertainty comes from it.
+    """
     gate, need = phantom.detection.final_gate_px, phantom.acceptance.min_spheres_per_image
     mode = phantom.fit.tangential
     start = np.asarray(dist0, float).copy()
     if mode == "fit":
-        return fit_views(views, K0, start, gate, need)
+        free = fit_views(views, K0, start, gate, need)
+        return free, (free if free.views else None)
     start[2:4] = 0.0
     plain = fit_views(views, K0, start, gate, need, fixed=frozenset({"p1", "p2"}))
-    if mode == "zero" or not plain.views:
-        return plain
+    if not plain.views:
+        return plain, None
     free = fit_views(views, K0, plain.dist, gate, need)
-    if not free.views or free.n_residuals != plain.n_residuals or free.ssr >= plain.ssr:
-        return plain
+    if not free.views:
+        return plain, None
+    if mode == "zero" or free.n_residuals != plain.n_residuals or free.ssr >= plain.ssr:
+        return plain, free
     q = free.n_params - plain.n_params
     dof = free.n_residuals - free.n_params
     F = ((plain.ssr - free.ssr) / q) / (free.ssr / dof)
     p_value = float(f_distribution.sf(F, q, dof))
-    return free if p_value < phantom.fit.tangential_significance else plain
+    return (free if p_value < phantom.fit.tangential_significance else plain), free
+
+
+def _honest_principal_point_sigma(fit: Fit, free: Fit | None) -> None:
+    """Widen the reported one-sigma of cx and cy to what the data support.
+
+    With p1, p2 held at zero the principal point is tied to the centre of the radial
+    distortion, which the balls pin to hundredths of a pixel; but a real decentring shifts
+    that centre, and the held fit then puts the principal point pixels away while its own
+    covariance still claims hundredths. The fit with p1, p2 free says how well the images
+    fix the principal point itself; its sigma, and the distance between the two answers,
+    are the honest uncertainty.
+    """
+    if free is None or not fit.sigma:
+        if fit.sigma and {"p1", "p2"} & fit.fixed:
+            fit.sigma["cx"] = fit.sigma["cy"] = float("inf")
+        return
+    for name, i in (("cx", 0), ("cy", 1)):
+        shift = abs(float(free.K[i, 2] - fit.K[i, 2]))
+        fit.sigma[name] = float(max(fit.sigma.get(name, 0.0), free.sigma.get(name, 0.0), shift))
+
+
+def principal_point_sigma_px(fit: Fit) -> float:
+    """Root sum of squares of cx's and cy's one-sigma (pixels)."""
+    return float(np.hypot(fit.sigma.get("cx", float("inf")), fit.sigma.get("cy", float("inf"))))
 
 
 def acceptance_failures(result: CalibrationResult, phantom: CalibrationPhantomProfile) -> list[str]:
@@ -174,6 +206,11 @@ def acceptance_failures(result: CalibrationResult, phantom: CalibrationPhantomPr
                 failures.append(f"{view.name}: its T_xray_from_webcam lies {mm:.1f} mm / {deg:.2f} deg from the average "
                                 f"(bar {bar.max_webcam_spread_mm} mm / {bar.max_webcam_spread_deg} deg); "
                                 "check that its --marker-pose file belongs to this image")
+    pp = principal_point_sigma_px(fit)
+    if not pp <= bar.max_principal_point_uncertainty_px:
+        failures.append(f"principal point uncertain to +-{pp:.2f} px (bar {bar.max_principal_point_uncertainty_px} px): "
+                        "these images cannot tell it from decentring distortion; add images with the phantom tilted "
+                        "10-15 degrees toward more directions")
     for name, f in (("fx", fit.K[0, 0]), ("fy", fit.K[1, 1])):
         pct = 100.0 * fit.sigma.get(name, float("inf")) / f
         if not pct <= bar.max_focal_uncertainty_percent:
@@ -202,6 +239,8 @@ def report(result: CalibrationResult) -> str:
             lines.append(f"{name:>9s} {value:14.6g} {fit.sigma.get(name, float('nan')):12.3g}")
         if fit.fixed:
             lines.append(f"held at their starting value: {', '.join(sorted(fit.fixed))} (the images do not call for them)")
+        lines.append(f"principal point one-sigma {principal_point_sigma_px(fit):.2f} px (cx, cy above: from the fit "
+                     "with p1, p2 free and its distance to this one)")
         lines.append(f"reprojection RMS {fit.rms_px:.3f} px, worst residual {fit.worst_px:.3f} px over {len(fit.views)} image(s)")
     if result.webcam is not None:
         w = result.webcam

@@ -91,6 +91,9 @@ class Acceptance(Section):
     max_rms_px: float = Field(0.5, gt=0, description="Largest reprojection RMS over all images (pixels).")
     max_residual_px: float = Field(1.5, gt=0, description="Largest single reprojection residual (pixels).")
     max_focal_uncertainty_percent: float = Field(0.5, gt=0, description="Largest one-sigma uncertainty of fx or fy (percent).")
+    max_principal_point_uncertainty_px: float = Field(
+        0.5, gt=0, description="Largest one-sigma uncertainty of the principal point, the root sum of squares of cx's and "
+                               "cy's, taken from the fit with p1, p2 free even when they are held at zero (pixels).")
     max_webcam_spread_mm: float = Field(
         3.0, gt=0, description="Each image's T_xray_from_webcam must lie this close to the average (mm); more means a "
                                "marker pose file belongs to another image.")

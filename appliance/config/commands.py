@@ -44,11 +44,22 @@ def run_validate(args: argparse.Namespace) -> int:
 
 
 def _editor() -> list[str]:
-    for candidate in (os.environ.get("VISUAL"), os.environ.get("EDITOR"), "editor", "nano", "vi"):
-        if candidate:
-            argv = shlex.split(candidate)
-            if shutil.which(argv[0]):
-                return argv
+    # An editor the person named and that is missing is their mistake to hear about, not a
+    # reason to drop them into another editor they did not ask for.
+    for variable in ("VISUAL", "EDITOR"):
+        named = os.environ.get(variable, "").strip()
+        if named:
+            try:
+                argv = shlex.split(named)
+            except ValueError:
+                argv = []
+            if not argv or not shutil.which(argv[0]):
+                raise FluorosimError(f"{variable}={named}: no such program; install it or set {variable} to an editor "
+                                     "that exists (for example EDITOR=nano)")
+            return argv
+    for candidate in ("editor", "nano", "vi"):
+        if shutil.which(candidate):
+            return [candidate]
     raise FluorosimError("no text editor found; set EDITOR (for example EDITOR=nano)")
 
 

@@ -9,6 +9,7 @@ from the framebuffer (what the trainee saw, overlays and all) and written as a P
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
 import time
@@ -100,7 +101,7 @@ def key_moments() -> list[Moment]:
         Moment("breath-hold", "breath hold", lambda f: _live(f) and bool(f.state.breath_hold)),
         *_breath_pair(),
         Moment("saved", "image saved", lambda f: bool(f.saved_flash)),
-        Moment("alarm", "5-minute alarm", lambda f: bool(f.state.alarm_sounding)),
+        Moment("alarm", "5-minute alarm", lambda f: bool(f.state.alarm_sounding) and alarm_banner_shown(f.rgb_source())),
         Moment("last-image-hold", "last-image hold", lambda f: not f.live and f.image is not None
                and not f.state.fluoro_on),
         Moment("tracking-lost", "tracking lost", lambda f: any("tracking lost" in b for b in f.banners)),
@@ -127,6 +128,7 @@ class Snapshotter:
         self.problem: str | None = None
         self._retry_at = 0.0
         self._alarm_seen = False
+        self._digests: set[bytes] = set()
 
     def __call__(self, frame) -> None:
         try:
@@ -141,6 +143,17 @@ class Snapshotter:
     def _look(self, frame) -> None:
         if time.monotonic() < self._retry_at:
             return
+        # One snapshot per frame, and never the same pixels twice: the first live frame is
+        # also at zoom 1, and one inverted frame may also be the breath hold, but a contact
+        # sheet showing one picture under two names shows neither moment. The next frame
+        # that shows the moment is a frame later.
+        alarm = bool(getattr(frame.state, "alarm_sounding", False))
+        if alarm:
+            self._alarm_seen = True
+        elif self._alarm_seen and "alarm-reset" not in self.taken:
+            # The alarm's reset is the first frame without it after it sounded.
+            if self._take(len(self.moments), Moment("alarm-reset", "alarm reset", lambda f: True), frame):
+                return
         for i, m in enumerate(self.moments):
             if m.name in self.taken:
                 continue
@@ -148,28 +161,36 @@ class Snapshotter:
                 hit = m.when(frame)
             except (AttributeError, TypeError, IndexError):
                 hit = False
-            if hit:
-                self._take(i, m, frame)
-        # The alarm's reset is the first frame without it after it sounded.
-        alarm = bool(getattr(frame.state, "alarm_sounding", False))
-        if alarm:
-            self._alarm_seen = True
-        elif self._alarm_seen and "alarm-reset" not in self.taken:
-            self._take(len(self.moments), Moment("alarm-reset", "alarm reset", lambda f: True), frame)
+            if hit and self._take(i, m, frame):
+                return
 
-    def _take(self, index: int, moment: Moment, frame) -> None:
-        rgb = frame.rgb_source()
+    def _take(self, index: int, moment: Moment, frame) -> bool:
+        rgb = np.ascontiguousarray(frame.rgb_source())
+        digest = hashlib.sha256(rgb.tobytes()).digest()
+        if digest in self._digests:
+            return False
         path = self.out_dir / f"{index:02d}-{moment.name}.png"
         self.out_dir.mkdir(parents=True, exist_ok=True)
         write_png(path, rgb)
         self.taken[moment.name] = path
         self.problem = None
+        self._digests.add(digest)
         log.info("snapshot %s: %s", moment.name, path)
+        return True
 
     def captions(self) -> dict[str, str]:
         out = {m.name: m.caption for m in self.moments}
         out["alarm-reset"] = "alarm reset"
         return out
+
+
+def alarm_banner_shown(rgb: np.ndarray) -> bool:
+    """Whether the alarm's red banner is on screen: it flashes, and a snapshot named for the
+    alarm taken in its dark half shows no alarm at all. Read from the pixels, as a person
+    would, with room for a display's colour depth (at least 0.5 % of the lower third red)."""
+    lower = np.asarray(rgb)[2 * rgb.shape[0] // 3:].astype(np.int16)
+    red = (lower[..., 0] > 180) & (lower[..., 1] < 50) & (lower[..., 2] < 50)
+    return bool(red.mean() > 0.005)
 
 
 def write_png(path: Path, rgb: np.ndarray) -> Path:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import time
 from pathlib import Path
 
 import numpy as np
@@ -77,8 +78,22 @@ def _encode(image: np.ndarray, suffix: str, quantity: str) -> tuple[bytes, str]:
     return data.tobytes(), note
 
 
+def parse_size(text: str) -> tuple[int, int]:
+    """`--size 512` (square, or the detector's aspect kept by the caller) or `--size 640x480` (columns x rows)."""
+    import argparse
+
+    parts = text.lower().split("x")
+    try:
+        values = [int(p) for p in parts]
+    except ValueError:
+        values = []
+    if len(values) not in (1, 2) or not all(16 <= v <= 8192 for v in values):
+        raise argparse.ArgumentTypeError(f"{text!r}: give PX or COLUMNSxROWS, each 16 to 8192 pixels")
+    return (values[0], values[0]) if len(values) == 1 else (values[0], values[1])
+
+
 def run_render(args) -> int:
-    from ..xray.renderer import Renderer, View
+    from ..xray.renderer import Renderer, View, at_resolution
 
     out = Path(args.output)
     suffix = out.suffix.lower()
@@ -87,10 +102,20 @@ def run_render(args) -> int:
     if not (out.parent if str(out.parent) else Path(".")).is_dir():
         raise FluorosimError(f"{out}: folder {out.parent} does not exist; create it or choose another output")
     fluoroscope = load_profile(args.fluoroscope, FluoroscopeProfile)
+    if args.size is not None:
+        fluoroscope = at_resolution(fluoroscope, *args.size)
     pose = load_profile(args.pose, PoseFile)
+    started = time.perf_counter()
+
+    def progress(what: str) -> None:
+        print(f"[{time.perf_counter() - started:6.1f} s] {what}", flush=True)
+    progress(f"loading {args.volume}")
     volume, materials, contrast = _volume_and_case(Path(args.volume), args.phase_time, args.respiration)
     renderer = Renderer(fluoroscope, materials, contrast, device=args.device)
+    nx, ny, nz = volume.shape_xyz
+    progress(f"preparing {nx} x {ny} x {nz} voxels for {renderer.device.name.strip()}")
     prepared = renderer.prepare(volume)
+    progress(f"casting {fluoroscope.detector.columns} x {fluoroscope.detector.rows} rays")
     view = View(zoom=args.zoom, quantity=args.quantity, noise=fluoroscope.display.noise and not args.no_noise,
                 invert=fluoroscope.display.invert, seed=args.seed, polychromatic=not args.mono)
     image = renderer.render(prepared, matrix(pose.T_xray_from_ct), view).image
@@ -113,18 +138,29 @@ def run_bench(args) -> int:
 
 
 def register(commands, benches) -> None:
-    p = commands.add_parser("render", help="render one X-ray image of a CT",
-                            description="Render the image the fluoroscope would show of a CT volume at a pose.")
+    p = commands.add_parser(
+        "render", help="render one X-ray image of a CT",
+        description="Render the image the fluoroscope would show of a CT volume at a pose. The pose file holds "
+                    "T_xray_from_ct, a 4x4 rigid transform (mm) from the CT's LPS coordinates (+x the patient's left, "
+                    "+y posterior, +z superior, as `fluorosim case inspect` prints them) into the xray frame: the focal "
+                    "spot at the origin, +z along the principal ray toward the detector, +x along increasing detector "
+                    "columns, +y along increasing rows (OpenCV's camera convention). A point at xray (0, 0, "
+                    "source_to_isocentre_mm) is the isocentre and images at the principal point (cx, cy).")
     p.add_argument("--volume", required=True, metavar="PATH",
                    help="DICOM series folder, .nii/.nii.gz, .mha/.mhd or .nrrd; or a case profile (.yaml) with phases")
     p.add_argument("--fluoroscope", required=True, metavar="PROFILE.yaml")
-    p.add_argument("--pose", required=True, metavar="POSE.yaml", help="YAML with T_xray_from_ct: a 4x4 rigid transform (mm)")
+    p.add_argument("--pose", required=True, metavar="POSE.yaml",
+                   help="YAML with T_xray_from_ct: a 4x4 rigid transform (mm) from the CT's LPS frame into the xray frame "
+                        "(described above)")
     p.add_argument("--quantity", required=True, choices=("line-integral", "intensity", "display"),
                    help="display: what the monitor shows once the C-arm has been still for a second (exposure "
                         "control, detector, settled recursive filter, log display); intensity: the detector signal "
                         "relative to the open beam; line-integral: exact water-equivalent line integrals")
     p.add_argument("--output", required=True, metavar="OUT.{npy,png}")
     p.add_argument("--zoom", type=int, default=1, choices=(1, 2, 3, 4))
+    p.add_argument("--size", type=parse_size, default=None, metavar="PX",
+                   help="render a PX x PX (or COLUMNSxROWS) matrix of the same field: pixel pitch and intrinsics "
+                        "scaled (default: the detector's own matrix)")
     p.add_argument("--phase-time", type=float, default=None, metavar="SECONDS",
                    help="time in the case's 4D timeline (with a case profile as --volume)")
     p.add_argument("--respiration", default=None, metavar="KEY=VALUE[,KEY=VALUE...]",

@@ -34,6 +34,15 @@ class Exposure:
     noise_sigma: float = 0.01
     supersample: int = 3
     text: bool = True
+    #: Brightness lost at the field's edge, falling off as radius squared (fraction), as
+    #: the fluoroscope profile's detector.vignetting declares it.
+    vignetting: float = 0.0
+    #: Veiling glare: this fraction of the light is spread over a Gaussian of glare_sigma_px,
+    #: the intensifier's long-range scatter that lifts a shadow's floor (fraction, pixels).
+    glare_fraction: float = 0.0
+    glare_sigma_px: float = 40.0
+    #: Mean brightness of the open field at the centre (image units); a frame grab's scale.
+    brightness: float = 1.0
 
 
 def ball_line_integrals(phantom: CalibrationPhantomProfile, K: np.ndarray, dist: np.ndarray,
@@ -74,21 +83,27 @@ def ball_line_integrals(phantom: CalibrationPhantomProfile, K: np.ndarray, dist:
 
 def render(phantom: CalibrationPhantomProfile, K: np.ndarray, dist: np.ndarray, T_xray_from_phantom: np.ndarray,
            exposure: Exposure = Exposure(), rng: np.random.Generator | None = None) -> np.ndarray:
-    """A float32 intensity image in [0, 1]: air bright, balls dark, black outside the field."""
+    """A float32 intensity image in [0, brightness]: air bright, balls dark, black outside the field."""
     rng = rng or np.random.default_rng(0)
     image = np.exp(-ball_line_integrals(phantom, K, dist, T_xray_from_phantom, exposure))
+    vv, uu = np.mgrid[0:exposure.rows, 0:exposure.cols]
+    r2 = ((uu - exposure.fov_centre_px[0]) ** 2 + (vv - exposure.fov_centre_px[1]) ** 2) / exposure.fov_radius_px ** 2
+    inside = r2 <= 1.0
     if exposure.blur_sigma_px > 0:
         image = cv2.GaussianBlur(image, (0, 0), exposure.blur_sigma_px)
-    image = image + rng.normal(0.0, exposure.noise_sigma, image.shape) * np.sqrt(image)
-    vv, uu = np.mgrid[0:exposure.rows, 0:exposure.cols]
-    inside = (uu - exposure.fov_centre_px[0]) ** 2 + (vv - exposure.fov_centre_px[1]) ** 2 <= exposure.fov_radius_px ** 2
-    image = np.where(inside, image, 0.0).astype(np.float32)
+    # The output phosphor's fall-off multiplies the light; glare then spreads part of it.
+    image = image * (1.0 - exposure.vignetting * np.minimum(r2, 1.0)) * inside
+    if exposure.glare_fraction > 0:
+        spread = cv2.GaussianBlur(image, (0, 0), exposure.glare_sigma_px)
+        image = (1.0 - exposure.glare_fraction) * image + exposure.glare_fraction * spread
+    image = image + rng.normal(0.0, exposure.noise_sigma, image.shape) * np.sqrt(np.clip(image, 0.0, None))
+    image = np.where(inside, image * exposure.brightness, 0.0).astype(np.float32)
     if exposure.text:
-        burn_in_text(image)
-    return np.clip(image, 0.0, 1.0)
+        burn_in_text(image, exposure.brightness)
+    return np.clip(image, 0.0, exposure.brightness)
 
 
-def burn_in_text(image: np.ndarray) -> None:
+def burn_in_text(image: np.ndarray, white: float = 1.0) -> None:
     """Write the corner annotations a clinical video grab carries, in full white, in place."""
     rows, cols = image.shape
     text = np.zeros((rows, cols), np.uint8)  # OpenCV draws text on 8-bit images only
@@ -97,4 +112,4 @@ def burn_in_text(image: np.ndarray) -> None:
     cv2.putText(text, "23-NOV-2026 11:42", (cols - 290, 28), font, 0.8, 255, 2)
     cv2.putText(text, "FT 00:01:12  o", (8, rows - 12), font, 0.8, 255, 2)
     cv2.putText(text, "ZOOM 1  L", (cols - 170, rows - 12), font, 0.8, 255, 2)
-    image[text > 0] = 1.0
+    image[text > 0] = white
