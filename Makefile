@@ -1,6 +1,6 @@
 # Two commands set up and run everything on a fresh Debian 12 machine:
 #   make demo   - system packages, .venv, the project, then the demo on the built-in patient
-#   make test   - the same set-up, then the test suite
+#   make test   - the same set-up, then the linters (make lint: ruff and mypy) and the test suite
 # Each step is skipped when its result is already there, so a second run starts at once.
 
 PYTHON ?= python3
@@ -13,13 +13,18 @@ BIN    := $(VENV)/bin
 APT_PACKAGES := libsystemd-dev pkg-config dicom3tools systemd python3-venv gcc linux-libc-dev alsa-utils
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: demo test setup system-packages bench mutation clean
+.PHONY: demo test lint setup system-packages bench mutation clean
 
 demo: setup
 	$(BIN)/fluorosim demo
 
-test: setup
+test: lint
 	$(BIN)/python -m pytest
+
+# Settings for both are in pyproject.toml ([tool.ruff], [tool.mypy]).
+lint: setup
+	$(BIN)/ruff check .
+	$(BIN)/mypy
 
 setup: system-packages $(VENV)/.installed
 
@@ -49,4 +54,4 @@ bench: setup
 	$(BIN)/fluorosim bench all
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache mutants mutation.log
+	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache mutants mutation.log

@@ -56,7 +56,8 @@ def write_atomic(path: str | os.PathLike, data: bytes, *, backup: bool = False,
     except FileExistsError:
         raise FluorosimError(f"{target}: already exists; refusing to overwrite it (choose another name or move it away)") from None
     except OSError as e:
-        raise FluorosimError(f"{target}: cannot write ({e.strerror or e}); check that the folder exists, is writable and has free space") from None
+        raise FluorosimError(f"{target}: cannot write ({e.strerror or e}); check that the folder exists, is writable "
+                             "and has free space") from None
     finally:
         if tmp_name is not None and os.path.exists(tmp_name):
             os.unlink(tmp_name)

@@ -1,15 +1,13 @@
 """The screen: a Linux framebuffer (/dev/fbN) or a raw file of explicit geometry.
 
 `open_display(target, ...)` gives a `Display` with `show(rgb)`, `read_back()` and `close()`.
-Both targets memory-map their pixels and share one pixel packer, so the file target used by
-the demo and the tests runs the same conversion code as the appliance's framebuffer.
+The file target is the framebuffer display over a `FakeFramebuffer` whose pixel memory is
+that file, so the demo and the tests run the appliance's display code, packer included.
 
 Framebuffer geometry and pixel format come from the driver (FBIOGET_VSCREENINFO and
 FBIOGET_FSCREENINFO): width and height in pixels, bits per pixel (16, 24 or 32), the line
 stride in bytes, and the offset and length in bits of each colour channel within a pixel.
-Pixels are stored in the CPU's byte order (little-endian on every machine this runs on).
-Bits of a pixel that belong to no colour channel (the X of XRGB8888, the alpha of ARGB) are
-written as ones, so a driver that reads them as alpha sees an opaque screen.
+Packing RGB into those pixels is `pixel_format.PixelFormat`'s job.
 
 No tearing: where the driver offers a virtual screen at least twice the visible height and
 can pan along y, each frame is drawn into the hidden half and FBIOPAN_DISPLAY flips to it;
@@ -27,11 +25,11 @@ import errno
 import fcntl
 import mmap
 import os
-from dataclasses import dataclass
 from typing import Protocol
 
-import cv2
 import numpy as np
+
+from .pixel_format import PixelFormat
 
 # ioctl numbers from <linux/fb.h>.
 FBIOGET_VSCREENINFO = 0x4600
@@ -84,119 +82,6 @@ class FixScreenInfo(ctypes.Structure):
         ("line_length", ctypes.c_uint32), ("mmio_start", ctypes.c_ulong), ("mmio_len", ctypes.c_uint32),
         ("accel", ctypes.c_uint32), ("capabilities", ctypes.c_uint16), ("reserved", ctypes.c_uint16 * 2),
     ]
-
-
-@dataclass(frozen=True)
-class PixelFormat:
-    """A packed true-colour pixel: bits per pixel and (offset, length) in bits of each channel."""
-
-    bpp: int
-    red: tuple[int, int]
-    green: tuple[int, int]
-    blue: tuple[int, int]
-    transp: tuple[int, int] = (0, 0)
-
-    @classmethod
-    def standard(cls, bpp: int) -> "PixelFormat":
-        """The usual Linux layout: RGB565, BGR byte order at 24 bpp, XRGB8888 at 32 bpp."""
-        if bpp == 16:
-            return cls(16, (11, 5), (5, 6), (0, 5))
-        if bpp == 24:
-            return cls(24, (16, 8), (8, 8), (0, 8))
-        if bpp == 32:
-            return cls(32, (16, 8), (8, 8), (0, 8))
-        raise ValueError(f"bpp must be 16, 24 or 32, got {bpp}")
-
-    @classmethod
-    def from_var(cls, var: VarScreenInfo) -> "PixelFormat":
-        return cls(var.bits_per_pixel, (var.red.offset, var.red.length), (var.green.offset, var.green.length),
-                   (var.blue.offset, var.blue.length), (var.transp.offset, var.transp.length))
-
-    @property
-    def bytes_per_pixel(self) -> int:
-        return self.bpp // 8
-
-    def problem(self) -> str | None:
-        """Why this format cannot be drawn, or None."""
-        if self.bpp not in (16, 24, 32):
-            return f"{self.bpp} bits per pixel (only 16, 24 and 32 are supported)"
-        for name, (offset, length) in (("red", self.red), ("green", self.green), ("blue", self.blue)):
-            if not 1 <= length <= 16 or offset + length > self.bpp:
-                return f"{name} channel at bit {offset}, {length} bits, does not fit a {self.bpp}-bit pixel"
-        return None
-
-    def _channel_mask(self, offset: int, length: int) -> int:
-        return ((1 << length) - 1) << offset if length else 0
-
-    @property
-    def padding_bits(self) -> int:
-        """Bits that belong to no colour channel; written as ones."""
-        used = 0
-        for offset, length in (self.red, self.green, self.blue):
-            used |= self._channel_mask(offset, length)
-        return ((1 << self.bpp) - 1) & ~used
-
-    def _byte_order(self) -> str | None:
-        """'BGR' or 'RGB' when each channel is one whole byte with blue or red first in memory."""
-        if any(length != 8 or offset % 8 for offset, length in (self.red, self.green, self.blue)):
-            return None
-        if (self.red[0], self.green[0], self.blue[0]) == (16, 8, 0):
-            return "BGR"
-        if (self.red[0], self.green[0], self.blue[0]) == (0, 8, 16):
-            return "RGB"
-        return None
-
-    def pack(self, rgb: np.ndarray, out: np.ndarray) -> None:
-        """Write (h, w, 3) uint8 RGB into `out`, an (h, w * bytes_per_pixel) uint8 array (may be a strided view)."""
-        h, w = rgb.shape[:2]
-        order = self._byte_order()
-        packed = None
-        if order is not None and self.bpp == 32 and self.padding_bits == 0xFF000000:
-            packed = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGRA if order == "BGR" else cv2.COLOR_RGB2RGBA)
-        elif order is not None and self.bpp == 24:
-            packed = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR) if order == "BGR" else rgb
-        elif self.bpp == 16 and (self.red, self.green, self.blue) == ((11, 5), (5, 6), (0, 5)):
-            packed = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR565)   # OpenCV's "BGR565" keeps red in the top bits
-        elif self.bpp == 16 and (self.red, self.green, self.blue) == ((0, 5), (5, 6), (11, 5)):
-            packed = cv2.cvtColor(rgb, cv2.COLOR_BGR2BGR565)
-        if packed is not None:
-            out[...] = packed.reshape(h, w * self.bytes_per_pixel)
-            return
-        value = np.full((h, w), self.padding_bits, dtype=np.uint32)
-        for c, (offset, length) in enumerate((self.red, self.green, self.blue)):
-            channel = rgb[:, :, c].astype(np.uint32)
-            if length <= 8:
-                channel >>= 8 - length
-            else:   # widen by repeating the high bits, so 255 becomes all ones
-                channel = (channel << (length - 8)) | (channel >> (16 - length))
-            value |= channel << offset
-        as_bytes = value.astype("<u4").view(np.uint8).reshape(h, w, 4)[:, :, :self.bytes_per_pixel]
-        out[...] = as_bytes.reshape(h, w * self.bytes_per_pixel)
-
-    def unpack(self, packed: np.ndarray) -> np.ndarray:
-        """(h, w * bytes_per_pixel) uint8 pixels -> (h, w, 3) uint8 RGB, low bits filled by repetition."""
-        h = packed.shape[0]
-        bpp_bytes = self.bytes_per_pixel
-        w = packed.shape[1] // bpp_bytes
-        order = self._byte_order()
-        if order is not None:   # whole-byte channels: a channel shuffle, no bit arithmetic
-            pixels = np.ascontiguousarray(packed).reshape(h, w, bpp_bytes)
-            if bpp_bytes == 4:
-                return cv2.cvtColor(pixels, cv2.COLOR_BGRA2RGB if order == "BGR" else cv2.COLOR_RGBA2RGB)
-            return cv2.cvtColor(pixels, cv2.COLOR_BGR2RGB) if order == "BGR" else pixels.copy()
-        raw = np.zeros((h, w, 4), dtype=np.uint8)
-        raw[:, :, :bpp_bytes] = packed.reshape(h, w, bpp_bytes)
-        value = raw.view("<u4").reshape(h, w).astype(np.uint32)
-        rgb = np.empty((h, w, 3), dtype=np.uint8)
-        for c, (offset, length) in enumerate((self.red, self.green, self.blue)):
-            channel = (value >> offset) & ((1 << length) - 1)
-            if length < 8:
-                channel = (channel << (8 - length)) | (channel >> max(2 * length - 8, 0))
-                channel &= 0xFF
-            elif length > 8:
-                channel >>= length - 8
-            rgb[:, :, c] = channel
-        return rgb
 
 
 class FramebufferDevice(Protocol):
@@ -274,10 +159,32 @@ class FakeFramebuffer:
                                   type=FB_TYPE_PACKED_PIXELS, visual=FB_VISUAL_TRUECOLOR,
                                   ypanstep=ypanstep, line_length=stride)
         self.pans = 0
-        mode = os.O_RDONLY if read_only else os.O_RDWR | os.O_CREAT
-        self._fd = os.open(path, mode, 0o600)
-        if not read_only and os.fstat(self._fd).st_size != self._fix.smem_len:
-            os.ftruncate(self._fd, self._fix.smem_len)
+        size = self._fix.smem_len
+        try:
+            self._fd = os.open(path, os.O_RDONLY if read_only else os.O_RDWR | os.O_CREAT, 0o600)
+        except FileNotFoundError:
+            raise DisplayError(f"{path}: no screen file; start the appliance (fluorosim run) or check "
+                               f"devices.display.path") from None
+        except OSError as e:
+            raise DisplayError(f"{path}: cannot open the screen file ({e.strerror})") from None
+        try:
+            actual = os.fstat(self._fd).st_size
+            if actual != size and read_only:
+                raise DisplayError(f"{path}: holds {actual} bytes but {width}x{height} at {fmt.bpp} bpp with stride "
+                                   f"{stride} needs {size}; give the geometry the appliance writes with")
+            if not read_only:
+                # Reserve the blocks now: a write through the mapping into a sparse file on a full
+                # disk would kill the process with SIGBUS instead of raising an error.
+                try:
+                    if actual != size:
+                        os.ftruncate(self._fd, size)
+                    os.posix_fallocate(self._fd, 0, size)
+                except OSError as e:
+                    raise DisplayError(f"{path}: cannot reserve {size} bytes for the screen file ({e.strerror}); "
+                                       f"free disk space") from None
+        except BaseException:
+            self.close()
+            raise
 
     def fileno(self) -> int:
         return self._fd
@@ -327,10 +234,10 @@ class Display:
     def close(self) -> None:
         raise NotImplementedError
 
-    def __enter__(self):
+    def __enter__(self) -> Display:
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def _check_frame(self, rgb: np.ndarray) -> None:
@@ -374,12 +281,13 @@ class FramebufferDisplay(Display):
         fits = (var.yoffset + self.height) * self.stride <= fix.smem_len
         self._visible_row = var.yoffset if fits else 0
         try:
-            self._mm = mmap.mmap(device.fileno(), fix.smem_len, mmap.MAP_SHARED,
+            self._mm: mmap.mmap | None = mmap.mmap(device.fileno(), fix.smem_len, mmap.MAP_SHARED,
                                  mmap.PROT_READ if read_only else mmap.PROT_READ | mmap.PROT_WRITE)
         except OSError as e:
             raise DisplayError(f"{self.name}: cannot map {fix.smem_len} bytes of screen memory ({e.strerror})") from None
         self._memory = np.frombuffer(self._mm, dtype=np.uint8)
-        self._back = None if self.pages > 1 else np.zeros((self.height, self.width * self.pixel_format.bytes_per_pixel), np.uint8)
+        row_bytes = self.width * self.pixel_format.bytes_per_pixel
+        self._back: np.ndarray | None = None if self.pages > 1 else np.zeros((self.height, row_bytes), np.uint8)
 
     def _enable_double_buffer(self, var: VarScreenInfo, fix: FixScreenInfo) -> int:
         """2 when a second page is available for panning, else 1."""
@@ -404,7 +312,7 @@ class FramebufferDisplay(Display):
         self._check_frame(rgb)
         if self.read_only:
             raise DisplayError(f"{self.name}: opened read-only")
-        if self.pages == 1:
+        if self._back is not None:   # one page: pack aside, then one copy to the screen
             self.pixel_format.pack(rgb, self._back)
             self._page(self._memory, self._visible_row)[...] = self._back
             return
@@ -431,75 +339,33 @@ class FramebufferDisplay(Display):
         return self.pixel_format.unpack(np.ascontiguousarray(self._page(self._memory, first_row)))
 
     def close(self) -> None:
-        if getattr(self, "_mm", None) is not None:
-            self._memory = None
-            self._mm.close()
+        mm = getattr(self, "_mm", None)
+        if mm is not None:
+            del self._memory   # the array views the mapping: drop it before unmapping
+            mm.close()
             self._mm = None
         self.device.close()
 
 
-class FileDisplay(Display):
-    """A raw file of `height` rows of `stride` bytes, in the standard format for `bpp` (see PixelFormat.standard)."""
+class FileDisplay(FramebufferDisplay):
+    """A raw file of `height` rows of `stride` bytes, in the standard format for `bpp` (see
+    PixelFormat.standard): the framebuffer display itself over a one-page `FakeFramebuffer`
+    that is that file, so the demo and the tests run the appliance's display code."""
 
     def __init__(self, path: str, width: int, height: int, bpp: int = 32, stride: int = 0, read_only: bool = False):
         if bpp not in (16, 24, 32):
             raise DisplayError(f"{path}: bpp must be 16, 24 or 32, got {bpp}")
         if width <= 0 or height <= 0:
             raise DisplayError(f"{path}: width and height must be positive, got {width}x{height}")
-        self.name = path
-        self.width, self.height, self.bpp = width, height, bpp
-        self.pixel_format = PixelFormat.standard(bpp)
-        self.stride = stride or width * self.pixel_format.bytes_per_pixel
-        if self.stride < width * self.pixel_format.bytes_per_pixel:
-            raise DisplayError(f"{path}: stride {self.stride} bytes is shorter than a row of {width} pixels at {bpp} bpp")
-        self.read_only = read_only
-        size = self.stride * height
+        fmt = PixelFormat.standard(bpp)
+        if stride and stride < width * fmt.bytes_per_pixel:
+            raise DisplayError(f"{path}: stride {stride} bytes is shorter than a row of {width} pixels at {bpp} bpp")
+        node = FakeFramebuffer(path, width, height, fmt, stride=stride, read_only=read_only)
         try:
-            if read_only:
-                fd = os.open(path, os.O_RDONLY)
-            else:
-                fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
-        except FileNotFoundError:
-            raise DisplayError(f"{path}: no screen file; start the appliance (fluorosim run) or check devices.display.path") from None
-        except OSError as e:
-            raise DisplayError(f"{path}: cannot open the screen file ({e.strerror})") from None
-        try:
-            actual = os.fstat(fd).st_size
-            if actual != size and read_only:
-                raise DisplayError(f"{path}: holds {actual} bytes but {width}x{height} at {bpp} bpp with stride "
-                                   f"{self.stride} needs {size}; give the geometry the appliance writes with")
-            if not read_only:
-                # Reserve the blocks now: a write through the mapping into a sparse file on a full
-                # disk would kill the process with SIGBUS instead of raising an error.
-                try:
-                    if actual != size:
-                        os.ftruncate(fd, size)
-                    os.posix_fallocate(fd, 0, size)
-                except OSError as e:
-                    raise DisplayError(f"{path}: cannot reserve {size} bytes for the screen file ({e.strerror}); "
-                                       f"free disk space") from None
-            self._mm = mmap.mmap(fd, size, mmap.MAP_SHARED,
-                                 mmap.PROT_READ if read_only else mmap.PROT_READ | mmap.PROT_WRITE)
-        finally:
-            os.close(fd)
-        self._memory = np.frombuffer(self._mm, dtype=np.uint8)
-        self._back = np.zeros((height, width * self.pixel_format.bytes_per_pixel), np.uint8)
-
-    def show(self, rgb: np.ndarray) -> None:
-        self._check_frame(rgb)
-        if self.read_only:
-            raise DisplayError(f"{self.name}: opened read-only")
-        self.pixel_format.pack(rgb, self._back)
-        self._page(self._memory, 0)[...] = self._back   # one copy, so a reader sees at most one torn frame
-
-    def read_back(self) -> np.ndarray:
-        return self.pixel_format.unpack(np.ascontiguousarray(self._page(self._memory, 0)))
-
-    def close(self) -> None:
-        if getattr(self, "_mm", None) is not None:
-            self._memory = None
-            self._mm.close()
-            self._mm = None
+            super().__init__(node, read_only=read_only)
+        except BaseException:
+            node.close()
+            raise
 
 
 def open_display(target: str, path: str | None = None, width: int = 0, height: int = 0, bpp: int = 32,

@@ -12,10 +12,8 @@ import re
 
 import hid
 
-from .input_event import InputEvent
+from .input_event import HotplugInput, InputEvent
 
-#: How often an unplugged keypad is looked for again (s).
-REOPEN_INTERVAL_S = 1.0
 #: Largest report read at once (bytes); boot keyboards send 8.
 REPORT_SIZE = 64
 
@@ -40,66 +38,50 @@ def usage_key(usage: int) -> str:
     return f"hid:0x{usage:02x}"
 
 
-class HidKeypad:
+class HidKeypad(HotplugInput["hid.device"]):
     source = "keypad"
 
     def __init__(self, spec: str, *, report_id: bool = False, now: float = 0.0):
         self.spec = spec
         self.vendor, self.product = parse_spec(spec)
         self.report_id = report_id
-        self.held: set[int] = set()
-        self.state = "unplugged"
-        self.problem = ""
-        self._device = None
-        self._last_try: float | None = None
-        self._open(now)
+        super().__init__(now)
 
-    def _open(self, now: float) -> None:
-        self._last_try = now
+    def _attach(self, now: float) -> hid.device | None:
         dev = hid.device()
         try:
             dev.open(self.vendor, self.product)
             dev.set_nonblocking(1)
-        except (OSError, IOError) as e:
-            self.state, self.problem = "unplugged", f"keypad {self.spec}: not found ({e}); plug it in or check the USB ids"
-            return
-        self._device = dev
-        self.state, self.problem = "ok", ""
+        except OSError as e:
+            self.problem = f"keypad {self.spec}: not found ({e}); plug it in or check the USB ids"
+            return None
+        return dev
+
+    def _detach(self, dev: hid.device) -> None:
+        try:
+            dev.close()
+        except (OSError, ValueError):
+            pass
 
     def fileno(self) -> int:
         return -1  # hidapi hides its descriptor; the input worker polls every frame
 
-    def _transitions(self, now: float, down: set[int]) -> list[InputEvent]:
-        events = [InputEvent(now, self.source, usage_key(u), False) for u in sorted(self.held - down)]
-        events += [InputEvent(now, self.source, usage_key(u), True) for u in sorted(down - self.held)]
+    def _transitions(self, now: float, usages: set[int]) -> list[InputEvent]:
+        """Releases, then presses, from the usages held in a report and those held before it."""
+        down = {usage_key(u) for u in usages}
+        events = [InputEvent(now, self.source, key, False) for key in sorted(self.held - down)]
+        events += [InputEvent(now, self.source, key, True) for key in sorted(down - self.held)]
         self.held = down
         return events
 
-    def poll(self, now: float) -> list[InputEvent]:
-        if self._device is None:
-            if self._last_try is None or now - self._last_try >= REOPEN_INTERVAL_S:
-                self._open(now)
-            if self._device is None:
-                return []
+    def _read(self, dev: hid.device, now: float) -> list[InputEvent]:
         events = []
         try:
             while True:
-                report = self._device.read(REPORT_SIZE)
+                report = dev.read(REPORT_SIZE)
                 if not report:
                     break
                 events += self._transitions(now, usages_down(report, self.report_id))
-        except (OSError, IOError, ValueError) as e:
-            try:
-                self._device.close()
-            except (OSError, IOError, ValueError):
-                pass
-            self._device = None
-            self.state, self.problem = "unplugged", f"keypad {self.spec} unplugged ({e})"
-            events += self._transitions(now, set())
+        except (OSError, ValueError) as e:
+            events += self._lost(now, f"keypad {self.spec} unplugged ({e})")
         return events
-
-    def close(self) -> None:
-        if self._device is not None:
-            self._device.close()
-            self._device = None
-        self.state = "unplugged"

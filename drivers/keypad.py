@@ -19,10 +19,7 @@ import re
 import evdev
 from evdev import ecodes
 
-from .input_event import DeviceUnavailable, InputEvent
-
-#: How often an unplugged keypad is looked for again (s).
-REOPEN_INTERVAL_S = 1.0
+from .input_event import DeviceUnavailable, HotplugInput, InputEvent
 
 _VENDOR_PRODUCT = re.compile(r"^([0-9a-fA-F]{4}):([0-9a-fA-F]{4})$")
 
@@ -73,67 +70,55 @@ def find_device(source: str) -> evdev.InputDevice:
         raise DeviceUnavailable(e.errno or errno.EIO, f"{source}: {e.strerror or e}") from None
 
 
-class EvdevKeypad:
+class EvdevKeypad(HotplugInput[evdev.InputDevice]):
     source = "keypad"
 
     def __init__(self, source: str, *, grab: bool = True, key_names: frozenset[str] = frozenset(), now: float = 0.0):
         self.spec = source
         self.grab = grab
         self.key_names = frozenset(key_names)
-        self.held: set[str] = set()
-        self.state = "unplugged"
-        self.problem = ""
-        self._device: evdev.InputDevice | None = None
-        self._last_try: float | None = None
-        self._open(now)
+        super().__init__(now)
 
-    def _open(self, now: float) -> None:
-        self._last_try = now
+    def _attach(self, now: float) -> evdev.InputDevice | None:
         try:
             dev = find_device(self.spec)
         except DeviceUnavailable as e:
-            self.state, self.problem = "unplugged", f"keypad {self.spec}: {e.strerror}; plug it in"
-            return
+            self.problem = f"keypad {self.spec}: {e.strerror}; plug it in"
+            return None
         if self.grab:
             try:
                 dev.grab()
             except OSError as e:
                 dev.close()
-                self.state = "unplugged"
-                self.problem = f"keypad {self.spec}: cannot take it exclusively ({e.strerror or e}); is another program using it?"
-                return
-        self._device = dev
-        self.state, self.problem = "ok", ""
+                self.problem = (f"keypad {self.spec}: cannot take it exclusively ({e.strerror or e}); "
+                                f"is another program using it?")
+                return None
+        return dev
+
+    def _detach(self, dev: evdev.InputDevice) -> None:
+        try:
+            if self.grab:
+                dev.ungrab()
+        except OSError:
+            pass   # already gone with the device
+        try:
+            dev.close()
+        except OSError:
+            pass
 
     @property
     def name(self) -> str:
-        return self._device.name if self._device is not None else ""
+        return self._handle.name if self._handle is not None else ""
 
     def fileno(self) -> int:
-        return self._device.fd if self._device is not None else -1
+        return self._handle.fd if self._handle is not None else -1
 
-    def _lost(self, now: float, why: str) -> list[InputEvent]:
-        try:
-            self._device.close()
-        except OSError:
-            pass
-        self._device = None
-        self.state, self.problem = "unplugged", why
-        released = [InputEvent(now, self.source, k, False) for k in sorted(self.held)]
-        self.held.clear()
-        return released
-
-    def poll(self, now: float) -> list[InputEvent]:
+    def _read(self, dev: evdev.InputDevice, now: float) -> list[InputEvent]:
         """Key presses and releases since the last poll, stamped `now`; auto-repeats are dropped."""
-        if self._device is None:
-            if self._last_try is None or now - self._last_try >= REOPEN_INTERVAL_S:
-                self._open(now)
-            if self._device is None:
-                return []
         events = []
         try:
             while True:
-                ev = self._device.read_one()
+                ev = dev.read_one()
                 if ev is None:
                     break
                 if ev.type != ecodes.EV_KEY or ev.value == 2:
@@ -150,14 +135,3 @@ class EvdevKeypad:
                 return events
             return events + self._lost(now, f"keypad {self.spec} unplugged ({e.strerror or e})")
         return events
-
-    def close(self) -> None:
-        if self._device is not None:
-            try:
-                if self.grab:
-                    self._device.ungrab()
-            except OSError:
-                pass
-            self._device.close()
-            self._device = None
-        self.state = "unplugged"

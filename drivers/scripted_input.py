@@ -18,7 +18,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from .input_event import InputEvent
+from .input_event import DeviceState, InputEvent
 
 
 class ScriptProblem(ValueError):
@@ -98,7 +98,7 @@ class ScriptedInput:
         self._events = parse_script(text, str(self.path))
         self.t0 = t0
         self._next = 0
-        self.state = "ok"
+        self.state = DeviceState.OK
 
     @property
     def duration_s(self) -> float:

@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.camera import (CameraSource, FileCamera, RenderSettings, SceneRenderer, SyntheticCamera, TexturedQuad,
-                            V4L2Camera, box_marker_quads)
+from drivers.camera import CameraSource, FileCamera, SyntheticCamera, V4L2Camera
+from drivers.camera_scene import RenderSettings, SceneRenderer, TexturedQuad, box_marker_quads
 
 K = np.array([[900.0, 0.0, 639.5], [0.0, 900.0, 359.5], [0.0, 0.0, 1.0]])
 SIZE = 50.0

@@ -233,7 +233,7 @@ def test_increments_sum_to_totals():
     rng = random.Random(3)
     evs, t = [], 0.0
     keys = ["KEY_KP5", "KEY_KP2", "KEY_KP9", "KEY_KP0", "KEY_KP7", "KEY_KP1"]
-    for i in range(40):
+    for _run in range(40):
         evs += console.handle(press(t, "pedal"))
         for _ in range(rng.randint(1, 20)):
             t += rng.uniform(0.01, 0.4)
@@ -262,6 +262,39 @@ def test_new_image_only_on_pulse_frames():
     assert sum(flags) == 15 and flags[0] and flags[4] and not any(flags[1:4])
 
 
+def test_image_due_counts_pulses_a_slower_reader_did_not_see():
+    console = Console(II, KEYMAP, t0=0.0)
+    console.handle(press(0.0, "KEY_KP5"))                        # pulsed-15: pulses at 1 + k/15 s
+    console.handle(press(1.0, "pedal"))
+    drawn, images = None, 0
+    for i in range(1, 201):                                      # the console ticks every 5 ms...
+        console.tick(1.0 + i * 0.005 - 1e-6)
+        if i % 20 == 0:                                          # ...a renderer looks every 100 ms
+            state = console.snapshot()
+            if state.image_due(drawn):
+                drawn, images = state, images + 1
+    # Every 100 ms holds one or two pulses (15 /s), so each look finds one not drawn; the
+    # per-tick flag would have been set at only the looks that fell on a pulse's tick.
+    assert images == 10
+    console.handle(release(2.0, "pedal"))
+    console.tick(2.1)
+    assert not console.snapshot().image_due(drawn)               # no beam, no new image
+    console.handle(press(3.0, "KEY_KP5"))                        # pulsed-7.5, then continuous:
+    console.handle(press(3.0, "KEY_KP5"))                        # there every look gets one
+    console.handle(press(3.0, "pedal"))
+    state = console.snapshot()
+    assert state.pulse_rate_per_s is None and state.image_due(state)
+
+
+def test_collimation_is_reported_only_when_the_blades_cut_the_field():
+    console = Console(II, KEYMAP, t0=0.0)
+    assert console.snapshot().collimated_mm is None              # blades fully open at 230 mm
+    console.handle(press(1.0, "KEY_KP9"))                        # horizontal closes one 10 mm step
+    assert console.snapshot().collimated_mm == (220.0, 230.0)
+    console.handle(press(2.0, "KEY_KP7"))                        # and opens again: fully open
+    assert console.snapshot().collimated_mm is None
+
+
 def test_minutes_and_tenths_display():
     assert minutes_and_tenths(0) == "0.0"
     assert minutes_and_tenths(5.99) == "0.0"
@@ -269,6 +302,7 @@ def test_minutes_and_tenths_display():
     assert minutes_and_tenths(299.9) == "4.9"
     assert minutes_and_tenths(300.0) == "5.0"
     assert minutes_and_tenths(3725.0) == "62.0"
+    assert minutes_and_tenths(-1.0) == "0.0"
 
 
 def test_profile_reload_keeps_settings_that_still_apply():

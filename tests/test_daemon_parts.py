@@ -12,13 +12,20 @@ from pathlib import Path
 import pytest
 
 from appliance import __version__
+from appliance.config import ProfileProblems
 from appliance.daemon.handoff import LatestValue
-from appliance.daemon.health import (CameraState, DiskSpace, InputDeviceState, Level, profile_reload_check,
-                                     records_check, renderer_fault_check)
+from appliance.daemon.health import (
+    CameraState,
+    DiskSpace,
+    InputDeviceState,
+    Level,
+    profile_reload_check,
+    records_check,
+    renderer_fault_check,
+)
 from appliance.daemon.logqueue import start_logging
 from appliance.daemon.reload import ProfileKeeper
 from appliance.daemon.worker import Worker
-from appliance.config import ProfileProblems
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 

@@ -14,18 +14,18 @@ from types import SimpleNamespace
 
 import cv2
 import numpy as np
+from appliance_setup import REPO, make_appliance
+from notify_listener import NotifyListener
 
 from appliance.config import load_appliance
-from appliance.daemon.parts import is_cpu
 from appliance.daemon.notify import Notifier
+from appliance.daemon.parts import is_cpu
 from appliance.daemon.pipeline import Appliance
 from appliance.daemon.reload import ProfileKeeper
 from appliance.records.ledger import open_readonly, verify
 from appliance.tracking.scene import synthetic_camera
 from appliance.tracking.trajectory import pose_from_angles
-from appliance_setup import REPO, make_appliance
 from drivers.framebuffer import open_display
-from notify_listener import NotifyListener
 
 DISPLAY = (320, 256)
 

@@ -10,12 +10,12 @@ import threading
 import time
 
 import pytest
+from notify_listener import NotifyListener
 
 from appliance.daemon.health import Health, Level
 from appliance.daemon.notify import Notifier
 from appliance.daemon.supervisor import Supervisor
 from appliance.daemon.worker import Worker
-from notify_listener import NotifyListener
 
 
 @pytest.fixture

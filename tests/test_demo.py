@@ -13,9 +13,9 @@ from pathlib import Path
 
 import cv2
 import pydicom
+from appliance_setup import REPO, make_appliance
 
 from appliance.config import FluoroscopeProfile, load_profile
-from appliance_setup import REPO, make_appliance
 
 #: configs/scripts/demo-session.jsonl, summed by hand: fluoroscopy runs of
 #: 20 + 30 + 60 + 40 + 100 + 80 s; the alarm at 300 s (once, then reset); two saves.

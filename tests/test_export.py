@@ -129,10 +129,12 @@ def name(item):
 def num(items, meaning):
     found = [i for i in items if i.ValueType == "NUM" and name(i) == meaning]
     assert len(found) == 1, meaning
-    return float(found[0].MeasuredValueSequence[0].NumericValue), found[0].MeasuredValueSequence[0].MeasurementUnitsCodeSequence[0].CodeValue
+    measured = found[0].MeasuredValueSequence[0]
+    return float(measured.NumericValue), measured.MeasurementUnitsCodeSequence[0].CodeValue
 
 
-@pytest.mark.skipif(shutil.which("dciodvfy") is None, reason="dciodvfy (Debian package dicom3tools) is not installed; `make test` installs it")
+@pytest.mark.skipif(shutil.which("dciodvfy") is None,
+                    reason="dciodvfy (Debian package dicom3tools) is not installed; `make test` installs it")
 def test_rdsr_passes_dciodvfy_iherem(ledger_file, tmp_path):
     written, notes = do_export(ledger_file, "rdsr", tmp_path / "out")
     assert len(written) == 1 and not notes
@@ -314,7 +316,8 @@ def test_ledger_found_through_the_appliance_profile(tmp_path, capsys):
     assert code == 0 and str(data / "ledger.sqlite") in stdout.replace("configs/../", "")
 
 
-@pytest.mark.skipif(shutil.which("dciodvfy") is None, reason="dciodvfy (Debian package dicom3tools) is not installed; `make test` installs it")
+@pytest.mark.skipif(shutil.which("dciodvfy") is None,
+                    reason="dciodvfy (Debian package dicom3tools) is not installed; `make test` installs it")
 def test_rdsr_of_a_session_cut_off_mid_run(tmp_path):
     path = tmp_path / "ledger.sqlite"
     ledger = Ledger(path)

@@ -11,8 +11,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.framebuffer import (DisplayError, FakeFramebuffer, FileDisplay, FixScreenInfo, FramebufferDisplay,
-                                 PixelFormat, VarScreenInfo, open_display)
+from drivers.framebuffer import (
+    DisplayError,
+    FakeFramebuffer,
+    FileDisplay,
+    FixScreenInfo,
+    FramebufferDisplay,
+    VarScreenInfo,
+    open_display,
+)
+from drivers.pixel_format import PixelFormat
 
 RNG = np.random.default_rng(7)
 

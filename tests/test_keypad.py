@@ -4,11 +4,11 @@ import os
 import time
 
 import pytest
+from evdev import ecodes
 
 from drivers.hid_keypad import HidKeypad, parse_spec, usage_key, usages_down
 from drivers.keypad import EvdevKeypad, key_name
 from drivers.scripted_input import ScriptedInput, ScriptProblem, parse_script
-from evdev import ecodes
 
 
 @pytest.mark.skipif(not os.path.exists("/dev/uinput"), reason="/dev/uinput does not exist on this machine (no uinput module)")

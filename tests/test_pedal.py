@@ -4,7 +4,7 @@ import os
 
 import pytest
 
-from drivers import pedal as pedal_module
+from drivers.input_event import REOPEN_INTERVAL_S
 from drivers.pedal import SerialPedal
 
 
@@ -88,7 +88,7 @@ def test_unplug_releases_and_replug_reattaches(pty_link, monkeypatch):
     assert [(e.pressed) for e in evs] == [False] and p.state == "unplugged" and "unplugged" in p.problem
     assert p.poll(0.5) == [] and p.state == "unplugged"
     link.symlink_to(target)                           # plugged back in
-    assert p.poll(0.2 + pedal_module.REOPEN_INTERVAL_S + 0.01) == []
+    assert p.poll(0.2 + REOPEN_INTERVAL_S + 0.01) == []
     assert p.state == "ok"
     os.write(master, b"DOWN\n")
     settle()

@@ -9,11 +9,11 @@ import threading
 import time
 
 import pytest
+from notify_listener import NotifyListener
 
 from appliance.daemon.notify import Notifier
 from appliance.daemon.supervisor import Supervisor
 from appliance.daemon.worker import Worker
-from notify_listener import NotifyListener
 
 
 @pytest.fixture

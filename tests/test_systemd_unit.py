@@ -221,7 +221,7 @@ def test_the_unit_admits_every_device_class_the_rules_name():
         assert subsystem_to_device[subsystem] in allowed, subsystem
     groups = set(one(s, "Service", "SupplementaryGroups").split())
     for rule in parse_rules(RULES.read_text()):
-        for key, _, op, value in rule:
+        for key, _, _op, value in rule:
             if key == "GROUP":
                 assert value in groups, f"the service is not in group {value}"
 

@@ -165,7 +165,7 @@ def test_track_command_bad_inputs_exit_2_with_one_line(tmp_path, capsys):
 
 
 def test_a_poor_mjpg_webcam_frame_is_still_sub_millimetre(profiles):
-    from drivers.camera import RenderSettings
+    from drivers.camera_scene import RenderSettings
     harsh = RenderSettings(noise_sigma=5.0, blur_sigma_px=1.2, jpeg_quality=70)
     T = pose_from_angles([-30, 20, 650], -45, 10, -20)
     image, truth = render(profiles, T, settings=harsh)

@@ -17,7 +17,7 @@ from appliance.tracking.markers import marker_corners
 from appliance.tracking.scene import synthetic_camera
 from appliance.tracking.trajectory import pose_from_angles, random_poses
 from appliance.tracking.webcam_calibration import BoardSpec
-from drivers.camera import RenderSettings, SceneRenderer, TexturedQuad
+from drivers.camera_scene import RenderSettings, SceneRenderer, TexturedQuad
 
 ROOT = Path(__file__).resolve().parents[1]
 PHANTOM = ROOT / "configs" / "phantoms" / "box-v1.yaml"

@@ -11,12 +11,12 @@ import pytest
 from appliance.config import FluoroscopeProfile, PhantomProfile, load_appliance, load_profile
 from appliance.errors import FluorosimError
 from appliance.geometry import make_transform, rotation_about, rotation_angle_deg
-from appliance.tracking.smoothing import PoseFilter, SmoothingSettings
+from appliance.tracking.markers import ray_to_normal_deg
 from appliance.tracking.scene import synthetic_camera
+from appliance.tracking.smoothing import PoseFilter, SmoothingSettings
 from appliance.tracking.sources import open_camera, tracker_for
 from appliance.tracking.tracker import Tracker
 from appliance.tracking.trajectory import R_HOME, Trajectory, load_trajectory, pose_from_angles
-from appliance.tracking.markers import ray_to_normal_deg
 from drivers.camera import FileCamera, SyntheticCamera, V4L2Camera
 
 ROOT = Path(__file__).resolve().parents[1]

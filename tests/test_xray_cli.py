@@ -98,8 +98,8 @@ def test_bad_input_exits_2_with_one_line(case, change, expect):
 
 
 def test_phase_time_picks_the_phase_of_a_case(tmp_path):
-    from appliance.xray.commands import _volume_and_case
     from appliance.errors import FluorosimError
+    from appliance.xray.commands import _volume_and_case
 
     for i, hu in enumerate((0, 500)):
         vol, _, _ = box_volume((6, 6, 6), (2.0, 2.0, 2.0), (1, 1, 1), (4, 4, 4), hu=hu)

@@ -1,6 +1,7 @@
 """The renderer's physics and detector model, each checked against an independent computation."""
 
 import math
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -15,7 +16,6 @@ from appliance.errors import FluorosimError
 from appliance.geometry import make_transform, rotation_about
 from appliance.xray.analytic import box_chords, box_volume, pixel_rays_ct
 from appliance.xray.renderer import Renderer, View, at_resolution, zoomed_K
-from pathlib import Path
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "fluoroscopes"
 

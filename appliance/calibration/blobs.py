@@ -31,11 +31,11 @@ class Blobs:
     def __len__(self) -> int:
         return len(self.uv)
 
-    def subset(self, keep) -> "Blobs":
+    def subset(self, keep) -> Blobs:
         return Blobs(self.uv[keep], self.diameter_px[keep], self.strength[keep])
 
     @staticmethod
-    def concat(*parts: "Blobs") -> "Blobs":
+    def concat(*parts: Blobs) -> Blobs:
         return Blobs(np.concatenate([p.uv for p in parts]).reshape(-1, 2),
                      np.concatenate([p.diameter_px for p in parts]),
                      np.concatenate([p.strength for p in parts]))

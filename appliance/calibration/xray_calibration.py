@@ -77,7 +77,8 @@ def calibrate(images: list[tuple[str, np.ndarray]], phantom: CalibrationPhantomP
               marker_poses: list[np.ndarray] | None = None) -> CalibrationResult:
     """Run the pipeline on (name, image) pairs; `marker_poses[i]` is T_webcam_from_marker of image i."""
     if marker_poses is not None and len(marker_poses) != len(images):
-        raise FluorosimError(f"{len(marker_poses)} marker pose file(s) for {len(images)} image(s); give one --marker-pose per image, in the same order")
+        raise FluorosimError(f"{len(marker_poses)} marker pose file(s) for {len(images)} image(s); "
+                             f"give one --marker-pose per image, in the same order")
     K0 = fluoroscope.intrinsics.K()
     dist0 = fluoroscope.intrinsics.distortion.coefficients()
     acceptance = phantom.acceptance
@@ -161,7 +162,8 @@ def acceptance_failures(result: CalibrationResult, phantom: CalibrationPhantomPr
         return ["no image survived the fit"]
     failures = []
     if len(fit.views) < bar.min_images:
-        failures.append(f"{len(fit.views)} usable image(s), the bar is {bar.min_images}: take more images of the phantom at different tilts")
+        failures.append(f"{len(fit.views)} usable image(s), the bar is {bar.min_images}: "
+                        f"take more images of the phantom at different tilts")
     if fit.rms_px > bar.max_rms_px:
         failures.append(f"reprojection RMS {fit.rms_px:.3f} px exceeds {bar.max_rms_px} px")
     if fit.worst_px > bar.max_residual_px:
@@ -187,7 +189,8 @@ def report(result: CalibrationResult) -> str:
     for o in result.images:
         v = per_view.get(o.name)
         if v is not None:
-            lines.append(f"{o.name[-30:]:30s} {o.blobs:5d}  {o.identified:5d}  {v.used:4d}  {v.dropped:7d}  {v.rms_px:6.3f}  {v.worst_px:8.3f}")
+            lines.append(f"{o.name[-30:]:30s} {o.blobs:5d}  {o.identified:5d}  {v.used:4d}  {v.dropped:7d}  "
+                         f"{v.rms_px:6.3f}  {v.worst_px:8.3f}")
         else:
             lines.append(f"{o.name[-30:]:30s} {o.blobs:5d}  {o.identified:5d}  rejected: {o.reason}")
     fit = result.fit

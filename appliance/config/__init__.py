@@ -4,7 +4,7 @@ from .appliance import ApplianceProfile
 from .case import CaseProfile
 from .fluoroscope import FluoroscopeProfile
 from .keymap import KeymapProfile
-from .loading import ApplianceConfig, KINDS, load_appliance, load_profile, resolve, validate_paths
+from .loading import KINDS, ApplianceConfig, load_appliance, load_profile, resolve, validate_paths
 from .phantom import PhantomProfile
 from .webcam import WebcamProfile
 from .yamlfile import Problem, ProfileProblems

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from collections.abc import Iterator
+from typing import Annotated, Any
 
 import numpy as np
 from pydantic import AfterValidator, BaseModel, ConfigDict
@@ -29,6 +30,10 @@ RigidTransform = Annotated[list[list[float]], AfterValidator(_check_rigid)]
 IDENTITY = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
 
 
-def matrix(value) -> np.ndarray:
+#: What a profile's `problems()` yields: (location of the field, message) for each check across fields.
+Findings = Iterator[tuple[tuple[str | int, ...], str]]
+
+
+def matrix(value: Any) -> np.ndarray:
     """A profile's list-of-lists transform or matrix as a float64 array."""
     return np.asarray(value, dtype=np.float64)

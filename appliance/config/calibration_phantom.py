@@ -14,7 +14,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from .base import IDENTITY, RigidTransform, Section, matrix
+from .base import IDENTITY, Findings, RigidTransform, Section, matrix
 from .phantom import ARUCO_DICTIONARIES
 
 
@@ -42,7 +42,9 @@ class AttachedMarker(Section):
 
 
 class Materials(Section):
-    sphere_hu: int = Field(30000, ge=1000, le=32767, description="CT number given to the balls when the phantom is voxelised for the renderer (HU); steel is denser than any CT scale, so near the int16 top.")
+    sphere_hu: int = Field(30000, ge=1000, le=32767,
+                           description="CT number given to the balls when the phantom is voxelised for the renderer "
+                                       "(HU); steel is denser than any CT scale, so near the int16 top.")
     plate_hu: int = Field(120, ge=-1000, le=3000, description="CT number of the plates, PMMA is about +120 (HU).")
 
 
@@ -54,15 +56,20 @@ class Detection(Section):
     scales_per_octave: int = Field(4, ge=2, le=16, description="Scale-space samples per doubling of the blob size.")
     threshold_noise_sigmas: float = Field(
         8.0, gt=1, description="A blob must stand out of the image noise by this many robust standard deviations of the filter response.")
-    max_axis_ratio: float = Field(3.0, ge=1, description="A blob whose response curves more than this many times faster one way than the other is an edge, not a ball (ratio).")
-    fov_margin_px: float = Field(4.0, ge=0, description="Blobs whose rim comes this close to the field-of-view edge are dropped: a cut shadow has a biased centre (pixels).")
+    max_axis_ratio: float = Field(3.0, ge=1, description="A blob whose response curves more than this many times "
+                                                         "faster one way than the other is an edge, not a ball (ratio).")
+    fov_margin_px: float = Field(4.0, ge=0, description="Blobs whose rim comes this close to the field-of-view edge "
+                                                        "are dropped: a cut shadow has a biased centre (pixels).")
     line_tolerance_px: float = Field(6.0, gt=0, description="RANSAC: a blob centre this close to a line belongs to it (pixels).")
     ransac_iterations: int = Field(400, ge=10, le=100000, description="RANSAC: random pairs tried per line.")
     match_gate_fraction: float = Field(
-        0.3, gt=0, lt=0.5, description="A predicted sphere matches the nearest blob only within this fraction of the projected grid spacing.")
+        0.3, gt=0, lt=0.5, description="A predicted sphere matches the nearest blob only within this fraction of the "
+                                       "projected grid spacing.")
     max_identification_median_px: float = Field(
-        1.0, gt=0, description="A pairing is refused when, fitted alone with free focal lengths and k1, its median residual exceeds this (pixels).")
-    final_gate_px: float = Field(2.0, gt=0, description="After the fit, a detection farther than this from its sphere's reprojection is an outlier (pixels).")
+        1.0, gt=0, description="A pairing is refused when, fitted alone with free focal lengths and k1, its median "
+                               "residual exceeds this (pixels).")
+    final_gate_px: float = Field(2.0, gt=0, description="After the fit, a detection farther than this from its "
+                                                        "sphere's reprojection is an outlier (pixels).")
 
 
 class FitOptions(Section):
@@ -85,7 +92,8 @@ class Acceptance(Section):
     max_residual_px: float = Field(1.5, gt=0, description="Largest single reprojection residual (pixels).")
     max_focal_uncertainty_percent: float = Field(0.5, gt=0, description="Largest one-sigma uncertainty of fx or fy (percent).")
     max_webcam_spread_mm: float = Field(
-        3.0, gt=0, description="Each image's T_xray_from_webcam must lie this close to the average (mm); more means a marker pose file belongs to another image.")
+        3.0, gt=0, description="Each image's T_xray_from_webcam must lie this close to the average (mm); more means a "
+                               "marker pose file belongs to another image.")
     max_webcam_spread_deg: float = Field(1.0, gt=0, description="The same for rotation (degrees).")
 
 
@@ -99,7 +107,7 @@ class CalibrationPhantomProfile(Section):
     fit: FitOptions = Field(default_factory=FitOptions)
     acceptance: Acceptance = Field(default_factory=Acceptance)
 
-    def problems(self):
+    def problems(self) -> Findings:
         if self.marker.aruco_dictionary not in ARUCO_DICTIONARIES:
             yield ("marker", "aruco_dictionary"), f"must be one of {', '.join(ARUCO_DICTIONARIES)}"
         elif self.marker.id >= ARUCO_DICTIONARIES[self.marker.aruco_dictionary]:
@@ -145,7 +153,7 @@ class CalibrationPhantomProfile(Section):
     def large_mask(self) -> np.ndarray:
         """True for the large balls."""
         d = self.diameters()
-        return d > (d.min() + d.max()) / 2
+        return np.asarray(d > (d.min() + d.max()) / 2)
 
     def T_phantom_from_marker(self) -> np.ndarray:
         return matrix(self.marker.T_phantom_from_marker)

@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import Field
 
-from .base import IDENTITY, RigidTransform, Section
+from .base import IDENTITY, Findings, RigidTransform, Section
 
 #: Procedurally generated patients that ship with the appliance (see appliance/patient/).
 BUILTIN_PATIENTS = ("child-torso",)
@@ -50,7 +50,7 @@ class Patient(Section):
 class CaseProfile(Section):
     title: str = Field(min_length=1, description="Shown on screen and recorded with each session.")
     description: str = Field("", description="What the trainee should practise.")
-    builtin: Literal[BUILTIN_PATIENTS] | None = Field(
+    builtin: Literal[BUILTIN_PATIENTS] | None = Field(  # type: ignore[valid-type]  # the tuple's names
         None, description="Use a built-in generated patient instead of `phases`.")
     phases: list[Phase] | None = Field(None, description="The CT volumes with their time stamps, in time order.")
     at_end: Literal["loop", "hold"] = Field("loop", description="After the last phase: start again, or stay on it.")
@@ -60,7 +60,7 @@ class CaseProfile(Section):
     breathing: Breathing | None = None
     patient: Patient = Field(default_factory=Patient, description="Demographics recorded in dose reports.")
 
-    def problems(self):
+    def problems(self) -> Findings:
         if (self.builtin is None) == (self.phases is None):
             yield ("phases",), "give either `phases` (your CT volumes) or `builtin` (a generated patient), not both or neither"
         if self.phases is not None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import os
 import shlex
 import shutil
@@ -24,7 +25,7 @@ def default_config_dir() -> Path:
     return Path(__file__).resolve().parents[2] / "configs"
 
 
-def run_validate(args) -> int:
+def run_validate(args: argparse.Namespace) -> int:
     paths = [Path(p) for p in args.paths] or [default_config_dir()]
     for p in paths:
         if not p.exists():
@@ -60,7 +61,7 @@ def _kind_for(path: Path) -> str:
     return kind
 
 
-def run_edit(args) -> int:
+def run_edit(args: argparse.Namespace) -> int:
     path = Path(args.path)
     if not path.is_file():
         raise FluorosimError(f"{path}: no such profile")
@@ -110,7 +111,8 @@ def _ask(prompt: str) -> str:
         return "a"
 
 
-def register(commands, benches) -> None:
+def register(commands: argparse._SubParsersAction[argparse.ArgumentParser],
+             benches: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = commands.add_parser("validate", help="check profiles and everything they refer to",
                             description="Check profiles (default: the whole configs/ tree) and every file they name. "
                                         "Prints one line per problem as FILE:LINE: FIELD: MESSAGE; exit 0 when valid, 2 otherwise.")

@@ -12,7 +12,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from ..geometry import camera_matrix
-from .base import IDENTITY, RigidTransform, Section, matrix
+from .base import IDENTITY, Findings, RigidTransform, Section, matrix
 
 
 class Detector(Section):
@@ -20,8 +20,12 @@ class Detector(Section):
         description="An image intensifier has a circular field of view and vignetting; a flat panel is rectangular.")
     columns: int = Field(gt=0, le=8192, description="Image width (pixels).")
     rows: int = Field(gt=0, le=8192, description="Image height (pixels).")
-    pixel_pitch_mm: float = Field(gt=0, le=5, description="Pixel size at the detector (input phosphor) plane at the widest field of view (mm).")
-    vignetting: float = Field(0.0, ge=0, lt=1, description="Image intensifier brightness lost at the edge of the circular field relative to its centre (fraction, falls off as radius squared); 0 for flat panels.")
+    pixel_pitch_mm: float = Field(gt=0, le=5, description="Pixel size at the detector (input phosphor) plane at the "
+                                                          "widest field of view (mm).")
+    vignetting: float = Field(0.0, ge=0, lt=1,
+                              description="Image intensifier brightness lost at the edge of the circular field "
+                                          "relative to its centre (fraction, falls off as radius squared); 0 for "
+                                          "flat panels.")
 
 
 class Geometry(Section):
@@ -63,7 +67,7 @@ class ZoomLevel(Section):
         description="Reference air-kerma rate for each mode named in tube.modes (mGy/min).")
 
     @model_validator(mode="after")
-    def _positive_rates(self):
+    def _positive_rates(self) -> ZoomLevel:
         for mode, rate in self.air_kerma_rate_mgy_per_min.items():
             if not rate > 0:
                 raise ValueError(f"air_kerma_rate_mgy_per_min.{mode} must be greater than 0")
@@ -89,7 +93,7 @@ class Tube(Section):
     modes: list[Mode] = Field(min_length=1, description="Fluoroscopy modes offered by the console, first is the default.")
 
     @model_validator(mode="after")
-    def _unique_modes(self):
+    def _unique_modes(self) -> Tube:
         names = [m.name for m in self.modes]
         if len(set(names)) != len(names):
             raise ValueError(f"modes: names must be unique, got {names}")
@@ -99,7 +103,8 @@ class Tube(Section):
 class Dose(Section):
     reference_point_from_isocentre_mm: float = Field(
         150.0, ge=0, description="Patient entrance reference point, toward the source from the isocentre (mm; IEC 60601-2-43 uses 150).")
-    alarm_period_s: float = Field(300.0, gt=0, description="Cumulative fluoroscopy time between audible alarms (s; 21 CFR 1020.32 requires 300).")
+    alarm_period_s: float = Field(300.0, gt=0, description="Cumulative fluoroscopy time between audible alarms "
+                                                           "(s; 21 CFR 1020.32 requires 300).")
 
 
 class Display(Section):
@@ -128,7 +133,8 @@ class AutomaticBrightness(Section):
 
 
 class Webcam(Section):
-    T_xray_from_webcam: RigidTransform = Field(IDENTITY, description="Pose of the webcam in the X-ray frame (4x4, mm), from `fluorosim calibrate xray`.")
+    T_xray_from_webcam: RigidTransform = Field(IDENTITY, description="Pose of the webcam in the X-ray frame "
+                                                                     "(4x4, mm), from `fluorosim calibrate xray`.")
     status: Literal["nominal", "calibrated"] = Field("nominal", description="'nominal' until measured.")
 
 
@@ -147,14 +153,16 @@ class FluoroscopeProfile(Section):
     abc: AutomaticBrightness = Field(default_factory=AutomaticBrightness)
     webcam: Webcam = Field(default_factory=Webcam)
 
-    def problems(self):
+    def problems(self) -> Findings:
         """Checks across fields, as (location, message) pairs so errors point at the right line."""
         if self.geometry.source_to_isocentre_mm >= self.geometry.source_to_image_mm:
             yield ("geometry", "source_to_isocentre_mm"), "must be less than source_to_image_mm"
         fovs = [z.fov_mm for z in self.zoom_levels]
         for i in range(1, len(fovs)):
             if not fovs[i] < fovs[i - 1]:
-                yield ("zoom_levels", i, "fov_mm"), f"must be less than zoom_levels[{i - 1}].fov_mm ({fovs[i - 1]} mm): zoom levels go from widest to narrowest"
+                yield (("zoom_levels", i, "fov_mm"),
+                       f"must be less than zoom_levels[{i - 1}].fov_mm ({fovs[i - 1]} mm): zoom levels go from widest "
+                       f"to narrowest")
         widest = max(self.detector.columns, self.detector.rows) * self.detector.pixel_pitch_mm
         if fovs[0] > widest * 1.0001:
             yield ("zoom_levels", 0, "fov_mm"), f"{fovs[0]} mm exceeds the detector ({widest:.1f} mm = pixels x pixel_pitch_mm)"

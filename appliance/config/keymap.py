@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import Field
 
-from .base import Section
+from .base import Findings, Section
 
 Action = Literal[
     "fluoro",
@@ -19,9 +19,10 @@ Action = Literal[
 class KeymapProfile(Section):
     name: str = Field(min_length=1, description="The keypad this map is for.")
     keys: dict[str, Action] = Field(default_factory=dict, description="evdev key names (KEY_*, BTN_*) to actions.")
-    hid_usages: dict[int, Action] = Field(default_factory=dict, description="HID keyboard-page usage ids (integers) to actions, for hidapi keypads.")
+    hid_usages: dict[int, Action] = Field(default_factory=dict, description="HID keyboard-page usage ids (integers) "
+                                                                            "to actions, for hidapi keypads.")
 
-    def problems(self):
+    def problems(self) -> Findings:
         for name in self.keys:
             if not (name.startswith("KEY_") or name.startswith("BTN_")) or not name.replace("_", "").isalnum():
                 yield ("keys", name), "must be an evdev key name such as KEY_F1 or BTN_0"

@@ -60,7 +60,7 @@ def kind_of(located: Located) -> str | None:
     return None
 
 
-def _strip_optional(tp):
+def _strip_optional(tp: Any) -> Any:
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
         args = [a for a in typing.get_args(tp) if a is not type(None)]
@@ -93,7 +93,7 @@ def _field_path(loc: tuple) -> str:
     return out
 
 
-def _message(err: dict, model: type[BaseModel]) -> str:
+def _message(err: Any, model: type[BaseModel]) -> str:
     kind, msg = err["type"], err["msg"]
     if kind == "missing":
         return "is required but missing"
@@ -112,7 +112,7 @@ def _message(err: dict, model: type[BaseModel]) -> str:
     if kind not in ("value_error", "assertion_error") and "input" in err and not isinstance(err["input"], (dict, list)):
         shown = repr(err["input"])
         msg += f" (got {shown[:60]})"
-    return msg
+    return str(msg)
 
 
 def validate_located(located: Located, model: type[M]) -> tuple[M | None, list[Problem]]:
@@ -134,7 +134,7 @@ def load_profile(path: str | Path, model: type[M]) -> M:
     """Load and validate one profile, or raise ProfileProblems naming file, line and field."""
     located = load(path)
     obj, problems = validate_located(located, model)
-    if problems:
+    if problems or obj is None:
         raise ProfileProblems(problems)
     return obj
 
@@ -145,10 +145,10 @@ def resolve(base: Path, relative: str) -> Path:
     return p if p.is_absolute() else (base.parent / p)
 
 
-def _references(kind: str, obj: BaseModel) -> list[tuple[tuple, str, str | None]]:
+def _references(kind: str, obj: Any) -> list[tuple[tuple, str, str | None]]:
     """(location, path as written, kind it must be or None for a plain file/folder) of each reference."""
     if kind == "appliance":
-        refs = [(("fluoroscope",), obj.fluoroscope, "fluoroscope"), (("case",), obj.case, "case"),
+        refs: list[tuple[tuple, str, str | None]] = [(("fluoroscope",), obj.fluoroscope, "fluoroscope"), (("case",), obj.case, "case"),
                 (("phantom",), obj.phantom, "phantom"), (("keymap",), obj.keymap, "keymap"),
                 (("devices", "camera", "webcam"), obj.devices.camera.webcam, "webcam")]
         if obj.devices.keypad.script:
@@ -161,10 +161,10 @@ def _references(kind: str, obj: BaseModel) -> list[tuple[tuple, str, str | None]
     return []
 
 
-def _cross_problems(kind: str, located: Located, obj: BaseModel) -> list[Problem]:
+def _cross_problems(kind: str, located: Located, obj: Any) -> list[Problem]:
     problems = []
     if kind == "appliance":
-        keypad, pedal = obj.devices.keypad, obj.devices.pedal
+        keypad = obj.devices.keypad
         if keypad.source == "scripted" and not keypad.script:
             problems.append(Problem(located.display, located.line_of(("devices", "keypad", "source")),
                                     "devices.keypad.script", "is required when devices.keypad.source is 'scripted'"))

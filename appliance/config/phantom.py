@@ -7,7 +7,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from .base import IDENTITY, RigidTransform, Section, matrix
+from .base import IDENTITY, Findings, RigidTransform, Section, matrix
 
 #: OpenCV's predefined ArUco dictionaries and how many markers each holds.
 ARUCO_DICTIONARIES = {
@@ -37,13 +37,14 @@ class Marker(Section):
 
 class PhantomProfile(Section):
     name: str = Field(min_length=1, description="Shown on screen.")
-    aruco_dictionary: Literal[tuple(ARUCO_DICTIONARIES)] = Field(description="OpenCV predefined dictionary the markers come from.")
+    aruco_dictionary: Literal[tuple(ARUCO_DICTIONARIES)] = Field(  # type: ignore[valid-type]  # the keys as a Literal
+        description="OpenCV predefined dictionary the markers come from.")
     marker_size_mm: float = Field(gt=0, le=500, description="Printed side length of the black marker square (mm).")
     root_marker_id: int = Field(ge=0, description="The marker whose frame is the phantom frame.")
     box: Box
     markers: list[Marker] = Field(min_length=1, description="Every marker stuck on the box.")
 
-    def problems(self):
+    def problems(self) -> Findings:
         size = ARUCO_DICTIONARIES[self.aruco_dictionary]
         seen: dict[int, int] = {}
         for i, m in enumerate(self.markers):

@@ -7,7 +7,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from .base import Section, matrix
+from .base import Findings, Section, matrix
 
 
 class WebcamProfile(Section):
@@ -19,7 +19,7 @@ class WebcamProfile(Section):
     status: Literal["nominal", "calibrated"] = Field("nominal", description="'calibrated' once measured from a ChArUco board.")
     rms_px: float | None = Field(None, ge=0, description="Reprojection RMS of the calibration (pixels).")
 
-    def problems(self):
+    def problems(self) -> Findings:
         K = self.K
         if len(K) != 3 or any(len(r) != 3 for r in K):
             yield ("K",), "must be a 3x3 matrix"

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from ruamel.yaml import YAML
 from ruamel.yaml.comments import CommentedMap, CommentedSeq
@@ -105,7 +105,7 @@ def load(path: str | Path) -> Located:
     path = Path(path)
     shown = display_path(path)
 
-    def fail(message: str, line: int | None = None):
+    def fail(message: str, line: int | None = None) -> NoReturn:
         raise ProfileProblems([Problem(shown, line, "", message)])
 
     try:

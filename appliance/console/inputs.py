@@ -10,7 +10,7 @@ appears; a script that cannot be read is one (a FluorosimError naming file and l
 from __future__ import annotations
 
 from drivers.hid_keypad import HidKeypad, parse_spec
-from drivers.input_event import NoInput
+from drivers.input_event import DeviceState, NoInput
 from drivers.keypad import EvdevKeypad
 from drivers.pedal import SerialPedal
 from drivers.scripted_input import ScriptedInput, ScriptProblem
@@ -55,6 +55,6 @@ def problems(devices) -> list[str]:
     """One line per configured device that is not working now (unplugged, silent), for the screen."""
     lines = []
     for device in devices:
-        if getattr(device, "state", "none") not in ("ok", "none"):
+        if getattr(device, "state", DeviceState.NONE) not in (DeviceState.OK, DeviceState.NONE):
             lines.append(getattr(device, "problem", "") or f"{getattr(device, 'source', 'input')} unplugged")
     return lines

@@ -34,6 +34,8 @@ from .keys import action_for
 #: While continuous fluoroscopy runs, an `exposure` event is recorded this often (s), so a
 #: power cut loses at most this much of the record. Pulsed modes record every pulse.
 PROGRESS_PERIOD_S = 1.0
+#: The fluoroscopy time display counts tenths of a minute (s).
+SECONDS_PER_TENTH_MINUTE = 6.0
 #: Summed time steps may miss an alarm threshold by rounding; this much counts as reached (s).
 ALARM_SLACK_S = 1e-9
 
@@ -86,15 +88,36 @@ class ConsoleState:
     pulses_this_frame: int
     kvp: float
     ma: float
+    pulses: int = 0                 # pulses so far this session (counts images in the pulsed modes)
 
     @property
     def held(self) -> bool:
         return self.image == "held"
 
+    @property
+    def collimated_mm(self) -> tuple[float, float] | None:
+        """The blade opening (horizontal, vertical mm at the detector plane) when the blades cut
+        into the field of view; None when they are fully open."""
+        c, fov = self.collimation_mm, self.fov_mm
+        return None if c[0] >= fov and c[1] >= fov else (c[0], c[1])
+
+    def image_due(self, drawn: ConsoleState | None) -> bool:
+        """Whether a new image is due, `drawn` being the state the image on screen was rendered at.
+
+        Continuous fluoroscopy shows a new image whenever one can be made; a pulsed mode only
+        one per pulse, as on the real unit. Unlike `new_image` (this tick only), this holds
+        across states a slower reader never saw: a pulse since `drawn` is a pulse not drawn.
+        """
+        if not self.fluoro_on:
+            return False
+        if self.pulse_rate_per_s is None:
+            return True
+        return drawn is None or self.pulses > drawn.pulses
+
 
 def minutes_and_tenths(seconds: float) -> str:
     """Fluoroscopy time as a clinical display shows it: whole tenths of a minute, never rounded up."""
-    tenths = int(math.floor(seconds / 6.0 + 1e-9))
+    tenths = int(math.floor(max(seconds, 0.0) / SECONDS_PER_TENTH_MINUTE + 1e-9))
     return f"{tenths // 10}.{tenths % 10}"
 
 
@@ -402,4 +425,4 @@ class Console:
             alarm_sounding=self.alarm_sounding, alarm_count=self.alarm_count, save_count=self.save_count,
             runs=self.runs,
             new_image=self._frame_pulses > 0 if mode.pulse_rate_per_s else self._frame_exposed,
-            pulses_this_frame=self._frame_pulses, kvp=fl.tube.kvp, ma=fl.tube.ma)
+            pulses_this_frame=self._frame_pulses, kvp=fl.tube.kvp, ma=fl.tube.ma, pulses=self._pulse_count)

@@ -8,7 +8,7 @@ session with five minutes of fluoroscopy (and its alarm) fits in a minute or two
 from __future__ import annotations
 
 import time
-from typing import Callable
+from collections.abc import Callable
 
 
 class SimClock:

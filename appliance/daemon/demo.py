@@ -15,6 +15,8 @@ import math
 import time
 from pathlib import Path
 
+from drivers.scripted_input import ScriptedInput
+
 from ..errors import FluorosimError
 from .logqueue import start_logging
 from .notify import Notifier
@@ -92,7 +94,9 @@ def run_demo(config_path: Path, *, case: Path | None = None, seconds: float | No
         rate = app.clock.rate
         if seconds is None:
             # The session lasts as long as its script (whose times are on the console's clock).
-            seconds = app.parts.keypad.duration_s / rate + TAIL_S
+            keypad = app.parts.keypad
+            script_s = keypad.duration_s if isinstance(keypad, ScriptedInput) else 0.0
+            seconds = script_s / rate + TAIL_S
         _say(f"      running for {seconds:.0f} s (console clock x{rate:g}; "
              f"screen: {shown(cfg.data_dir / devices.display.path) if devices.display.path else devices.display.target})")
         t_run = time.monotonic()

@@ -1,4 +1,5 @@
-"""`LatestValue`: how workers hand each other data without ever falling behind.
+"""`LatestValue`: how workers hand each other data without ever falling behind, and the
+values they hand each other.
 
 A one-element slot that every `put` overwrites. A reader gets the newest value and its
 sequence number; a value overwritten before anyone read it is counted as dropped. A slow
@@ -10,7 +11,16 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Generic, TypeVar
+
+import numpy as np
+
+from ..console.state import ConsoleEvent, ConsoleState
+from ..tracking.tracker import Pose
+from ..xray.renderer import PreparedVolume
 
 T = TypeVar("T")
 
@@ -66,3 +76,54 @@ class LatestValue(Generic[T]):
     def seq(self) -> int:
         with self._cond:
             return self._seq
+
+
+@dataclass(frozen=True)
+class TrackedPose:
+    """capture -> render: the phantom's pose in one camera frame."""
+
+    pose: Pose
+    t_frame: float            # camera frame timestamp (time.monotonic, s)
+    seq: int                  # camera frame sequence number
+
+
+@dataclass(frozen=True)
+class PhaseValue:
+    """phases -> render: the patient now, as one prepared phase or a blend of two."""
+
+    prepared_a: PreparedVolume
+    prepared_b: PreparedVolume | None
+    weight: float             # weight of `prepared_b` in [0, 1)
+    generation: int           # which renderer prepared it: values of a replaced renderer are not drawn
+
+
+@dataclass(frozen=True)
+class Recorded:
+    """input -> records: one console event, with the console's state at a save press (its count names the file)."""
+
+    event: ConsoleEvent
+    save_state: ConsoleState | None = None
+
+
+@dataclass(frozen=True)
+class SavedImage:
+    """records -> render: an image just written, so the screen can flash "saved"."""
+
+    png: Path
+    dicom: Path
+    t_saved: float            # time.monotonic when written (s)
+
+
+@dataclass
+class ShownFrame:
+    """What the display shows now; handed to observers (the demo's snapshots) after each write."""
+
+    rgb_source: Callable[[], np.ndarray]   # reads the framebuffer back
+    image: np.ndarray | None               # the rendered image in [0, 1] (last-image-hold keeps it)
+    state: ConsoleState
+    pose: TrackedPose | None
+    live: bool                             # a new image was rendered for this write
+    t_wall: float
+    latency_s: float | None
+    banners: list[str]
+    saved_flash: bool

@@ -9,10 +9,14 @@ by itself when the check passes again.
 from __future__ import annotations
 
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import IntEnum
 from pathlib import Path
-from typing import Any, Callable, Protocol
+from typing import Any, Protocol
+
+from drivers.camera import CaptureState
+from drivers.input_event import DeviceState
 
 
 class Level(IntEnum):
@@ -72,10 +76,10 @@ class CameraState:
 
     def check(self) -> Health:
         cam = self._camera()
-        state = getattr(cam, "state", "camera lost") if cam is not None else "camera lost"
-        if state == "ok":
+        state = getattr(cam, "state", CaptureState.LOST) if cam is not None else CaptureState.LOST
+        if state == CaptureState.OK:
             return OK
-        if state == "starting":
+        if state == CaptureState.STARTING:
             return Health(Level.WARNING, "camera starting", {"state": state})
         return Health(Level.WARNING, "tracking lost: camera lost - check the webcam cable", {"state": state})
 
@@ -105,7 +109,7 @@ class InputDeviceState:
     def check(self) -> Health:
         dev = self._device()
         state = getattr(dev, "state", "none") if dev is not None else "none"
-        if state in ("ok", "none"):
+        if state in (DeviceState.OK, DeviceState.NONE):
             return OK
         problem = getattr(dev, "problem", "")
         banner = f"{self.name}: {problem}" if problem else f"{self.name} unplugged - plug it back in"

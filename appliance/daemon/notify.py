@@ -11,14 +11,14 @@ import logging
 import os
 import socket
 import time
-from typing import Callable, Mapping
+from collections.abc import Callable, Mapping
 
 log = logging.getLogger(__name__)
 
 
 def _systemd_sender() -> Callable[[str], bool] | None:
     try:
-        from systemd import daemon
+        from systemd import daemon  # type: ignore[attr-defined]  # a C extension mypy cannot see into
     except ImportError:
         return None
     return lambda message: bool(daemon.notify(message))
@@ -81,6 +81,8 @@ class Notifier:
     def _send_datagram(self, message: str) -> bool:
         if self._sock is None:
             self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+        if not self.socket_path:
+            return False
         self._sock.sendto(message.encode(), _socket_address(self.socket_path))
         return True
 

@@ -10,29 +10,27 @@ display that cannot be opened, or profiles that cannot be used, stop the start.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
-from drivers.framebuffer import open_display
+from drivers.camera import CameraSource
+from drivers.framebuffer import Display
+from drivers.input_event import InputDevice
 
 from ..config import ApplianceConfig, resolve
 from ..config.base import matrix
+from ..config.fluoroscope import FluoroscopeProfile
 from ..console.alarm_sound import AlarmSound
 from ..console.inputs import open_inputs
 from ..console.state import Console
 from ..display.compositor import Compositor, Overlay
-from ..errors import FluorosimError
+from ..display.target import open_target
 from ..patient.timeline import PhaseTimeline
+from ..tracking.tracker import Tracker
 from ..xray.renderer import Renderer, View, at_resolution
 
 log = logging.getLogger(__name__)
-
-
-def data_path(cfg: ApplianceConfig, written: str) -> Path:
-    """A path written in the appliance profile's devices section, relative to data_dir."""
-    p = Path(written).expanduser()
-    return p if p.is_absolute() else cfg.data_dir / p
 
 
 def patient_phases(cfg: ApplianceConfig, progress: Callable[[str], None] | None = None) -> list[tuple[float, Any]]:
@@ -42,10 +40,10 @@ def patient_phases(cfg: ApplianceConfig, progress: Callable[[str], None] | None 
         from ..patient.builtin import builtin_phases
         return builtin_phases(case.builtin, cfg.data_dir / "cache", progress=progress)
     from ..patient.volume_io import load_volume
-    return [(ph.time_s, (lambda p=resolve(cfg.case_path, ph.volume): load_volume(p))) for ph in case.phases]
+    return [(ph.time_s, (lambda p=resolve(cfg.case_path, ph.volume): load_volume(p))) for ph in case.phases or ()]
 
 
-def rendered_fluoroscope(cfg: ApplianceConfig, fallback: bool = False):
+def rendered_fluoroscope(cfg: ApplianceConfig, fallback: bool = False) -> FluoroscopeProfile:
     """The fluoroscope as rendered: read out at `daemon.render_matrix_px` when the profile sets it,
     and at no more than `daemon.cpu_fallback_matrix_px` once rendering fell back to the CPU."""
     d = cfg.appliance.daemon
@@ -72,50 +70,36 @@ def is_cpu(renderer: Renderer) -> bool:
     return bool(renderer.device.type & cl.device_type.CPU)
 
 
-def open_camera(cfg: ApplianceConfig):
+def open_camera(cfg: ApplianceConfig) -> CameraSource:
     from ..tracking.sources import open_camera as open_source
     return open_source(cfg)
 
 
-def open_tracker(cfg: ApplianceConfig):
+def open_tracker(cfg: ApplianceConfig) -> Tracker:
     from ..tracking.sources import tracker_for
     return tracker_for(cfg)
 
 
-def make_view(cfg: ApplianceConfig, state) -> View:
-    fov = state.fov_mm
-    c = state.collimation_mm
-    collimation = None if c is None or (c[0] >= fov and c[1] >= fov) else tuple(c)
-    return View(zoom=state.zoom, collimation_mm=collimation, invert=state.invert, noise=cfg.fluoroscope.display.noise)
-
-
-def make_overlay(cfg: ApplianceConfig, state, *, live: bool, saved_flash: bool, warnings: list[str],
-                 fps: float | None) -> Overlay:
-    fov = state.fov_mm
-    c = state.collimation_mm
-    return Overlay(live=live, zoom=state.zoom, fov_mm=fov,
-                   collimation_mm=None if c is None or (c[0] >= fov and c[1] >= fov) else tuple(c),
-                   fluoro_time_s=state.fluoro_time_s, air_kerma_mgy=state.air_kerma_mgy,
-                   air_kerma_rate_mgy_per_min=state.air_kerma_rate_mgy_per_min,
-                   dap_gy_cm2=state.dap_gy_cm2, mode=state.mode, alarm=state.alarm_sounding,
-                   saved_flash=saved_flash, invert=state.invert, breath_hold=state.breath_hold,
-                   case=cfg.case.title, operator=cfg.appliance.operator, fluoroscope=cfg.fluoroscope.name,
-                   warnings=list(warnings), fps=fps)
+def open_timeline(cfg: ApplianceConfig, renderer: Renderer) -> PhaseTimeline:
+    """The active case's phases, loaded and prepared for `renderer` by the timeline's own thread."""
+    return PhaseTimeline(patient_phases(cfg), renderer, at_end=cfg.case.at_end)
 
 
 @dataclass
 class Parts:
-    camera: Any
-    tracker: Any
+    camera: CameraSource
+    tracker: Tracker
     renderer: Renderer
     timeline: PhaseTimeline
     console: Console
-    keypad: Any
-    pedal: Any
+    keypad: InputDevice
+    pedal: InputDevice
     compositor: Compositor
-    display: Any
+    display: Display
     alarm: AlarmSound
     closed: bool = False
+    #: Counts replacements of the renderer or the case: phases prepared under an older one are not drawn.
+    generation: int = 0
 
     @property
     def renderer_device(self) -> str:
@@ -123,17 +107,26 @@ class Parts:
 
     def fall_back_to_cpu(self, cfg: ApplianceConfig) -> None:
         """Replace a failed OpenCL device by PoCL's CPU device; phases are prepared again there."""
-        old = self.timeline
         self.renderer = make_renderer(cfg, device="cpu")
-        self.timeline = PhaseTimeline(patient_phases(cfg), self.renderer, at_end=cfg.case.at_end)
+        self._replace_timeline(open_timeline(cfg, self.renderer))
+
+    def switch_case(self, cfg: ApplianceConfig) -> None:
+        """Take up the case of a reloaded profile set: its phases are prepared from now on."""
+        self._replace_timeline(open_timeline(cfg, self.renderer))
+
+    def _replace_timeline(self, timeline: PhaseTimeline) -> None:
+        old = self.timeline
+        self.timeline = timeline
+        self.generation += 1
         old.close()
 
     def close(self) -> None:
         if self.closed:
             return
         self.closed = True
-        for name, close in (("camera", self.camera.stop), ("keypad", self.keypad.close), ("pedal", self.pedal.close), ("alarm", self.alarm.stop),
-                            ("phase loader", self.timeline.close), ("display", self.display.close)):
+        for name, close in (("camera", self.camera.stop), ("keypad", self.keypad.close), ("pedal", self.pedal.close),
+                            ("alarm", self.alarm.stop), ("phase loader", self.timeline.close),
+                            ("display", self.display.close)):
             try:
                 close()
             except Exception as e:  # noqa: BLE001 - closing one part must not leave the others open
@@ -167,22 +160,14 @@ def open_parts(cfg: ApplianceConfig, console_clock: Callable[[], float]) -> Part
     The display comes first and shows that the appliance is starting; the console and its
     inputs come last, after the renderer is warm, so a scripted session starts on time.
     """
-    d = cfg.appliance.devices.display
-    display_path = str(data_path(cfg, d.path)) if d.target == "file" else None
-    try:
-        if display_path:
-            Path(display_path).parent.mkdir(parents=True, exist_ok=True)
-        display = open_display(d.target, path=display_path, width=d.width, height=d.height, bpp=d.bpp)
-    except OSError as e:
-        # The driver's message names the device or file and what is wrong with it.
-        raise FluorosimError(f"display: {e}; check devices.display in {cfg.path}") from None
+    display = open_target(cfg.path, cfg.appliance)
     compositor = Compositor(display.width, display.height,
                             circular_fov=cfg.fluoroscope.detector.kind == "image_intensifier")
     display.show(compositor.compose(None, Overlay(case=cfg.case.title, operator=cfg.appliance.operator,
                                                   fluoroscope=cfg.fluoroscope.name,
                                                   warnings=["starting: preparing the patient and the X-ray renderer"])))
     renderer = make_renderer(cfg)
-    timeline = PhaseTimeline(patient_phases(cfg), renderer, at_end=cfg.case.at_end)
+    timeline = open_timeline(cfg, renderer)
     try:
         took = warm_up(cfg, renderer, timeline)
         log.info("renderer warm on %s in %.1f s", device_label(renderer), took)
@@ -206,5 +191,5 @@ def open_parts(cfg: ApplianceConfig, console_clock: Callable[[], float]) -> Part
         raise
 
 
-__all__ = ["Parts", "data_path", "device_label", "make_overlay", "make_renderer", "make_view",
-           "open_parts", "patient_phases", "rendered_fluoroscope"]
+__all__ = ["Parts", "device_label", "make_renderer", "open_parts", "open_timeline", "patient_phases",
+           "rendered_fluoroscope"]

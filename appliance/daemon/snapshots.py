@@ -11,14 +11,15 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
 
 from ..atomic_file import write_atomic
+from .handoff import ShownFrame
 
 log = logging.getLogger(__name__)
 
@@ -42,20 +43,20 @@ def roll_deg(T_webcam_from_phantom: np.ndarray) -> float:
 class Moment:
     name: str
     caption: str
-    when: Callable[[object], bool]  # ShownFrame -> bool
+    when: Callable[[ShownFrame], bool]
 
 
-def _live(f) -> bool:
+def _live(f: ShownFrame) -> bool:
     return bool(f.live and f.image is not None)
 
 
-def _pose_roll(f) -> float | None:
-    if f.pose is None or not getattr(f.pose.pose, "ok", False):
+def _pose_roll(f: ShownFrame) -> float | None:
+    if f.pose is None or not f.pose.pose.ok or f.pose.pose.T_webcam_from_phantom is None:
         return None
     return roll_deg(f.pose.pose.T_webcam_from_phantom)
 
 
-def _collimated(f) -> bool:
+def _collimated(f: ShownFrame) -> bool:
     c = getattr(f.state, "collimation_mm", None)
     if c is None:
         return False
@@ -66,7 +67,7 @@ def key_moments() -> list[Moment]:
     """The moments the demo shows, in the order they appear on the contact sheet."""
     moments = [Moment("first-live", "first live image", _live)]
     for z in (1, 2, 3, 4):
-        moments.append(Moment(f"zoom-{z}", f"zoom {z}", lambda f, z=z: _live(f) and f.state.zoom == z))
+        moments.append(Moment(f"zoom-{z}", f"zoom {z}", lambda f, z=z: _live(f) and f.state.zoom == z))  # type: ignore[misc]
     moments += [
         Moment("collimated", "collimator closed in", lambda f: _live(f) and _collimated(f)),
         Moment("inverted", "inverted", lambda f: _live(f) and bool(f.state.invert)),

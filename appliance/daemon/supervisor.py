@@ -15,7 +15,7 @@ import signal
 import threading
 import time
 from collections import deque
-from typing import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 
 from .health import Health, HealthCheck, Level, run_check
 from .notify import Notifier

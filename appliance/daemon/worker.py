@@ -11,8 +11,8 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from contextlib import contextmanager
-from typing import Callable
 
 log = logging.getLogger(__name__)
 
@@ -25,9 +25,9 @@ class Worker:
     returns False; the loop then waits `idle_s` more before the next step.
     """
 
-    def __init__(self, name: str, step: Callable[["Worker"], bool] | None = None, *,
-                 setup: Callable[["Worker"], None] | None = None,
-                 teardown: Callable[["Worker"], None] | None = None,
+    def __init__(self, name: str, step: Callable[[Worker], bool] | None = None, *,
+                 setup: Callable[[Worker], None] | None = None,
+                 teardown: Callable[[Worker], None] | None = None,
                  idle_s: float = 0.01, clock: Callable[[], float] = time.monotonic):
         self.name = name
         self._step, self._setup, self._teardown = step, setup, teardown

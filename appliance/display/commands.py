@@ -10,7 +10,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from drivers.framebuffer import FakeFramebuffer, FileDisplay, FramebufferDisplay, PixelFormat
+from drivers.framebuffer import FakeFramebuffer, FileDisplay, FramebufferDisplay
+from drivers.pixel_format import PixelFormat
 
 from ..atomic_file import write_atomic
 from ..config import ApplianceProfile, load_profile
@@ -97,7 +98,7 @@ def run_bench(args) -> int:
           f"median (fastest) per frame")
     for width, height in ((1920, 1080), (1280, 1024)):
         comp = Compositor(width, height)
-        timing = Timing(lambda i: comp.compose(image, overlay, now=i * 0.04), frames)
+        timing = Timing(lambda i, comp=comp: comp.compose(image, overlay, now=i * 0.04), frames)
         print(f"  compose {width}x{height}: {timing}")
         if out:
             write_png(out / f"compose-{width}x{height}.png", comp.compose(image, overlay, now=0.1))

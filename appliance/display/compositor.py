@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from ..console.state import minutes_and_tenths
+
 FONT = cv2.FONT_HERSHEY_SIMPLEX
 FONT_BOLD = cv2.FONT_HERSHEY_DUPLEX
 
@@ -44,6 +46,12 @@ COLLIMATED_BRIGHTNESS = 0.3
 ALARM_FLASH_PERIOD_S = 1.0
 #: At most this many warning banners are shown; the last one says how many more there are.
 MAX_WARNINGS = 4
+#: Grey level (of 255) of the drawn blade edges: visible on black and on bright anatomy.
+BLADE_EDGE_GREY = 150
+#: Warnings shorter than this (characters) are shown in capitals, as a unit's short alerts are.
+SHORT_WARNING_CHARS = 40
+#: The smallest screen the layout works on (pixels a side).
+MIN_SCREEN_PX = 64
 
 
 @dataclass
@@ -83,9 +91,9 @@ def fluoro_time_clock(seconds: float) -> str:
 
 
 def fluoro_time_minutes(seconds: float) -> str:
-    """Fluoroscopy time in minutes and completed tenths, as clinical units display it: 2.6 min."""
-    tenths = int(math.floor(max(seconds, 0.0) / 6.0 + 1e-9))
-    return f"{tenths // 10}.{tenths % 10} min"
+    """Fluoroscopy time in minutes and completed tenths, as clinical units display it: 2.6 min
+    (the console's count of tenths, with the unit)."""
+    return f"{minutes_and_tenths(seconds)} min"
 
 
 def dose_number(value: float) -> str:
@@ -139,8 +147,8 @@ class Compositor:
     """Builds the screen from the rendered image and the overlay; one instance per screen size."""
 
     def __init__(self, width: int, height: int, circular_fov: bool = True):
-        if width < 64 or height < 64:
-            raise ValueError(f"screen must be at least 64x64 pixels, got {width}x{height}")
+        if width < MIN_SCREEN_PX or height < MIN_SCREEN_PX:
+            raise ValueError(f"screen must be at least {MIN_SCREEN_PX}x{MIN_SCREEN_PX} pixels, got {width}x{height}")
         self.width, self.height, self.circular_fov = width, height, circular_fov
         self.side = min(width, height)                        # the image square (pixels)
         self.x0 = (width - self.side) // 2
@@ -316,7 +324,7 @@ class Compositor:
         for region in (square[:top], square[bottom:], square[top:bottom, :left], square[top:bottom, right:]):
             if region.size:
                 cv2.LUT(region, self._dim_lut, dst=region)
-        edge = 150
+        edge = BLADE_EDGE_GREY
         if left > 0:
             square[top:bottom, max(left - 1, 0):left + 1] = edge
             square[top:bottom, right - 1:min(right + 1, self.side)] = edge
@@ -397,7 +405,7 @@ class Compositor:
         if len(warnings) > MAX_WARNINGS:
             warnings = warnings[:MAX_WARNINGS - 1] + [f"... and {len(warnings) - MAX_WARNINGS + 1} more warnings"]
         for w in warnings:
-            y = self._banner(frame, w.upper() if len(w) < 40 else w, y, AMBER, BLACK)
+            y = self._banner(frame, w.upper() if len(w) < SHORT_WARNING_CHARS else w, y, AMBER, BLACK)
         if overlay.saved_flash:
             self._banner(frame, "IMAGE SAVED", max(y, round(self.height * 0.2)), GREEN, BLACK)
         if overlay.alarm and (now % ALARM_FLASH_PERIOD_S) < ALARM_FLASH_PERIOD_S / 2:

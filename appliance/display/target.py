@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from drivers.framebuffer import Display, DisplayError, open_display
+from drivers.framebuffer import Display, open_display
 
 from ..config import ApplianceProfile, resolve
 from ..errors import FluorosimError
@@ -29,5 +29,5 @@ def open_target(profile_path: str | Path, profile: ApplianceProfile, read_only: 
         if path is not None and not read_only:
             path.parent.mkdir(parents=True, exist_ok=True)
         return open_display(d.target, str(path) if path else None, d.width, d.height, d.bpp, read_only=read_only)
-    except DisplayError as e:
+    except OSError as e:  # a DisplayError, or the screen file's folder that cannot be made
         raise FluorosimError(f"{e} (devices.display in {profile_path})") from None

@@ -25,8 +25,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .shapes import (Grid, Layer, bounds, ellipsoid, elliptic_prism, intersect, paint_bone, paint_tube,
-                     rotation, segment, smooth_min, union)
+from .shapes import (
+    Grid,
+    Layer,
+    bounds,
+    ellipsoid,
+    elliptic_prism,
+    intersect,
+    paint_bone,
+    paint_tube,
+    rotation,
+    segment,
+    smooth_min,
+    union,
+)
 
 # --- Hounsfield units of the tissues (typical unenhanced CT values) ---
 HU_AIR = -1000.0
@@ -331,13 +343,13 @@ def _paint_ribs(bones: Layer, lift: float) -> None:
             return np.maximum(d, np.maximum(t0 - th, th - t1) * R)
 
         bone = rib_sdf(theta0, end, z_bone, half_t, half_h)
-        paint_bone(bones, lambda *box: bone, lo, hi, 1.5, HU_CORTICAL, HU_TRABECULAR)
+        paint_bone(bones, lambda *box, bone=bone: bone, lo, hi, 1.5, HU_CORTICAL, HU_TRABECULAR)
         if cart_z is not None:
             def z_cart(th, end=end, cart_end=cart_end, z_end=z_end, cart_z=cart_z + lift):
                 f = np.clip((th - end) / (cart_end - end), 0, 1)
                 return z_end + (cart_z - z_end) * f
             cartilage = rib_sdf(end - 0.02, cart_end, z_cart, half_t, half_h - 0.5)
-            bones.paint(lambda *box: cartilage, HU_CARTILAGE, lo, hi)
+            bones.paint(lambda *box, cartilage=cartilage: cartilage, HU_CARTILAGE, lo, hi)
         # Neck and head of the rib: from the rib's angle to the transverse process and the body.
         for s in (-1, 1):
             n = (np.sin(theta0) ** BODY_POWER + np.cos(theta0) ** BODY_POWER) ** (1.0 / BODY_POWER)

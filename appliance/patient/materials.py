@@ -137,7 +137,8 @@ def _spectrum(kvp: float, filtration_mm_al: float, n_bins: int) -> Spectrum:
         eff = float(s.get_eeff())
         mean = float(s.get_emean())
     except Exception as e:  # spekpy raises plain Exceptions for out-of-range settings
-        raise FluorosimError(f"spekpy cannot model a {kvp} kVp tube with {filtration_mm_al} mm Al: {e}; check tube.kvp and tube.filtration_mm_al") from None
+        raise FluorosimError(f"spekpy cannot model a {kvp} kVp tube with {filtration_mm_al} mm Al: {e}; check "
+                             "tube.kvp and tube.filtration_mm_al") from None
     dk = float(k[1] - k[0])
     counts = phi * dk / 100.0    # photons / mm^2 / mAs per fine bin
     # Equal-width coarse bins from the lowest energy carrying fluence to kVp.

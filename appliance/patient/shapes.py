@@ -28,7 +28,7 @@ class Grid:
     origin_mm: tuple[float, float, float]
 
     @classmethod
-    def centred(cls, shape_xyz: tuple[int, int, int], spacing_mm: float) -> "Grid":
+    def centred(cls, shape_xyz: tuple[int, int, int], spacing_mm: float) -> Grid:
         """The grid of `shape_xyz` voxels whose middle lies at the origin (a voxel centre when the count is odd)."""
         origin = tuple(-(n - 1) / 2 * spacing_mm for n in shape_xyz)
         return cls((shape_xyz[2], shape_xyz[1], shape_xyz[0]), spacing_mm, origin)
@@ -73,7 +73,7 @@ class Layer:
         self.value = np.full(grid.shape, background_hu if opaque else 0.0, np.float32)
         self.alpha = None if opaque else np.zeros(grid.shape, np.float32)
 
-    def copy(self) -> "Layer":
+    def copy(self) -> Layer:
         other = Layer.__new__(Layer)
         other.grid = self.grid
         other.value = self.value.copy()

@@ -11,7 +11,7 @@ from __future__ import annotations
 import bisect
 import logging
 import threading
-from typing import Callable
+from collections.abc import Callable
 
 from ..errors import FluorosimError
 from ..patient.volume import Volume

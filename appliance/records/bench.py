@@ -9,6 +9,7 @@ times recovery of an interrupted session and a full chain verification. Prints m
 
 from __future__ import annotations
 
+import argparse
 import random
 import statistics
 import tempfile
@@ -23,7 +24,7 @@ def _percentile(values: list[float], q: float) -> float:
     return ordered[min(len(ordered) - 1, int(q * len(ordered)))]
 
 
-def run_bench(args) -> int:
+def run_bench(args: argparse.Namespace) -> int:
     from ..config import FluoroscopeProfile, KeymapProfile, load_profile
     from ..console.state import Console
     from .ledger import Ledger, open_readonly, verify
@@ -78,7 +79,7 @@ def run_bench(args) -> int:
     return 0
 
 
-def register_bench(benches) -> None:
+def register_bench(benches: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     b = benches.add_parser("ledger", help="console tick and ledger commit cost per frame",
                            description=__doc__.splitlines()[0])
     b.add_argument("--frames", type=int, default=1800, help="frames to simulate (default 1800 = 60 s at 30/s)")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -13,7 +14,7 @@ from .ledger import open_readonly, verify
 DEFAULT_CONFIG = "configs/appliance.yaml"
 
 
-def ledger_path(args) -> Path:
+def ledger_path(args: argparse.Namespace) -> Path:
     """--ledger PATH, else <data_dir>/ledger.sqlite of the appliance profile."""
     if args.ledger:
         return Path(args.ledger)
@@ -24,7 +25,7 @@ def ledger_path(args) -> Path:
     return resolve(config, appliance.data_dir) / "ledger.sqlite"
 
 
-def run_verify(args) -> int:
+def run_verify(args: argparse.Namespace) -> int:
     path = ledger_path(args)
     conn = open_readonly(path)
     try:
@@ -39,7 +40,7 @@ def run_verify(args) -> int:
     return 1
 
 
-def run_export(args) -> int:
+def run_export(args: argparse.Namespace) -> int:
     since = export_module.parse_when(args.since) if args.since else None
     until = export_module.parse_when(args.until, end=True) if args.until else None
     if since is not None and until is not None and until <= since:
@@ -59,7 +60,7 @@ def run_export(args) -> int:
     return 0
 
 
-def run_list(args) -> int:
+def run_list(args: argparse.Namespace) -> int:
     since = export_module.parse_when(args.since) if args.since else None
     until = export_module.parse_when(args.until, end=True) if args.until else None
     path = ledger_path(args)
@@ -77,13 +78,14 @@ def run_list(args) -> int:
     return 0
 
 
-def _ledger_options(p) -> None:
+def _ledger_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", default=DEFAULT_CONFIG, metavar="PATH",
                    help=f"appliance profile whose data_dir holds ledger.sqlite (default {DEFAULT_CONFIG})")
     p.add_argument("--ledger", metavar="PATH", help="the ledger file itself, instead of --config")
 
 
-def register(commands, benches) -> None:
+def register(commands: argparse._SubParsersAction[argparse.ArgumentParser],
+             benches: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     from ..cli import command_group
     from .bench import register_bench
 

@@ -16,11 +16,12 @@ import datetime as dt
 import io
 import json
 import sqlite3
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 from ..atomic_file import write_atomic
 from ..errors import FluorosimError
-from . import rdsr
+from . import dicom, rdsr
 from .ledger import EVENT_COLUMNS, SESSION_COLUMNS, verify
 
 FORMATS = ("csv", "json", "rdsr")
@@ -50,7 +51,7 @@ def parse_when(text: str, *, end: bool = False) -> float:
 def iso(t_wall: float | None) -> str:
     if t_wall is None:
         return ""
-    return dt.datetime.fromtimestamp(t_wall, tz=dt.timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+    return dt.datetime.fromtimestamp(t_wall, tz=dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
 def sessions_between(conn: sqlite3.Connection, since: float | None, until: float | None) -> list[dict]:
@@ -66,7 +67,7 @@ def events_of(conn: sqlite3.Connection, session_id: int) -> list[dict]:
                                           (session_id,))]
 
 
-def _csv_bytes(header, rows) -> bytes:
+def _csv_bytes(header: Sequence[str], rows: Iterable[Sequence[object]]) -> bytes:
     buffer = io.StringIO(newline="")
     writer = csv.writer(buffer, lineterminator="\r\n")
     writer.writerow(header)
@@ -100,7 +101,7 @@ def build_files(conn: sqlite3.Connection, sessions: list[dict], fmt: str) -> tup
                                                               for e in events))}, notes)
     if fmt == "json":
         chain = verify(conn)
-        doc = {"format": "fluorosim ledger export 1", "exported_utc": iso(dt.datetime.now(dt.timezone.utc).timestamp()),
+        doc = {"format": "fluorosim ledger export 1", "exported_utc": iso(dt.datetime.now(dt.UTC).timestamp()),
                "chain": {"ok": chain.ok, "message": chain.message},
                "sessions": [{**_session_fields(s),
                              "events": [{**_event_fields(e), "detail": json.loads(e["detail"])} for e in events_of(conn, s["id"])]}
@@ -112,7 +113,7 @@ def build_files(conn: sqlite3.Connection, sessions: list[dict], fmt: str) -> tup
             if s["ended_wall"] is None:
                 notes.append(f"session {s['id']} is still open; no dose report until it ends")
                 continue
-            files[f"session-{s['id']:06d}.dcm"] = rdsr.encode(rdsr.session_report(s, events_of(conn, s["id"])))
+            files[f"session-{s['id']:06d}.dcm"] = dicom.encode(rdsr.session_report(s, events_of(conn, s["id"])))
         return files, notes
     raise FluorosimError(f"unknown export format '{fmt}'; choose one of {', '.join(FORMATS)}")
 

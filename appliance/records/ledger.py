@@ -21,9 +21,12 @@ import math
 import os
 import sqlite3
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
+from ..console.state import ConsoleEvent
 from ..errors import FluorosimError
 
 GENESIS = "0" * 64
@@ -220,7 +223,7 @@ class Ledger:
              int(kind == "alarm"), int(kind == "save"), session_id))
         self._head = row["hash"]
 
-    def _transaction(self, work) -> None:
+    def _transaction(self, work: Callable[[], object]) -> None:
         head = self._head
         try:
             self._conn.execute("BEGIN IMMEDIATE")
@@ -248,35 +251,38 @@ class Ledger:
         if self.session_id is not None:
             raise RuntimeError("a session is already open; end it first")
         self._anchor = (float(t_wall), time.monotonic() if t_monotonic is None else float(t_monotonic))
-        holder = {}
+        holder: dict[str, int] = {}
 
-        def work():
+        def work() -> None:
             cur = self._conn.execute("INSERT INTO sessions (operator, case_title, fluoroscope, started_wall) VALUES (?, ?, ?, ?)",
                                      (operator, case, fluoroscope, float(t_wall)))
-            holder["id"] = cur.lastrowid
-            self._insert(cur.lastrowid, t_wall, self._anchor[1], "session_start", (0, 0, 0), (0, 0, 0),
+            session_id = cur.lastrowid
+            assert session_id is not None  # an INSERT into a rowid table always gives one
+            holder["id"] = session_id
+            self._insert(session_id, t_wall, self._anchor[1], "session_start", (0, 0, 0), (0, 0, 0),
                          {"operator": operator, "case": case, "fluoroscope": fluoroscope, "equipment": equipment or {},
                           "patient": patient or {}})
         self._transaction(work)
         self.session_id = holder["id"]
-        return self.session_id
+        return holder["id"]
 
     def wall(self, t_monotonic: float) -> float:
         return self._anchor[0] + (t_monotonic - self._anchor[1])
 
-    def record(self, events) -> None:
+    def record(self, events: Sequence[ConsoleEvent]) -> None:
         """Append console events to the open session, all in one transaction."""
         if not events:
             return
-        if self.session_id is None:
+        session_id = self.session_id
+        if session_id is None:
             raise RuntimeError("no open session; call start_session first")
 
-        def work():
+        def work() -> None:
             for ev in events:
                 detail = dict(ev.detail)
                 if "start_t" in detail:
                     detail["start_wall"] = self.wall(detail["start_t"])
-                self._insert(self.session_id, self.wall(ev.t_monotonic), ev.t_monotonic, ev.kind,
+                self._insert(session_id, self.wall(ev.t_monotonic), ev.t_monotonic, ev.kind,
                              (ev.fluoro_time_s, ev.air_kerma_mgy, ev.dap_gy_cm2),
                              (ev.d_fluoro_time_s, ev.d_air_kerma_mgy, ev.d_dap_gy_cm2), detail)
         self._transaction(work)
@@ -331,20 +337,21 @@ class Ledger:
             last = self._conn.execute("SELECT max(t_wall) FROM events WHERE session_id = ?", (sid,)).fetchone()[0]
             if last is None:  # a session row without its start event cannot come from this code; keep it visible
                 last = self._conn.execute("SELECT started_wall FROM sessions WHERE id = ?", (sid,)).fetchone()[0]
-                self._transaction(lambda: self._conn.execute(
+                self._transaction(partial(
+                    self._conn.execute,
                     "UPDATE sessions SET ended_wall = ?, end_reason = 'recovered-empty' WHERE id = ?", (last, sid)))
                 continue
-            self._transaction(lambda: self._close_session(sid, last, "recovered"))
+            self._transaction(partial(self._close_session, sid, last, "recovered"))
         return open_ids
 
     def close(self) -> None:
         if self._conn is not None:
             self._conn.close()
-            self._conn = None
+            self._conn = None  # type: ignore[assignment]  # closed: every later call fails, as sqlite3's would
             os.close(self._lock_fd)
 
-    def __enter__(self):
+    def __enter__(self) -> Ledger:
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.close()

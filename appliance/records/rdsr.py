@@ -15,16 +15,17 @@ ms, mm, m2. The ledger records mGy and Gy cm^2; they are converted here.
 from __future__ import annotations
 
 import datetime as dt
-import io
 import json
-import uuid
 
-from pydicom.dataset import Dataset, FileMetaDataset
+from pydicom.dataset import Dataset
 from pydicom.sequence import Sequence
-from pydicom.uid import ExplicitVRLittleEndian, PYDICOM_IMPLEMENTATION_UID
 
 from .. import __version__
-from ..config.case import Patient
+from ..config.case import CaseProfile
+from ..config.fluoroscope import FluoroscopeProfile
+from .dicom import ds_number as _ds_number
+from .dicom import set_simulated_patient
+from .dicom import uid as _uid
 
 XRAY_RADIATION_DOSE_SR = "1.2.840.10008.5.1.4.1.1.88.67"
 
@@ -173,30 +174,12 @@ def datetime_item(relationship: str, concept: tuple, when: dt.datetime) -> Datas
     return ds
 
 
-def _ds_number(value: float) -> str:
-    """A Decimal String of at most 16 characters that keeps as many digits as fit."""
-    for digits in range(12, 0, -1):
-        text = f"{value:.{digits}g}"
-        if len(text) <= 16:
-            return text
-    return "0"
-
-
 def utc(t_wall: float) -> dt.datetime:
-    return dt.datetime.fromtimestamp(t_wall, tz=dt.timezone.utc)
+    return dt.datetime.fromtimestamp(t_wall, tz=dt.UTC)
 
 
 def dicom_datetime(when: dt.datetime) -> str:
     return when.strftime("%Y%m%d%H%M%S.%f") + "+0000"
-
-
-#: Name-based UUIDs (RFC 4122 version 5) in this namespace give the 2.25 UIDs of PS3.5 B.2.
-_UID_NAMESPACE = uuid.UUID("6f1b9d3e-4a57-5c1e-9f0b-3c6d2a8e7b41")
-
-
-def _uid(*parts) -> str:
-    """A UID derived from ledger content: re-exporting a session gives the same UIDs."""
-    return "2.25." + str(uuid.uuid5(_UID_NAMESPACE, "\x1f".join(str(p) for p in parts)).int)
 
 
 def _observer(equipment: dict, fluoroscope: str) -> list[Dataset]:
@@ -322,14 +305,7 @@ def session_report(session: dict, events: list[dict]) -> Dataset:
     ds.DeviceSerialNumber = equipment.get("serial") or fluoroscope
     ds.SoftwareVersions = f"fluorosim {__version__}"
     ds.InstitutionName = equipment.get("institution") or "fluorosim training appliance"
-    patient = Patient(**{k: v for k, v in (start_detail.get("patient") or {}).items() if k in Patient.model_fields})
-    ds.PatientName = "SIMULATED^TRAINING"
-    ds.PatientID = f"SIM-{session['id']}"
-    ds.PatientBirthDate = ""
-    ds.PatientSex = patient.sex
-    ds.PatientAge = f"{patient.age_years:03d}Y"
-    ds.PatientWeight = _ds_number(patient.weight_kg)
-    ds.PatientSize = _ds_number(patient.height_m)
+    set_simulated_patient(ds, start_detail.get("patient"), session["id"])
     case_title = session["case_title"]
     ds.AdmittingDiagnosesDescription = f"Training case: {case_title}"[:64]
     ds.AdmittingDiagnosesCodeSequence = Sequence([code((f"CASE-{_uid('case', case_title)[-10:]}", LOCAL_SCHEME,
@@ -357,24 +333,11 @@ def session_report(session: dict, events: list[dict]) -> Dataset:
     return ds
 
 
-def encode(ds: Dataset) -> bytes:
-    """The dataset as a DICOM Part 10 file."""
-    meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = ds.SOPClassUID
-    meta.MediaStorageSOPInstanceUID = ds.SOPInstanceUID
-    meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    meta.ImplementationClassUID = PYDICOM_IMPLEMENTATION_UID
-    ds.file_meta = meta
-    buffer = io.BytesIO()
-    ds.save_as(buffer, enforce_file_format=True)
-    return buffer.getvalue()
-
-
-def patient_of(case) -> dict:
+def patient_of(case: CaseProfile) -> dict:
     """What a session records about its virtual patient (CaseProfile -> dict) for the reports."""
-    return case.patient.model_dump()
+    return dict(case.patient.model_dump())
 
 
-def equipment_of(fluoroscope) -> dict:
+def equipment_of(fluoroscope: FluoroscopeProfile) -> dict:
     """What a session records about its machine (FluoroscopeProfile -> dict) for the reports."""
     return {"manufacturer": fluoroscope.manufacturer, "model": fluoroscope.model, "serial": fluoroscope.name}

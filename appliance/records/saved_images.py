@@ -20,11 +20,10 @@ from pydicom.uid import XRayRadiofluoroscopicImageStorage
 
 from .. import __version__
 from ..atomic_file import write_atomic
-from ..config.case import Patient
 from ..config.fluoroscope import FluoroscopeProfile
 from ..console.state import ConsoleState
 from ..errors import FluorosimError
-from .rdsr import _ds_number, _uid, encode
+from .dicom import ds_number, encode, set_simulated_patient, uid
 
 
 def _as_display(image: np.ndarray) -> np.ndarray:
@@ -37,15 +36,14 @@ def _as_display(image: np.ndarray) -> np.ndarray:
     if a.dtype == np.uint8 or a.dtype == np.uint16:
         return a
     if np.issubdtype(a.dtype, np.floating):
-        return np.round(np.clip(np.nan_to_num(a), 0.0, 1.0) * 255.0).astype(np.uint8)
+        return np.asarray(np.round(np.clip(np.nan_to_num(a), 0.0, 1.0) * 255.0), dtype=np.uint8)
     raise ValueError(f"unsupported image type {a.dtype}; give uint8, uint16 or float in 0..1")
 
 
 def dicom_image(pixels: np.ndarray, state: ConsoleState, fl: FluoroscopeProfile, *, t_wall: float,
                 session_id: int, operator: str, case_title: str, patient: dict | None = None) -> Dataset:
     rows, cols = pixels.shape
-    when = dt.datetime.fromtimestamp(t_wall, tz=dt.timezone.utc)
-    p = Patient(**{k: v for k, v in (patient or {}).items() if k in Patient.model_fields})
+    when = dt.datetime.fromtimestamp(t_wall, tz=dt.UTC)
     # The field of view fills the image: this zoom's pixel size at the detector plane.
     pitch = state.fov_mm / max(rows, cols)
     h_px = min(state.collimation_mm[0], state.fov_mm) / pitch
@@ -54,7 +52,7 @@ def dicom_image(pixels: np.ndarray, state: ConsoleState, fl: FluoroscopeProfile,
     ds.SpecificCharacterSet = "ISO_IR 192"
     ds.ImageType = ["ORIGINAL", "PRIMARY", "SINGLE PLANE"]
     ds.SOPClassUID = XRayRadiofluoroscopicImageStorage
-    ds.SOPInstanceUID = _uid("saved image", session_id, state.save_count, t_wall)
+    ds.SOPInstanceUID = uid("saved image", session_id, state.save_count, t_wall)
     ds.StudyDate = ds.SeriesDate = ds.ContentDate = ds.AcquisitionDate = when.strftime("%Y%m%d")
     ds.StudyTime = ds.SeriesTime = ds.ContentTime = ds.AcquisitionTime = when.strftime("%H%M%S.%f")
     ds.TimezoneOffsetFromUTC = "+0000"
@@ -67,15 +65,9 @@ def dicom_image(pixels: np.ndarray, state: ConsoleState, fl: FluoroscopeProfile,
     ds.StudyDescription = "Fluoroscopy training (simulated)"
     ds.SeriesDescription = f"Saved images, {case_title}"[:64]
     ds.OperatorsName = operator[:64]
-    ds.PatientName = "SIMULATED^TRAINING"
-    ds.PatientID = f"SIM-{session_id}"
-    ds.PatientBirthDate = ""
-    ds.PatientSex = p.sex
-    ds.PatientAge = f"{p.age_years:03d}Y"
-    ds.PatientWeight = _ds_number(p.weight_kg)
-    ds.PatientSize = _ds_number(p.height_m)
-    ds.StudyInstanceUID = _uid("saved images study", session_id, operator, case_title)
-    ds.SeriesInstanceUID = _uid("saved images series", session_id, operator, case_title)
+    set_simulated_patient(ds, patient, session_id)
+    ds.StudyInstanceUID = uid("saved images study", session_id, operator, case_title)
+    ds.SeriesInstanceUID = uid("saved images series", session_id, operator, case_title)
     ds.StudyID = str(session_id)[:16]
     ds.SeriesNumber = 1
     ds.Laterality = ""
@@ -83,34 +75,34 @@ def dicom_image(pixels: np.ndarray, state: ConsoleState, fl: FluoroscopeProfile,
     ds.PatientOrientation = ""
     ds.ImageComments = f"{'Held' if state.image == 'held' else 'Live'} image; fluoroscopy time {state.fluoro_time_display} min"
     # Exposure.
-    ds.KVP = _ds_number(state.kvp)
+    ds.KVP = ds_number(state.kvp)
     ds.RadiationSetting = "SC"       # low-dose fluoroscopic setting, not a radiographic acquisition
     ds.XRayTubeCurrent = int(round(state.ma))
-    ds.XRayTubeCurrentInuA = _ds_number(state.ma * 1000.0)
+    ds.XRayTubeCurrentInuA = ds_number(state.ma * 1000.0)
     ds.RadiationMode = "PULSED" if state.pulse_rate_per_s else "CONTINUOUS"
     if state.pulse_rate_per_s:
-        ds.AveragePulseWidth = _ds_number(fl.tube.pulse_width_ms)
+        ds.AveragePulseWidth = ds_number(fl.tube.pulse_width_ms)
         ds.ExposureTime = int(round(fl.tube.pulse_width_ms))   # ms: this image is one pulse
     else:
         ds.ExposureTime = None    # continuous: the frame's exposure is not a defined pulse (Type 2, empty)
-    ds.FocalSpots = _ds_number(fl.tube.focal_spot_mm)
+    ds.FocalSpots = ds_number(fl.tube.focal_spot_mm)
     # Geometry.
-    ds.DistanceSourceToDetector = _ds_number(fl.geometry.source_to_image_mm)
-    ds.DistanceSourceToPatient = _ds_number(fl.geometry.source_to_isocentre_mm)
-    ds.EstimatedRadiographicMagnificationFactor = _ds_number(fl.geometry.source_to_image_mm / fl.geometry.source_to_isocentre_mm)
-    ds.ImagerPixelSpacing = [_ds_number(pitch), _ds_number(pitch)]
+    ds.DistanceSourceToDetector = ds_number(fl.geometry.source_to_image_mm)
+    ds.DistanceSourceToPatient = ds_number(fl.geometry.source_to_isocentre_mm)
+    ds.EstimatedRadiographicMagnificationFactor = ds_number(fl.geometry.source_to_image_mm / fl.geometry.source_to_isocentre_mm)
+    ds.ImagerPixelSpacing = [ds_number(pitch), ds_number(pitch)]
     round_field = fl.detector.kind == "image_intensifier"
     ds.FieldOfViewShape = "ROUND" if round_field else "RECTANGLE"
     ds.FieldOfViewDimensions = [int(round(state.fov_mm))] if round_field else [int(round(state.fov_mm))] * 2
     if round_field:
-        ds.IntensifierSize = _ds_number(fl.zoom_levels[0].fov_mm)
+        ds.IntensifierSize = ds_number(fl.zoom_levels[0].fov_mm)
     ds.CollimatorShape = "RECTANGULAR"
     ds.CollimatorLeftVerticalEdge = int(round((cols - h_px) / 2))
     ds.CollimatorRightVerticalEdge = int(round((cols + h_px) / 2))
     ds.CollimatorUpperHorizontalEdge = int(round((rows - v_px) / 2))
     ds.CollimatorLowerHorizontalEdge = int(round((rows + v_px) / 2))
     # Dose so far in the session (dGy cm^2).
-    ds.ImageAndFluoroscopyAreaDoseProduct = _ds_number(state.dap_gy_cm2 * 10.0)
+    ds.ImageAndFluoroscopyAreaDoseProduct = ds_number(state.dap_gy_cm2 * 10.0)
     # Pixels.
     ds.SamplesPerPixel = 1
     ds.PhotometricInterpretation = "MONOCHROME2"

@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from drivers.camera import RenderSettings, SceneRenderer, TexturedQuad
+from drivers.camera_scene import RenderSettings, SceneRenderer, TexturedQuad
 
 from ..config.loading import load_profile
 from ..config.phantom import PhantomProfile
@@ -23,9 +23,9 @@ from .composite import CompositeCalibration
 from .markers import MarkerDetector
 from .scene import synthetic_camera
 from .sources import DEMO_TRAJECTORY
+from .tracker import Tracker
 from .trajectory import R_HOME, Trajectory, load_trajectory, pose_from_angles, random_poses
 from .webcam_calibration import BoardDetector, BoardSpec, calibrate_webcam
-from .tracker import Tracker
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -103,7 +103,8 @@ def bench_intrinsics(phantom, webcam, rng, frames: int) -> None:
 
 
 def bench_roll(phantom, webcam, rng) -> None:
-    print("roll sweep: roll about the box's long axis from -90 to +90 deg in 5 deg steps, tilt 0, at 300 (a patient at the isocentre), 400, 550, 700 mm")
+    print("roll sweep: roll about the box's long axis from -90 to +90 deg in 5 deg steps, tilt 0, at 300 (a patient "
+          "at the isocentre), 400, 550, 700 mm")
     tracker = Tracker(phantom, webcam, "joint", smoothing=False, window=False)
     for z in (300.0, 400.0, 550.0, 700.0):
         n, ok, worst_t, worst_r = 0, 0, 0.0, 0.0

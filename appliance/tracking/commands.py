@@ -24,7 +24,6 @@ from .profile_update import write_phantom_layout, write_webcam_intrinsics
 from .tracker import METHODS, Tracker
 from .webcam_calibration import BoardDetector, BoardSpec, calibrate_webcam
 
-
 #: Live webcam calibration keeps at most one board view per this many seconds.
 LIVE_VIEW_SPACING_S = 0.5
 #: A live camera that delivers nothing for this long (s) ends a calibration with an error.
@@ -184,16 +183,18 @@ def _page(image: np.ndarray, label: str, dpi: int, margin_mm: float = 10.0) -> n
 
 
 def _write_png(path: Path, image: np.ndarray, dpi: int) -> None:
-    from PIL import Image
     import io
+
+    from PIL import Image
     buf = io.BytesIO()
     Image.fromarray(image).save(buf, format="PNG", dpi=(dpi, dpi))
     write_atomic(path, buf.getvalue())
 
 
 def _write_pdf(path: Path, pages: list[np.ndarray], dpi: int) -> None:
-    from PIL import Image
     import io
+
+    from PIL import Image
     images = [Image.fromarray(p).convert("L") for p in pages]
     buf = io.BytesIO()
     images[0].save(buf, format="PDF", resolution=float(dpi), save_all=True, append_images=images[1:])

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
-from drivers.camera import RenderSettings, SyntheticCamera
+from drivers.camera import SyntheticCamera
+from drivers.camera_scene import RenderSettings
 
 from ..config.phantom import PhantomProfile
 from ..config.webcam import WebcamProfile

@@ -17,7 +17,6 @@ from scipy.spatial.transform import Rotation
 from ..config.appliance import Tracking
 from ..geometry import make_transform
 
-
 _PROFILE_DEFAULTS = Tracking()
 
 
@@ -32,7 +31,7 @@ class SmoothingSettings:
     reset_after_s: float = _PROFILE_DEFAULTS.reset_after_s
 
     @classmethod
-    def from_profile(cls, tracking: Tracking) -> "SmoothingSettings":
+    def from_profile(cls, tracking: Tracking) -> SmoothingSettings:
         return cls(tracking.min_cutoff_hz, tracking.beta_per_mm_s, tracking.beta_per_deg_s, tracking.d_cutoff_hz,
                    tracking.reset_after_s)
 

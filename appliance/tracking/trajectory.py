@@ -45,13 +45,13 @@ class Trajectory:
     loop: bool = True
 
     @classmethod
-    def from_poses(cls, times, poses, loop: bool = True) -> "Trajectory":
+    def from_poses(cls, times, poses, loop: bool = True) -> Trajectory:
         poses = np.asarray(poses, dtype=np.float64)
         return cls(np.asarray(times, dtype=np.float64), poses[:, :3, 3].copy(),
                    Rotation.from_matrix(poses[:, :3, :3]), loop)
 
     @classmethod
-    def still(cls, T: np.ndarray) -> "Trajectory":
+    def still(cls, T: np.ndarray) -> Trajectory:
         return cls.from_poses([0.0], [T])
 
     @property

@@ -73,7 +73,7 @@ class PreparedVolume:
     time_s: float = 0.0
     _renderer_id: int = field(default=0, repr=False)
 
-    def same_grid(self, other: "PreparedVolume") -> bool:
+    def same_grid(self, other: PreparedVolume) -> bool:
         return self.shape_xyz == other.shape_xyz and np.allclose(self.T_index_from_ct, other.T_index_from_ct, atol=1e-6)
 
 

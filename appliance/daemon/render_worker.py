@@ -1,0 +1,159 @@
+"""The render worker: the path of one frame, from the newest pose to the screen.
+
+    poses ─┐
+    phases ┼─> T_xray_from_ct -> Renderer.render -> Compositor.compose -> Display.show
+    console┘        (only when the console says an image is due; else the last image is held)
+
+`T_xray_from_ct = T_xray_from_webcam @ T_webcam_from_phantom @ T_phantom_from_ct`. The
+console decides whether an image is due, the collimation and the display settings; the
+renderer makes the image; the compositor lays the overlays over it.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from ..config import ApplianceConfig
+from ..console.state import ConsoleState
+from ..display.compositor import Overlay
+from ..errors import FluorosimError
+from ..xray.renderer import View
+from .frame_stats import FrameStats
+from .handoff import LatestValue, PhaseValue, SavedImage, ShownFrame, TrackedPose
+from .parts import Parts, is_cpu
+from .reload import ProfileKeeper
+from .worker import Worker
+
+log = logging.getLogger(__name__)
+
+#: How long the saved-image flash stays on screen (s, wall clock).
+SAVED_FLASH_S = 1.0
+#: The first frames build kernels and tables: seconds on a CPU device, not a hang. Until this
+#: many frames are on screen a render may take up to WARM_UP_GRACE_S (s).
+WARM_UP_FRAMES = 3
+WARM_UP_GRACE_S = 60.0
+#: How long the worker waits for the console's first state before looking again (s).
+CONSOLE_WAIT_S = 0.1
+#: Longest wait for a new pose while holding the last image (s): short, so overlays stay current.
+POSE_WAIT_S = 0.02
+#: Renderer faults are kept to this many characters for the screen's banner.
+FAULT_CHARS = 120
+
+
+def view_for(cfg: ApplianceConfig, state: ConsoleState) -> View:
+    """What the renderer is asked for: the console's zoom, collimation and inversion."""
+    return View(zoom=state.zoom, collimation_mm=state.collimated_mm, invert=state.invert,
+                noise=cfg.fluoroscope.display.noise)
+
+
+def overlay_for(cfg: ApplianceConfig, state: ConsoleState, *, live: bool, saved_flash: bool, warnings: list[str],
+                fps: float | None) -> Overlay:
+    """What the compositor draws over the image: the console's readings and the session's names."""
+    return Overlay(live=live, zoom=state.zoom, fov_mm=state.fov_mm, collimation_mm=state.collimated_mm,
+                   fluoro_time_s=state.fluoro_time_s, air_kerma_mgy=state.air_kerma_mgy,
+                   air_kerma_rate_mgy_per_min=state.air_kerma_rate_mgy_per_min,
+                   dap_gy_cm2=state.dap_gy_cm2, mode=state.mode, alarm=state.alarm_sounding,
+                   saved_flash=saved_flash, invert=state.invert, breath_hold=state.breath_hold,
+                   case=cfg.case.title, operator=cfg.appliance.operator, fluoroscope=cfg.fluoroscope.name,
+                   warnings=list(warnings), fps=fps)
+
+
+class RenderWorker(Worker):
+    """Newest pose + phase + console state -> image -> overlays -> display, once per pose.
+
+    Holds the last image (last-image-hold) and redraws it at `daemon.hold_refresh_hz` so the
+    overlays stay current while fluoroscopy is off. Publishes each live image to `shown`
+    (what a save writes) and the tube output the brightness control chose to `exposure_factor`.
+    """
+
+    def __init__(self, parts: Parts, keeper: ProfileKeeper, *, poses: LatestValue[TrackedPose],
+                 phases: LatestValue[PhaseValue], console_state: LatestValue[ConsoleState],
+                 saves: LatestValue[SavedImage], shown: LatestValue[np.ndarray], exposure_factor: LatestValue[float],
+                 banners: Callable[[], list[str]], on_first_frame: Callable[[], None],
+                 on_shown: Callable[[ShownFrame], None] | None = None):
+        super().__init__("render", idle_s=0.0)
+        self.parts, self.keeper = parts, keeper
+        self.poses, self.phases, self.console_state, self.saves = poses, phases, console_state, saves
+        self.shown, self.exposure_factor = shown, exposure_factor
+        self.banners, self.on_first_frame, self.on_shown = banners, on_first_frame, on_shown
+        self.stats = FrameStats()
+        #: Why rendering left the profile's OpenCL device (None while it has not), for the health check.
+        self.fault: str | None = None
+        self._last_pose_seq = 0
+        self._image: np.ndarray | None = None          # the image on screen (last-image-hold)
+        self._drawn: ConsoleState | None = None        # the console state it was rendered at
+        self._last_compose = 0.0
+        self._factor_sent = 1.0
+
+    def step(self) -> bool:
+        state, _ = self.console_state.get()
+        if state is None:
+            self.console_state.wait_newer(0, CONSOLE_WAIT_S)
+            return False
+        # Each pose is looked at once: drawn if an image is due, else skipped for the next one.
+        got_pose = self.poses.newer(self._last_pose_seq)
+        tracked = None
+        if got_pose is not None:
+            tracked, self._last_pose_seq = got_pose
+        phase, _ = self.phases.get()
+        cfg = self.keeper.current
+        now = time.monotonic()
+        live = False
+        if (tracked is not None and tracked.pose.ok and phase is not None
+                and phase.generation == self.parts.generation and state.image_due(self._drawn)):
+            image = self._render(cfg, tracked, phase, state)
+            if image is not None:
+                self._image, self._drawn, live = image, state, True
+                self._send_exposure_factor(self.parts.renderer.exposure_factor)
+        hold_period = 1.0 / cfg.appliance.daemon.hold_refresh_hz
+        if not live and now - self._last_compose < hold_period:
+            # Nothing new to draw: wait for the next pose rather than spin.
+            self.poses.wait_newer(self._last_pose_seq, min(hold_period, POSE_WAIT_S))
+            return False
+        banners = self.banners()
+        saved, _ = self.saves.get()
+        saved_flash = saved is not None and now < saved.t_saved + SAVED_FLASH_S
+        overlay = overlay_for(cfg, state, live=live, saved_flash=saved_flash, warnings=banners,
+                              fps=self.stats.fps(now))
+        self.parts.display.show(self.parts.compositor.compose(self._image, overlay))
+        t_shown = time.monotonic()
+        self._last_compose = t_shown
+        latency = None
+        if live and tracked is not None and self._image is not None:
+            latency = t_shown - tracked.t_frame
+            self.stats.add(t_shown, latency)
+            self.shown.put(self._image)
+        self.on_first_frame()
+        if self.on_shown is not None:
+            self.on_shown(ShownFrame(self.parts.display.read_back, self._image, state, tracked if live else None,
+                                     live, t_shown, latency, banners, saved_flash))
+        return True
+
+    def _render(self, cfg: ApplianceConfig, tracked: TrackedPose, phase: PhaseValue,
+                state: ConsoleState) -> np.ndarray | None:
+        T_xray_from_ct = (cfg.fluoroscope.T_xray_from_webcam() @ tracked.pose.T_webcam_from_phantom
+                          @ np.asarray(cfg.case.T_phantom_from_ct, dtype=np.float64))
+        blend = (phase.prepared_b, phase.weight) if phase.prepared_b is not None else None
+        grace = WARM_UP_GRACE_S if self.stats.frames < WARM_UP_FRAMES else cfg.appliance.daemon.stall_timeout_s
+        try:
+            with self.grace(grace):
+                return self.parts.renderer.render(phase.prepared_a, T_xray_from_ct, view_for(cfg, state), blend=blend)
+        except FluorosimError:
+            raise
+        except Exception as e:  # noqa: BLE001 - an OpenCL fault must not end the appliance
+            if is_cpu(self.parts.renderer):
+                raise
+            self.fault = f"{type(e).__name__}: {e}"[:FAULT_CHARS]
+            log.error("renderer failed on %s (%s); falling back to the CPU device", self.parts.renderer_device, e)
+            self.parts.fall_back_to_cpu(cfg)
+            return None
+
+    def _send_exposure_factor(self, factor: float) -> None:
+        """The console doses at the tube output the renderer's brightness control set; tell it on change."""
+        if factor != self._factor_sent:
+            self._factor_sent = factor
+            self.exposure_factor.put(factor)
