@@ -14,8 +14,16 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from appliance.geometry import (apply, camera_matrix, invert, make_transform, project, rigid_problem, rotation_about,
-                                rotation_angle_deg)
+from appliance.geometry import (
+    apply,
+    camera_matrix,
+    invert,
+    make_transform,
+    project,
+    rigid_problem,
+    rotation_about,
+    rotation_angle_deg,
+)
 
 finite = st.floats(min_value=-1e3, max_value=1e3, allow_nan=False, allow_infinity=False)
 axes = st.tuples(finite, finite, finite).filter(lambda a: math.hypot(*a) > 1e-3)

@@ -31,7 +31,7 @@ def world_readable_copy() -> Path:
     shutil.copytree(REPO, copy, symlinks=True,
                     ignore=shutil.ignore_patterns(".git", ".venv", "var", "__pycache__", "*.pyc", ".pytest_cache",
                                                   "*.egg-info", "build", ".mypy_cache", ".ruff_cache", "mutants"))
-    for dirpath, dirnames, filenames in os.walk(copy):
+    for dirpath, _dirnames, filenames in os.walk(copy):
         os.chmod(dirpath, 0o755)
         for name in filenames:
             path = Path(dirpath) / name

@@ -13,12 +13,12 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from appliance_setup import REPO, make_appliance
 from ruamel.yaml import YAML
 
 from appliance.config import load_appliance
 from appliance.tracking.scene import synthetic_camera
 from appliance.tracking.trajectory import pose_from_angles
-from appliance_setup import REPO, make_appliance
 from drivers.framebuffer import open_display
 
 DISPLAY = (320, 256)
