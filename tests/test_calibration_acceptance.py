@@ -80,7 +80,7 @@ def test_an_uncertain_focal_length_is_refused(sigma_pct, name):
     r = result(fit(sigma_pct=sigma_pct))
     assert not r.passed
     (failure,) = r.failures
-    assert failure.startswith(f"{name} uncertainty") and "add images with the phantom tilted" in failure
+    assert failure.startswith(f"{name} uncertainty") and failure.endswith(" %: add images with the phantom tilted")
     if sigma_pct[0] is not None:
         pct = sigma_pct[0] if name == "fx" else sigma_pct[1]
         assert f"{pct:.3f} %" in failure
@@ -96,5 +96,14 @@ def test_too_few_images_and_no_fit_are_refused():
 def test_an_image_whose_webcam_transform_disagrees_is_named():
     r = result(fit(), spreads_mm=[0.5, 3.5, 0.2], spreads_deg=[0.1, 0.1, 0.1])
     assert not r.passed and len(r.failures) == 1 and r.failures[0].startswith("img1: its T_xray_from_webcam lies 3.5 mm")
+    assert r.failures[0].endswith("deg); check that its --marker-pose file belongs to this image")
     r = result(fit(), spreads_mm=[0.5, 0.5, 0.2], spreads_deg=[0.1, 0.1, 1.2])
     assert not r.passed and r.failures[0].startswith("img2:")
+
+
+def test_figures_exactly_at_the_bar_pass():
+    # Worst residual 1.5 px, webcam spreads 3.0 mm and 1.0 deg, focal lengths known to 0.5 %:
+    # the bar is a maximum, so each is still accepted.
+    r = result(fit([view("img0"), view("img1", worst=1.5), view("img2")], sigma_pct=(0.5, 0.5)),
+               spreads_mm=[3.0, 0.1, 0.1], spreads_deg=[0.1, 1.0, 0.1])
+    assert r.failures == [] and r.passed

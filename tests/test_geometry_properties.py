@@ -65,6 +65,27 @@ def test_inverse_undoes_the_transform_and_keeps_distances(T, pts):
 
 
 @settings(max_examples=50, deadline=None)
+@given(T=rigid(), pts=points)
+def test_apply_is_the_homogeneous_product(T, pts):
+    p = np.asarray(pts)
+    by_hand = np.array([(T @ np.array([x, y, z, 1.0]))[:3] for x, y, z in p])
+    assert np.allclose(apply(T, p), by_hand, rtol=1e-12, atol=1e-9)
+
+
+@settings(max_examples=50, deadline=None)
+@given(a=rigid(), axis=axes, angle=angles)
+def test_angle_between_poses_of_4x4_transforms_and_at_the_ends_of_its_range(a, axis, angle):
+    """The angle taking pose b to pose a, for 4x4 poses as the tracker passes them; the same pose
+    is 0 deg and a half turn is 180 deg, never NaN from rounding past the arccos domain."""
+    b = make_transform(rotation_about(axis, angle), a[:3, 3] + 5.0) @ a
+    assert abs(rotation_angle_deg(b, a) - abs(math.degrees(angle))) < 1e-5
+    same = rotation_angle_deg(a, a)
+    assert math.isfinite(same) and same < 1e-5
+    half = rotation_angle_deg(make_transform(rotation_about(axis, math.pi), [0.0, 0.0, 0.0]) @ a, a)
+    assert math.isfinite(half) and abs(half - 180.0) < 1e-5
+
+
+@settings(max_examples=50, deadline=None)
 @given(T=rigid(), scale=st.floats(min_value=1.001, max_value=10.0), axis=st.integers(0, 2))
 def test_scaled_sheared_or_mirrored_matrices_are_not_rigid(T, scale, axis):
     scaled = T.copy()
