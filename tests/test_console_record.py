@@ -142,3 +142,77 @@ def test_continuous_fluoroscopy_records_progress_each_second_with_its_run():
     assert c.snapshot().new_image                            # exposed for part of this frame
     c.tick(3.4)
     assert not c.snapshot().new_image
+
+
+def with_modes(names: list[str]) -> FluoroscopeProfile:
+    modes = [m for m in FLAT.tube.modes if m.name in names]
+    return FLAT.model_copy(update={"tube": FLAT.tube.model_copy(update={"modes": modes})})
+
+
+@pytest.mark.parametrize("names,after", [(["continuous"], "continuous"), (["continuous", "pulsed-15"], "pulsed-15")])
+def test_mode_key_on_machines_with_one_or_two_modes(names, after):
+    c = Console(with_modes(names), KEYMAP, t0=0.0)
+    events = c.handle(act(1.0, "mode_next"))
+    assert c.snapshot().mode == after
+    assert [e.kind for e in events] == ([] if len(names) == 1 else ["mode"])
+
+
+def test_alarm_reset_and_breath_resume_are_recorded_when_pressed_and_clear_the_flags():
+    c = Console(FLAT, KEYMAP, t0=0.0)
+    c.handle(act(0.0, "pedal"))
+    c.tick(300.0)                                           # the alarm lands exactly at 5:00
+    c.handle(act(301.0, "pedal", False))
+    (reset,) = c.handle(act(305.0, "alarm_reset"))
+    assert (reset.kind, reset.t_monotonic) == ("alarm_reset", 305.0)
+    c.handle(act(306.0, "hold_breath"))
+    (resume,) = c.handle(act(307.0, "resume_breath"))
+    assert (resume.kind, resume.t_monotonic) == ("resume_breath", 307.0)
+    s = c.snapshot()
+    assert s.alarm_sounding is False and s.breath_hold is False and s.fluoro_on is False
+
+
+def test_a_reload_right_on_an_alarm_does_not_sound_it_again():
+    c = Console(FLAT, KEYMAP, t0=0.0)
+    c.handle(act(0.0, "pedal"))
+    c.tick(300.0)
+    assert c.snapshot().alarm_count == 1 and c.snapshot().fluoro_time_s == 300.0
+    c.set_fluoroscope(FLAT)                                 # the next one is at 10:00, not 5:00 again
+    assert [e for e in c.tick(310.0) if e.kind == "alarm"] == []
+    assert c.snapshot().alarm_count == 1
+
+
+def test_the_exposure_control_hands_back_the_pulses_due_before_it_changes_the_output():
+    c = Console(FLAT, KEYMAP, t0=0.0)
+    c.handle(act(0.0, "mode_next"))                         # pulsed-15
+    c.handle(act(1.0, "pedal"))                             # first pulse at 1.0
+    events = c.set_exposure_factor(2.0, 1.0 + 2.5 / 15)     # pulses at 1 + 1/15 and 1 + 2/15 came first
+    assert [e.kind for e in events] == ["pulse", "pulse"]
+    per_pulse = rate(1, "pulsed-15") / 60 / 15
+    assert c.snapshot().air_kerma_mgy == pytest.approx(3 * per_pulse)
+    c.tick(1.0 + 3.5 / 15)                                  # the next pulse at twice the output
+    assert c.snapshot().air_kerma_mgy == pytest.approx(5 * per_pulse)
+
+
+def test_a_frame_drawn_at_the_moment_fluoroscopy_starts_or_continues_is_a_new_image():
+    c = Console(FLAT, KEYMAP, t0=0.0)
+    c.handle(act(5.0, "pedal"))                             # continuous
+    c.tick(5.0)                                             # the same instant: no time has passed
+    assert c.snapshot().new_image
+    c.tick(6.0)
+    c.tick(6.0)                                             # a second frame at the same time, still exposing
+    assert c.snapshot().new_image
+    (on,) = [e for e in c.handle(act(7.0, "pedal", False)) + c.handle(act(8.0, "pedal")) if e.kind == "fluoro_on"]
+    assert on.detail["pulse_width_ms"] is None and on.detail["pulse_rate_per_s"] is None
+
+
+def test_a_pulsed_image_is_due_only_after_a_new_pulse():
+    c = Console(FLAT, KEYMAP, t0=0.0)
+    c.handle(act(0.0, "mode_next"))
+    c.handle(act(1.0, "pedal"))
+    c.tick(1.01)
+    drawn = c.snapshot()
+    assert drawn.image_due(None) and not drawn.image_due(drawn)
+    c.tick(1.02)                                            # no pulse since the one drawn
+    assert not c.snapshot().image_due(drawn)
+    c.tick(1.0 + 1.5 / 15)
+    assert c.snapshot().image_due(drawn)
