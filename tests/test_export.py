@@ -135,13 +135,19 @@ def num(items, meaning):
 
 @pytest.mark.skipif(shutil.which("dciodvfy") is None,
                     reason="dciodvfy (Debian package dicom3tools) is not installed; `make test` installs it")
-def test_rdsr_passes_dciodvfy_iherem_and_carries_the_runs(ledger_file, tmp_path):
+def test_rdsr_passes_dciodvfy_iherem(ledger_file, tmp_path):
     written, notes = do_export(ledger_file, "rdsr", tmp_path / "out")
     assert len(written) == 1 and not notes
     result = subprocess.run(["dciodvfy", "-profile", "IHEREM", str(written[0])], capture_output=True, text=True)
     output = result.stdout + result.stderr
     errors = [line for line in output.splitlines() if line.startswith("Error")]
     assert not errors, output
+
+
+def test_rdsr_carries_the_runs_worked_by_hand(ledger_file, tmp_path):
+    # Read with pydicom on every machine; dciodvfy's conformance check above is an extra.
+    written, notes = do_export(ledger_file, "rdsr", tmp_path / "out")
+    assert len(written) == 1 and not notes
     ds = pydicom.dcmread(written[0])
     assert ds.SOPClassUID == "1.2.840.10008.5.1.4.1.1.88.67" and ds.Modality == "SR"
     assert name(ds) == "X-Ray Radiation Dose Report" and ds.ContentTemplateSequence[0].TemplateIdentifier == "10001"
@@ -168,6 +174,22 @@ def test_rdsr_passes_dciodvfy_iherem_and_carries_the_runs(ledger_file, tmp_path)
         assert num(items, "Dose Area Product")[0] == pytest.approx(kerma / 1000 * area / 1e4, rel=1e-9)
         assert num(items, "Collimated Field Area") == (pytest.approx(area / 1e4, rel=1e-9), "m2")
     assert num(list(events[2].ContentSequence), "Number of Pulses")[0] == 45
+    # The technique of each run, as the flat-panel profile states it (70 kV, 3.0 mA, 0.4 mm
+    # focal spot, 8 ms pulses at 15 per second), with the units a registry reads.
+    for event in events:
+        items = list(event.ContentSequence)
+        assert num(items, "KVP") == (pytest.approx(70.0), "kV")
+        assert num(items, "X-Ray Tube Current") == (pytest.approx(3.0), "mA")
+        assert num(items, "Focal Spot Size") == (pytest.approx(0.4), "mm")
+    pulsed = list(events[2].ContentSequence)
+    assert num(pulsed, "Pulse Rate") == (pytest.approx(15.0), "{pulse}/s")
+    assert num(pulsed, "Pulse Width") == (pytest.approx(8.0), "ms")
+    for event in events[:2]:
+        assert not [c for c in event.ContentSequence if name(c) in ("Pulse Rate", "Pulse Width", "Number of Pulses")]
+    # Focal spot to the reference point: 750 mm to the isocentre less the 150 mm of IEC 60601-2-43.
+    distances = [float(i.MeasuredValueSequence[0].NumericValue) for i, _ in walk(ds.ContentSequence)
+                 if i.get("ValueType") == "NUM" and name(i) == "Distance Source to Reference Point"]
+    assert distances and distances == [pytest.approx(600.0)] * len(distances)
     assert [c.ConceptCodeSequence[0].CodeMeaning for c in events[2].ContentSequence if name(c) == "Fluoro Mode"] == ["Pulsed"]
     # Every DCM code carries the standard's meaning verbatim (pydicom's copy of PS3.16 as the reference).
     dcm = {code: meaning for group in concepts["DCM"].values() for code, (meaning, _) in group.items()}

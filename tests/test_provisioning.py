@@ -7,6 +7,7 @@ import pwd
 import shutil
 import stat
 import subprocess
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -19,15 +20,40 @@ INSTALL = REPO / "provisioning" / "install.sh"
 PROFILE_KINDS = ("fluoroscopes", "cases", "phantoms", "keymaps", "webcams", "exercises")
 
 
+def world_readable_copy() -> Path:
+    """The checkout's provisioning inputs copied where any user can read them.
+
+    A checkout may sit in a home folder only its owner can enter; the script run as another
+    user must then read a copy, so that a refusal in the test means the script refused,
+    never that the user could not read it."""
+    top = Path(tempfile.mkdtemp(prefix="fluorosim-provisioning-"))
+    top.chmod(0o755)
+    copy = top / "checkout"
+    shutil.copytree(REPO, copy, symlinks=True,
+                    ignore=shutil.ignore_patterns(".git", ".venv", "var", "__pycache__", "*.pyc", ".pytest_cache",
+                                                  "*.egg-info", "build", ".mypy_cache", ".ruff_cache", "mutants"))
+    for dirpath, _dirnames, filenames in os.walk(copy):
+        os.chmod(dirpath, 0o755)
+        for name in filenames:
+            path = Path(dirpath) / name
+            if not path.is_symlink():
+                path.chmod(path.stat().st_mode | 0o444)
+    return copy
+
+
 def run_install(*args, user: str | None = None) -> subprocess.CompletedProcess:
-    argv = ["bash", str(INSTALL), *args]
+    script = INSTALL
+    if user:
+        script = world_readable_copy() / "provisioning" / "install.sh"
+    argv = ["bash", str(script), *args]
     if user:
         entry = pwd.getpwnam(user)
         argv = ["setpriv", f"--reuid={entry.pw_uid}", f"--regid={entry.pw_gid}", "--clear-groups", *argv]
-    result = subprocess.run(argv, capture_output=True, text=True, timeout=120, cwd="/")
-    if user and "Permission denied" in result.stderr:
-        pytest.skip(f"user {user} cannot read this checkout, so the script cannot be run as that user")
-    return result
+    try:
+        return subprocess.run(argv, capture_output=True, text=True, timeout=120, cwd="/")
+    finally:
+        if user:
+            shutil.rmtree(script.parents[1].parent, ignore_errors=True)
 
 
 def snapshot(root: Path) -> dict[str, tuple]:

@@ -67,7 +67,18 @@ def test_png_and_dicom_carry_pixels_geometry_and_exposure(tmp_path):
     assert ds.CollimatorLeftVerticalEdge == round((500 - 150 / pitch) / 2)
     assert ds.CollimatorRightVerticalEdge == round((500 + 150 / pitch) / 2)
     assert ds.CollimatorUpperHorizontalEdge == round((400 - 160 / pitch) / 2)
-    assert float(ds.ImageAndFluoroscopyAreaDoseProduct) == pytest.approx(state.dap_gy_cm2 * 10, rel=1e-9)
+    # Worked by hand: 6 s of pulsed-15 at zoom 2 is the pulses at 1 + k/15 s, k = 0..89, each
+    # rate/60/15 mGy with the profile's zoom-2 rate. The blades (150 x 160 mm) are clipped by the
+    # 170 mm round field (the rectangle's corners lie outside it), and the field at the detector
+    # (SID 1000 mm) is scaled to the reference point at 620 - 150 = 470 mm.
+    rate_mgy_per_min = II.zoom_levels[1].air_kerma_rate_mgy_per_min["pulsed-15"]
+    kerma_mgy = 90 * rate_mgy_per_min / 60 / 15
+    r, n = 85.0, 200_000
+    xs = (np.arange(n) + 0.5) * 75.0 / n
+    area_mm2 = 4 * float(np.minimum(80.0, np.sqrt(r * r - xs * xs)).sum()) * 75.0 / n
+    dap_gy_cm2 = kerma_mgy / 1000 * area_mm2 / 100 * (470.0 / 1000.0) ** 2
+    assert state.air_kerma_mgy == pytest.approx(kerma_mgy, rel=1e-9)
+    assert float(ds.ImageAndFluoroscopyAreaDoseProduct) == pytest.approx(dap_gy_cm2 * 10, rel=1e-6)   # dGy cm2
     assert ds.PatientAge == "006Y" and ds.PatientSex == "O"
     if shutil.which("dciodvfy"):
         result = subprocess.run(["dciodvfy", str(dcm)], capture_output=True, text=True)

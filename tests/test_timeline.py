@@ -45,7 +45,7 @@ def test_interpolation_weights_and_loop(renderer):
 def test_hold_stays_on_the_last_phase(renderer):
     tl = PhaseTimeline([(0.0, phase(0)), (1.0, phase(100))], renderer, "hold")
     try:
-        tl.wait_ready(10, all_phases=True)
+        assert tl.wait_ready(10, all_phases=True)
         a, b, w = tl.at(7.0)
         assert (a.time_s, b, w) == (1.0, None, 0.0)
     finally:
@@ -56,7 +56,7 @@ def test_at_never_waits_for_a_slow_phase(renderer):
     gate = threading.Event()
     tl = PhaseTimeline([(0.0, phase(0)), (1.0, phase(100, gate=gate)), (2.0, phase(200, gate=gate))], renderer)
     try:
-        tl.wait_ready(10)
+        assert tl.wait_ready(10)
         worst = 0.0
         for t in np.linspace(0, 2.9, 30):
             t0 = time.perf_counter()
@@ -65,7 +65,7 @@ def test_at_never_waits_for_a_slow_phase(renderer):
             assert a.time_s == 0.0 and b is None       # the only ready phase, no blend with a missing one
         assert worst < 0.05
         gate.set()
-        tl.wait_ready(10, all_phases=True)
+        assert tl.wait_ready(10, all_phases=True)
         assert tl.at(1.5)[0].time_s == 1.0
     finally:
         gate.set()

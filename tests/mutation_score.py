@@ -1,0 +1,64 @@
+"""Score of a `mutmut run`, per module: killed / (all - equivalent), and every unexplained survivor.
+
+`make mutation` runs mutmut over the modules named in pyproject.toml's [tool.mutmut] and then
+this. A survivor is either a missing test (write it) or an equivalent mutant (the change cannot
+alter any result): those are listed with the reason in tests/mutation-equivalent.txt, one
+`mutant-name  reason` per line. Exit 1 when a module scores under the bar or a survivor is
+unexplained, so the target fails until each is killed or justified.
+"""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+BAR = 0.90
+HERE = Path(__file__).resolve().parent
+RESULT = re.compile(r"^\s*(?P<name>[\w.]+?)\.x_?(?P<func>\w+?)__mutmut_\d+: (?P<status>[\w ]+)$")
+
+
+def equivalent_mutants(path: Path = HERE / "mutation-equivalent.txt") -> dict[str, str]:
+    reasons = {}
+    if path.exists():
+        for line in path.read_text().splitlines():
+            if line.strip() and not line.startswith("#"):
+                name, _, reason = line.partition(" ")
+                reasons[name] = reason.strip()
+    return reasons
+
+
+def main() -> int:
+    out = subprocess.run([sys.executable, "-m", "mutmut", "results", "--all", "true"], capture_output=True, text=True)
+    if out.returncode != 0:
+        print(f"mutmut results failed: {out.stderr.strip().splitlines()[-1:]}", file=sys.stderr)
+        return 2
+    equivalent = equivalent_mutants()
+    per_module: dict[str, dict[str, list[str]]] = defaultdict(lambda: defaultdict(list))
+    for line in out.stdout.splitlines():
+        m = RESULT.match(line)
+        if m:
+            per_module[m["name"]][m["status"].strip()].append(line.strip().split(":")[0])
+    if not per_module:
+        print("no mutation results: run `mutmut run` first", file=sys.stderr)
+        return 2
+    ok = True
+    print(f"{'module':40s} {'mutants':>7s} {'killed':>7s} {'equiv':>6s} {'other':>6s} {'score':>6s}")
+    for module, by_status in sorted(per_module.items()):
+        total = sum(len(v) for v in by_status.values())
+        killed = len(by_status.get("killed", [])) + len(by_status.get("timeout", []))
+        survivors = [n for s, names in by_status.items() if s not in ("killed", "timeout") for n in names]
+        equiv = [n for n in survivors if n in equivalent]
+        unexplained = [n for n in survivors if n not in equivalent]
+        score = killed / max(total - len(equiv), 1)
+        print(f"{module:40s} {total:7d} {killed:7d} {len(equiv):6d} {len(unexplained):6d} {score:6.1%}")
+        for name in unexplained:
+            print(f"    unexplained: {name} ({next(s for s, v in by_status.items() if name in v)})")
+        ok &= score >= BAR and not unexplained
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,109 @@
+"""The X-ray calibration's acceptance bar: each refusal, with fits whose figures are set by hand.
+
+A fit is made directly (residuals, worst residual, one-sigma focal lengths, webcam spreads),
+so the figure each check reads is known exactly, and the bar is the shipped phantom's:
+3 images, RMS 0.5 px, worst 1.5 px, focal uncertainty 0.5 %, webcam spread 3 mm / 1 deg."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from appliance.calibration.fit import Fit, ViewResult
+from appliance.calibration.webcam_transform import AveragedTransform
+from appliance.calibration.xray_calibration import CalibrationResult, acceptance_failures
+from appliance.config import load_profile
+from appliance.config.calibration_phantom import CalibrationPhantomProfile
+
+REPO = Path(__file__).resolve().parents[1]
+PHANTOM = load_profile(next((REPO / "configs" / "calibration-phantoms").glob("*.yaml")), CalibrationPhantomProfile)
+FX = FY = 2400.0
+
+
+def view(name: str, residual=(0.15, 0.2), worst: float = 1.0, balls: int = 30) -> ViewResult:
+    r = np.tile(np.asarray(residual, float), (balls, 1))
+    return ViewResult(name, np.eye(4), balls, 0, float(np.hypot(*residual)), worst, r, np.arange(balls))
+
+
+def fit(views=None, sigma_pct=(0.1, 0.1)) -> Fit:
+    views = views if views is not None else [view(f"img{k}") for k in range(3)]
+    K = np.array([[FX, 0, 511.5], [0, FY, 511.5], [0, 0, 1.0]])
+    sigma = {}
+    if sigma_pct[0] is not None:
+        sigma["fx"] = FX * sigma_pct[0] / 100
+    if sigma_pct[1] is not None:
+        sigma["fy"] = FY * sigma_pct[1] / 100
+    return Fit(K=K, dist=np.zeros(5), sigma=sigma, views=views)
+
+
+def result(f: Fit | None, spreads_mm=None, spreads_deg=None) -> CalibrationResult:
+    webcam = None
+    if spreads_mm is not None:
+        webcam = AveragedTransform(np.eye(4), np.asarray(spreads_mm, float), np.asarray(spreads_deg, float))
+    r = CalibrationResult(images=[], fit=f, webcam=webcam)
+    r.failures = acceptance_failures(r, PHANTOM)
+    return r
+
+
+def test_the_shipped_bar_is_the_one_these_figures_are_worked_against():
+    bar = PHANTOM.acceptance
+    assert (bar.min_images, bar.max_rms_px, bar.max_residual_px, bar.max_focal_uncertainty_percent,
+            bar.max_webcam_spread_mm, bar.max_webcam_spread_deg) == (3, 0.5, 1.5, 0.5, 3.0, 1.0)
+
+
+def test_a_fit_inside_every_bar_passes():
+    r = result(fit(), spreads_mm=[0.5, 1.0, 2.9], spreads_deg=[0.1, 0.2, 0.9])
+    assert r.failures == [] and r.passed
+    # RMS 0.25 px (every residual 0.15, 0.2), worst 1.0 px, focal lengths known to 0.1 %.
+    assert r.fit.rms_px == pytest.approx(0.25)
+
+
+@pytest.mark.parametrize("residual,expect", [((0.3, 0.4), None), ((0.33, 0.44), "reprojection RMS 0.550 px")])
+def test_rms_at_the_bar_passes_and_over_it_is_refused(residual, expect):
+    r = result(fit([view(f"img{k}", residual=residual) for k in range(3)]))
+    assert r.fit.rms_px == pytest.approx(np.hypot(*residual))
+    if expect is None:
+        assert r.passed, r.failures
+    else:
+        assert not r.passed and any(expect in f for f in r.failures), r.failures
+
+
+def test_one_bad_ball_is_refused_by_the_worst_residual():
+    r = result(fit([view("img0"), view("img1", worst=1.6), view("img2")]))
+    assert not r.passed and r.failures == ["worst residual 1.600 px exceeds 1.5 px"]
+
+
+@pytest.mark.parametrize("sigma_pct,name", [((0.6, 0.1), "fx"), ((0.1, 0.51), "fy"), ((None, 0.1), "fx")])
+def test_an_uncertain_focal_length_is_refused(sigma_pct, name):
+    r = result(fit(sigma_pct=sigma_pct))
+    assert not r.passed
+    (failure,) = r.failures
+    assert failure.startswith(f"{name} uncertainty") and failure.endswith(" %: add images with the phantom tilted")
+    if sigma_pct[0] is not None:
+        pct = sigma_pct[0] if name == "fx" else sigma_pct[1]
+        assert f"{pct:.3f} %" in failure
+
+
+def test_too_few_images_and_no_fit_are_refused():
+    r = result(fit([view("img0"), view("img1")]))
+    assert not r.passed and any("2 usable image(s), the bar is 3" in f for f in r.failures)
+    none = result(None)
+    assert not none.passed and none.failures == ["no image survived the fit"]
+
+
+def test_an_image_whose_webcam_transform_disagrees_is_named():
+    r = result(fit(), spreads_mm=[0.5, 3.5, 0.2], spreads_deg=[0.1, 0.1, 0.1])
+    assert not r.passed and len(r.failures) == 1 and r.failures[0].startswith("img1: its T_xray_from_webcam lies 3.5 mm")
+    assert r.failures[0].endswith("deg); check that its --marker-pose file belongs to this image")
+    r = result(fit(), spreads_mm=[0.5, 0.5, 0.2], spreads_deg=[0.1, 0.1, 1.2])
+    assert not r.passed and r.failures[0].startswith("img2:")
+
+
+def test_figures_exactly_at_the_bar_pass():
+    # Worst residual 1.5 px, webcam spreads 3.0 mm and 1.0 deg, focal lengths known to 0.5 %:
+    # the bar is a maximum, so each is still accepted.
+    r = result(fit([view("img0"), view("img1", worst=1.5), view("img2")], sigma_pct=(0.5, 0.5)),
+               spreads_mm=[3.0, 0.1, 0.1], spreads_deg=[0.1, 1.0, 0.1])
+    assert r.failures == [] and r.passed
