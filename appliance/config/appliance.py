@@ -10,8 +10,8 @@ from typing import Literal
 from pydantic import Field
 
 from .base import Section
-from .rendering import Rendering
 from .dicom import Dicom
+from .rendering import Rendering
 from .teaching import Teaching
 
 

@@ -116,8 +116,8 @@ def dicom_image(pixels: np.ndarray, state: ConsoleState, fl: FluoroscopeProfile,
     # Stored as shown: an image saved while inverted holds the inverted pixels, so a viewer
     # must not invert again (IDENTITY), and the window spans the stored range unchanged.
     ds.PresentationLUTShape = "IDENTITY"
-    ds.WindowCenter = ds_number((2 ** bits - 1) / 2.0)
-    ds.WindowWidth = ds_number(2 ** bits)
+    ds.WindowCenter = _ds_number((2 ** bits - 1) / 2.0)
+    ds.WindowWidth = _ds_number(2 ** bits)
     ds.LossyImageCompression = "00"
     ds.PixelData = np.ascontiguousarray(pixels).tobytes()
     return ds
