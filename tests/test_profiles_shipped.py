@@ -37,7 +37,10 @@ def test_validate_command_passes_on_shipped_tree():
     result = subprocess.run([sys.executable, "-m", "appliance", "validate"], cwd=REPO,
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
-    assert result.stderr == ""
+    # The one shipped object that is not a CT is the bar-pattern test object, whose 0.02 mm foil
+    # is far thinner than any CT slice: validate says so and renders it as given.
+    others = [line for line in result.stderr.splitlines() if "cases/bar-pattern.yaml" not in line]
+    assert others == [], result.stderr
 
 
 def test_nominal_intrinsics_match_the_geometry():

@@ -223,12 +223,19 @@ class FluoroscopeProfile(Section):
                    f"within {reach:g} mm (SID + {limits.WEBCAM_HOUSING_REACH_MM:g} mm)")
         high = {m.name for m in self.tube.modes if m.high_level_control}
         boost = self.abc.max_factor if self.abc.enabled else 1.0
+        # The exposure control never sets more than the image chain's dose-rate limit, so a
+        # zoom's rate times max_factor may exceed the law where that limit keeps within it.
+        ceiling = self.image.dose_rate_limit_mgy_per_min if self.abc.enabled else float("inf")
+        if not high and ceiling > limits.MAX_AIR_KERMA_RATE_MGY_PER_MIN:
+            yield (("image", "dose_rate_limit_mgy_per_min"),
+                   f"{limits.fmt(ceiling)} mGy/min exceeds the federal limit of 88 mGy/min in normal mode "
+                   "(21 CFR 1020.32(d)); 176 needs a mode with high_level_control")
         for i, z in enumerate(self.zoom_levels):
             for mode, rate in z.air_kerma_rate_mgy_per_min.items():
                 cap = (limits.MAX_HIGH_LEVEL_AIR_KERMA_RATE_MGY_PER_MIN if mode in high
                        else limits.MAX_AIR_KERMA_RATE_MGY_PER_MIN)
                 law = "176 mGy/min with high-level control" if mode in high else "88 mGy/min in normal mode"
-                if rate * boost > cap:
+                if rate > cap or min(rate * boost, ceiling) > cap:
                     why = f" x abc.max_factor {boost:g} = {rate * boost:g} mGy/min" if boost != 1.0 else " mGy/min"
                     yield (("zoom_levels", i, "air_kerma_rate_mgy_per_min", mode),
                            f"{limits.fmt(rate)}{why} exceeds the federal limit of {law} (21 CFR 1020.32(d))")
