@@ -77,8 +77,9 @@ FLUORO = "fluoroscopes/generic-ii-carm.yaml"
 @pytest.mark.parametrize("old, new, anchor, expected", [
     # 21 CFR 1020.32(d)(1): 88 mGy/min in normal mode.
     ("{continuous: 8.0,", "{continuous: 1e12,", "{continuous: 1e12,", "88 mGy/min"),
-    # ABC may drive the tube to max_factor x the reference: 5 x 20 = 100 > 88 (5 x 15 = 75 is legal).
-    ("  max_factor: 4.0", "  max_factor: 5.0", "{continuous: 20.0,", "max_factor 5 = 100 mGy/min"),
+    # ABC may drive the tube up to the image chain's dose-rate limit: a limit of 100 > 88.
+    ("  dose_rate_limit_mgy_per_min: 88", "  dose_rate_limit_mgy_per_min: 100", "  dose_rate_limit_mgy_per_min:",
+     "100 mGy/min exceeds the federal limit of 88"),
     ("  alarm_period_s: 300", "  alarm_period_s: 1e-9", "alarm_period_s", "greater than or equal to 10"),
     ("  alarm_period_s: 300", "  alarm_period_s: 600", "alarm_period_s", "less than or equal to 300"),
     ("  alarm_period_s: 300", "  alarm_period_s: .nan", "alarm_period_s", "finite number"),
@@ -451,7 +452,9 @@ def test_fuzz_fluoroscope_values(tmp_path, field, value):
         return
     # Accepted: then every number is finite and within the federal dose-rate limit.
     rates = [r for z in profile.zoom_levels for r in z.air_kerma_rate_mgy_per_min.values()]
-    assert max(rates) * profile.abc.max_factor <= 88
+    # (the exposure control drives the tube to max_factor x a rate, but never past the chain's limit)
+    assert min(max(rates) * profile.abc.max_factor, profile.image.dose_rate_limit_mgy_per_min) <= 88
+    assert max(rates) <= 88
     assert 10 <= profile.dose.alarm_period_s <= 300
     assert np.isfinite([profile.intrinsics.fx, profile.intrinsics.cx, profile.display.level]).all()
 

@@ -226,7 +226,8 @@ class FluoroscopeProfile(Section):
         # The exposure control never sets more than the image chain's dose-rate limit, so a
         # zoom's rate times max_factor may exceed the law where that limit keeps within it.
         ceiling = self.image.dose_rate_limit_mgy_per_min if self.abc.enabled else float("inf")
-        if not high and ceiling > limits.MAX_AIR_KERMA_RATE_MGY_PER_MIN:
+        limit_refused = self.abc.enabled and not high and ceiling > limits.MAX_AIR_KERMA_RATE_MGY_PER_MIN
+        if limit_refused:
             yield (("image", "dose_rate_limit_mgy_per_min"),
                    f"{limits.fmt(ceiling)} mGy/min exceeds the federal limit of 88 mGy/min in normal mode "
                    "(21 CFR 1020.32(d)); 176 needs a mode with high_level_control")
@@ -235,7 +236,8 @@ class FluoroscopeProfile(Section):
                 cap = (limits.MAX_HIGH_LEVEL_AIR_KERMA_RATE_MGY_PER_MIN if mode in high
                        else limits.MAX_AIR_KERMA_RATE_MGY_PER_MIN)
                 law = "176 mGy/min with high-level control" if mode in high else "88 mGy/min in normal mode"
-                if rate > cap or min(rate * boost, ceiling) > cap:
+                # (a refused limit is the one problem; each zoom's rate is then checked on its own)
+                if rate > cap or (not limit_refused and min(rate * boost, ceiling) > cap):
                     why = f" x abc.max_factor {boost:g} = {rate * boost:g} mGy/min" if boost != 1.0 else " mGy/min"
                     yield (("zoom_levels", i, "air_kerma_rate_mgy_per_min", mode),
                            f"{limits.fmt(rate)}{why} exceeds the federal limit of {law} (21 CFR 1020.32(d))")
