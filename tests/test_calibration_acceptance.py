@@ -27,10 +27,10 @@ def view(name: str, residual=(0.15, 0.2), worst: float = 1.0, balls: int = 30) -
     return ViewResult(name, np.eye(4), balls, 0, float(np.hypot(*residual)), worst, r, np.arange(balls))
 
 
-def fit(views=None, sigma_pct=(0.1, 0.1)) -> Fit:
+def fit(views=None, sigma_pct=(0.1, 0.1), sigma_pp_px=(0.12, 0.16)) -> Fit:
     views = views if views is not None else [view(f"img{k}") for k in range(3)]
     K = np.array([[FX, 0, 511.5], [0, FY, 511.5], [0, 0, 1.0]])
-    sigma = {}
+    sigma = {"cx": sigma_pp_px[0], "cy": sigma_pp_px[1]}
     if sigma_pct[0] is not None:
         sigma["fx"] = FX * sigma_pct[0] / 100
     if sigma_pct[1] is not None:
@@ -51,6 +51,14 @@ def test_the_shipped_bar_is_the_one_these_figures_are_worked_against():
     bar = PHANTOM.acceptance
     assert (bar.min_images, bar.max_rms_px, bar.max_residual_px, bar.max_focal_uncertainty_percent,
             bar.max_webcam_spread_mm, bar.max_webcam_spread_deg) == (3, 0.5, 1.5, 0.5, 3.0, 1.0)
+    assert bar.max_principal_point_uncertainty_px == 0.5
+
+
+def test_an_uncertain_principal_point_is_refused():
+    # The bar reads cx's and cy's one-sigma together: hypot(0.3, 0.4) = 0.5 px is at the bar.
+    assert result(fit(sigma_pp_px=(0.3, 0.4))).passed
+    r = result(fit(sigma_pp_px=(0.48, 0.64)))
+    assert not r.passed and len(r.failures) == 1 and r.failures[0].startswith("principal point uncertain to +-0.80 px")
 
 
 def test_a_fit_inside_every_bar_passes():
