@@ -134,9 +134,9 @@ def test_hold_freezes_the_image(anatomy, renderer):
     c = BreathingControl(params)
     view = View(quantity="intensity", noise=True)
     c.hold(0.5)
-    frames = [renderer.render(renderer.prepare(anatomy.volume_at(c.at(t))), T_XRAY_FROM_CT, view) for t in (0.5, 2.5)]
+    frames = [renderer.render(renderer.prepare(anatomy.volume_at(c.at(t))), T_XRAY_FROM_CT, view).image for t in (0.5, 2.5)]
     c.resume(2.5)
-    moving = renderer.render(renderer.prepare(anatomy.volume_at(c.at(4.5))), T_XRAY_FROM_CT, view)
+    moving = renderer.render(renderer.prepare(anatomy.volume_at(c.at(4.5))), T_XRAY_FROM_CT, view).image
     held_diff = np.abs(frames[0] - frames[1])
     # Poisson noise of two independent frames: the difference's sd is sqrt(2 I / N) relative.
     photons = renderer.photons_per_pixel(1)

@@ -204,6 +204,7 @@ def test_saved_png_and_dicom_agree_with_the_screen_about_polarity(ii128, adult, 
     from appliance.config import KeymapProfile
     from appliance.console.state import Console
     from appliance.records.saved_images import save_image
+    from test_saved_images import study_of_session
 
     keymap = load_profile(Path(__file__).resolve().parents[1] / "configs/keymaps/usb-numeric-keypad.yaml", KeymapProfile)
     state = Console(II, keymap, t0=0.0).snapshot()
@@ -212,7 +213,9 @@ def test_saved_png_and_dicom_agree_with_the_screen_about_polarity(ii128, adult, 
     saved = []
     for k, inv in enumerate((False, True)):
         image = ii128.render(prepared, T, View(zoom=1, seed=3, invert=inv)).image
-        png, dcm = save_image(image, state, ii128.fluoroscope, tmp_path / str(k), t_wall=1.7e9)
+        (tmp_path / str(k)).mkdir()
+        png, dcm = save_image(image, state, ii128.fluoroscope, tmp_path / str(k), t_wall=1.7e9,
+                              study=study_of_session(tmp_path / str(k)), event_uid=None)
         ds = pydicom.dcmread(dcm)
         assert ds.PresentationLUTShape == "IDENTITY" and ds.PixelIntensityRelationship == "DISP"
         np.testing.assert_array_equal(ds.pixel_array, cv2.imread(str(png), cv2.IMREAD_UNCHANGED))

@@ -33,7 +33,7 @@ def run_inspect(args) -> int:
     from .inspection import report
     from .volume_io import load_volume
 
-    volume = load_volume(args.ct)
+    volume = load_volume(args.ct, hu_checked=False)   # inspect says what the values look like
     at = parse_point(args.at, "--at") if args.at else None
     print("\n".join(report(volume, at)))
     return 0

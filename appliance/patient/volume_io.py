@@ -29,8 +29,11 @@ FILE_SUFFIXES = (".nii", ".nii.gz", ".mha", ".mhd", ".nrrd", ".nhdr")
 SPACING_TOLERANCE = 0.05
 
 
-def load_volume(path: str | Path) -> Volume:
-    """The CT at `path` as HU on its voxel grid in the `ct` (LPS, mm) frame."""
+def load_volume(path: str | Path, *, hu_checked: bool = True) -> Volume:
+    """The CT at `path` as HU on its voxel grid in the `ct` (LPS, mm) frame.
+
+    `hu_checked=False` reads values that are not HU of a CT (a label map, raw scanner values)
+    as they are, for `case inspect` to say what they look like; rendering always checks."""
     p = Path(path)
     if not p.exists():
         raise FluorosimError(f"{p}: no such file or folder; give a DICOM series folder, a NIfTI, MHA or NRRD file")
@@ -52,7 +55,7 @@ def load_volume(path: str | Path) -> Volume:
     if image is None:
         reason = said()[0] if said() else "unreadable"
         raise FluorosimError(f"{p}: cannot read this volume ({reason[:160]}); check the file is complete and not corrupt")
-    return _from_image(image, str(p))
+    return _from_image(image, str(p), hu_checked)
 
 
 def _refuse_or_warn(source: str, found: tuple[list[str], list[str]]) -> None:
@@ -83,7 +86,7 @@ def _stderr_captured():
             lines.extend(l.strip() for l in text.splitlines() if l.strip())
 
 
-def _from_image(image, source: str) -> Volume:
+def _from_image(image, source: str, hu_checked: bool = True) -> Volume:
     import SimpleITK as sitk
 
     if image.GetDimension() != 3:
@@ -93,7 +96,8 @@ def _from_image(image, source: str) -> Volume:
     arr = sitk.GetArrayFromImage(image)      # (nz, ny, nx)
     if not np.issubdtype(arr.dtype, np.number):
         raise FluorosimError(f"{source}: voxels are not numbers")
-    _refuse_or_warn(source, check_hu(arr))
+    if hu_checked:
+        _refuse_or_warn(source, check_hu(arr))
     if arr.dtype != np.int16:
         arr = np.clip(np.rint(arr), -32768, 32767).astype(np.int16)
     spacing = np.array(image.GetSpacing(), dtype=np.float64)
