@@ -50,7 +50,7 @@ def test_blended_states_put_the_dome_where_the_breath_is(timeline):
     images = []
     for t in (3.0, 1.0):
         a, b, w = timeline.at(t)
-        images.append(-np.log(np.maximum(r.render(a, T_XRAY_FROM_CT, view, blend=None if b is None else (b, w)), 1e-6)))
+        images.append(-np.log(np.maximum(r.render(a, T_XRAY_FROM_CT, view, blend=None if b is None else (b, w)).image, 1e-6)))
     r_apex = int(round(f.intrinsics.cy - f.intrinsics.fy * sc.DOME_APEX_Z / SOD))
     level = 0.5 * (images[0][r_apex - 4, column] + images[0][r_apex + 4, column])
     rows = [dome_edge_row(img, column, level, r_apex - 6) for img in images]
@@ -113,12 +113,14 @@ def test_snapshot_pair_end_expiration_then_end_inspiration(tmp_path):
         rgb = np.full((8, 8, 3), value, np.uint8)
         return SimpleNamespace(rgb_source=lambda: rgb, image=rgb, state=state, pose=None, live=True, t_wall=t,
                                banners=[], saved_flash=False, inspired=inspired)
-    for f in (frame(10, 0.0, 0.99), frame(20, 1.0, 0.01), frame(30, 2.0 + BREATH_PAIR_S, 0.99),
+    # One snapshot a frame: the first frames go to the first-live and zoom-1 moments.
+    warm_up = [frame(1, -3.0, 0.5), frame(2, -2.0, 0.5)]
+    for f in (*warm_up, frame(10, 0.0, 0.99), frame(20, 1.0, 0.01), frame(30, 2.0 + BREATH_PAIR_S, 0.99),
               frame(40, 3.0, 0.5)):
         snap(f)
     assert (read_png(snap.taken["end-expiration"]) == 20).all()
     assert "end-inspiration" not in snap.taken                  # too late after end-expiration
     snap2 = Snapshotter(tmp_path / "b", key_moments())
-    for f in (frame(50, 0.0, 0.0), frame(60, 1.5, 1.0)):
+    for f in (*warm_up, frame(50, 0.0, 0.0), frame(60, 1.5, 1.0)):
         snap2(f)
     assert (read_png(snap2.taken["end-inspiration"]) == 60).all()

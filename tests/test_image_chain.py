@@ -200,11 +200,11 @@ def test_saved_png_and_dicom_agree_with_the_screen_about_polarity(ii128, adult, 
     plain ones, and the DICOM says not to invert again (Presentation LUT Shape IDENTITY)."""
     import cv2
     import pydicom
+    from test_saved_images import study_of_session
 
     from appliance.config import KeymapProfile
     from appliance.console.state import Console
     from appliance.records.saved_images import save_image
-    from test_saved_images import study_of_session
 
     keymap = load_profile(Path(__file__).resolve().parents[1] / "configs/keymaps/usb-numeric-keypad.yaml", KeymapProfile)
     state = Console(II, keymap, t0=0.0).snapshot()

@@ -17,7 +17,7 @@ def script_problem(path: Path, keymap_path: Path | None) -> str | None:
     """Why the keypad script cannot be run on this keymap, or None."""
     from drivers.scripted_input import ScriptedInput, ScriptProblem
 
-    from ..console.keys import action_for
+    from ..console.keys import action_for, typed_by_badge_reader
     from .keymap import KeymapProfile
     from .loading import load_profile
     from .yamlfile import ProfileProblems
@@ -26,7 +26,7 @@ def script_problem(path: Path, keymap_path: Path | None) -> str | None:
     if keymap_path is not None:
         try:
             keymap = load_profile(keymap_path, KeymapProfile)
-            known = lambda name: action_for(keymap, name) is not None  # noqa: E731
+            known = lambda name: action_for(keymap, name) is not None or typed_by_badge_reader(name)  # noqa: E731
         except ProfileProblems:
             pass  # the keymap's own problems are reported where it is checked
     try:

@@ -17,12 +17,12 @@ from drivers.scripted_input import ScriptedInput, ScriptProblem
 
 from ..config.loading import ApplianceConfig
 from ..errors import FluorosimError
-from .keys import action_for
+from .keys import action_for, typed_by_badge_reader
 
 
 def known_keys(config: ApplianceConfig):
     """Whether a key name in a script means something to this console's keymap."""
-    return lambda name: action_for(config.keymap, name) is not None
+    return lambda name: action_for(config.keymap, name) is not None or typed_by_badge_reader(name)
 
 
 def open_keypad(config: ApplianceConfig, now: float):

@@ -25,3 +25,11 @@ def action_for(keymap: KeymapProfile, key: str) -> str | None:
     if key in ACTIONS:
         return key
     return None
+
+
+def typed_by_badge_reader(name: str) -> bool:
+    """Whether `name` is a key a keyboard-like badge or barcode reader types into the trainee's
+    name (letters, digits, shift, enter): meaningful in a scripted session though not in the keymap."""
+    from ..teaching.live import BADGE_KEYS
+
+    return name in BADGE_KEYS
