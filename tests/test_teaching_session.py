@@ -2,7 +2,7 @@
 worked out by hand, against what the ledger-based metrics report."""
 
 import pytest
-from teaching_script import field_area_cm2, scripted_session
+from teaching_script import II, field_area_cm2, scripted_session
 
 from appliance.records.ledger import open_readonly, verify
 from appliance.teaching.metrics import session_metrics, trainee_sessions
@@ -27,11 +27,14 @@ def test_scripted_session_metrics_match_hand_worked_values(session_ledger):
     assert whole["exposures"] == 5
     assert whole["judged_exposures"] == 4 and whole["blank_exposures"] == 1
     assert whole["fluoro_time_s"] == pytest.approx(2 + 3 + 2 + 1 + 1, abs=1e-9)
-    kerma = 8.0 / 60 * (2 + 3) + 11.0 / 60 * (2 + 1 + 1)
+    # The intensifier's continuous rates at zoom 1 and 2, as its profile states them (mGy/min).
+    r1, r2 = (z.air_kerma_rate_mgy_per_min["continuous"] for z in II.zoom_levels[:2])
+    assert (r1, r2) == (8.0, 14.6)
+    kerma = r1 / 60 * (2 + 3) + r2 / 60 * (2 + 1 + 1)
     assert whole["air_kerma_mgy"] == pytest.approx(kerma, rel=1e-9)
     a1, a2 = field_area_cm2(230, 230, 230), field_area_cm2(170, 170, 170)
     a2c = field_area_cm2(160, 170, 170)
-    dap = (8.0 / 60 * 5 * a1 + 11.0 / 60 * 2 * a2 + 11.0 / 60 * 2 * a2c) / 1000
+    dap = (r1 / 60 * 5 * a1 + r2 / 60 * 2 * a2 + r2 / 60 * 2 * a2c) / 1000
     assert whole["dap_gy_cm2"] == pytest.approx(dap, rel=1e-4)
     assert whole["collimated_share"] == pytest.approx(2 / 9)
     assert whole["mean_field_area_cm2"] == pytest.approx((5 * a1 + 2 * a2 + 2 * a2c) / 9, rel=1e-4)
