@@ -172,9 +172,17 @@ def test_sighup_calls_reload_and_tells_systemd(listener):
     threading.Timer(0.3, lambda: os.kill(os.getpid(), signal.SIGHUP)).start()
     assert sup.run(on_reload=on_reload, shutdown_s=0.5) == 0
     assert len(reloads) == 1
-    lines = [l for _, l in listener.lines()]
-    i = lines.index("RELOADING=1")
-    assert lines[i + 1].startswith("MONOTONIC_USEC=") and "READY=1" in lines[i + 2:]
+
+    def after_reloading() -> list[str]:
+        lines = [l for _, l in listener.lines()]
+        return lines[lines.index("RELOADING=1"):] if "RELOADING=1" in lines else []
+
+    # The datagrams reach the listener's thread a moment after they are sent: wait for them.
+    deadline = time.monotonic() + 5.0
+    while time.monotonic() < deadline and "READY=1" not in after_reloading():
+        time.sleep(0.02)
+    lines = after_reloading()
+    assert lines and lines[1].startswith("MONOTONIC_USEC=") and "READY=1" in lines[2:], lines
 
 
 def test_health_banners_appear_and_clear_with_the_condition():
