@@ -28,7 +28,18 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FluorosimError
-from .shapes import Layer, bounds, ellipsoid, elliptic_prism, intersect, paint_bone, paint_tube, rotation
+from .shapes import (
+    Layer,
+    bounds,
+    ellipsoid,
+    elliptic_prism,
+    grid_axis,
+    grid_box,
+    intersect,
+    paint_bone,
+    paint_tube,
+    rotation,
+)
 
 # --- Hounsfield units (typical unenhanced adult CT values) ---
 HU_AIR = -1000.0
@@ -95,24 +106,9 @@ class AnisotropicGrid:
         nz, ny, nx = self.shape
         self.origin_mm = tuple(-(n - 1) / 2 * s for n, s in zip((nx, ny, nz), self.spacing_xyz))
 
-    def axis(self, which: int) -> np.ndarray:
-        n = self.shape[2 - which]
-        return (self.origin_mm[which] + self.spacing_xyz[which] * np.arange(n)).astype(np.float32)
-
-    def box(self, lo, hi):
-        """Index slices (z, y, x) and open axes X, Y, Z of the voxels inside [lo, hi] (mm), or None."""
-        slices, axes = [], []
-        for which in range(3):
-            n, s, o = self.shape[2 - which], self.spacing_xyz[which], self.origin_mm[which]
-            i0 = max(0, int(np.floor((lo[which] - o) / s)))
-            i1 = min(n, int(np.ceil((hi[which] - o) / s)) + 1)
-            if i1 <= i0:
-                return None
-            slices.append(slice(i0, i1))
-            axes.append(self.axis(which)[i0:i1])
-        sx, sy, sz = slices
-        ax, ay, az = axes
-        return (sz, sy, sx), ax[None, None, :], ay[None, :, None], az[:, None, None]
+    # The same voxel geometry as `shapes.Grid`, with a spacing of its own along each axis.
+    axis = grid_axis
+    box = grid_box
 
 
 def _at(Z, values):

@@ -33,10 +33,13 @@ class Grid:
         origin = tuple(-(n - 1) / 2 * spacing_mm for n in shape_xyz)
         return cls((shape_xyz[2], shape_xyz[1], shape_xyz[0]), spacing_mm, origin)
 
+    @property
+    def spacing_xyz(self) -> tuple[float, float, float]:
+        return (self.spacing_mm,) * 3
+
     def axis(self, which: int) -> np.ndarray:
         """Voxel-centre coordinates along x (0), y (1) or z (2), mm, float32."""
-        n = self.shape[2 - which]
-        return (self.origin_mm[which] + self.spacing_mm * np.arange(n)).astype(np.float32)
+        return grid_axis(self, which)
 
     @property
     def T_ct_from_voxel(self) -> np.ndarray:
@@ -47,18 +50,30 @@ class Grid:
 
     def box(self, lo, hi):
         """Index slices (z, y, x) and open axes X, Y, Z of the voxels inside [lo, hi] (mm), or None."""
-        slices, axes = [], []
-        for which in range(3):
-            n = self.shape[2 - which]
-            i0 = max(0, int(np.floor((lo[which] - self.origin_mm[which]) / self.spacing_mm)))
-            i1 = min(n, int(np.ceil((hi[which] - self.origin_mm[which]) / self.spacing_mm)) + 1)
-            if i1 <= i0:
-                return None
-            slices.append(slice(i0, i1))
-            axes.append(self.axis(which)[i0:i1])
-        sx, sy, sz = slices
-        ax, ay, az = axes
-        return (sz, sy, sx), ax[None, None, :], ay[None, :, None], az[:, None, None]
+        return grid_box(self, lo, hi)
+
+
+def grid_axis(grid, which: int) -> np.ndarray:
+    """Voxel-centre coordinates along x (0), y (1) or z (2) of any grid with `shape` (nz, ny, nx),
+    `origin_mm` and `spacing_xyz` (mm), float32."""
+    n = grid.shape[2 - which]
+    return (grid.origin_mm[which] + grid.spacing_xyz[which] * np.arange(n)).astype(np.float32)
+
+
+def grid_box(grid, lo, hi):
+    """Index slices (z, y, x) and open axes X, Y, Z of the voxels of `grid` inside [lo, hi] (mm), or None."""
+    slices, axes = [], []
+    for which in range(3):
+        n, s, o = grid.shape[2 - which], grid.spacing_xyz[which], grid.origin_mm[which]
+        i0 = max(0, int(np.floor((lo[which] - o) / s)))
+        i1 = min(n, int(np.ceil((hi[which] - o) / s)) + 1)
+        if i1 <= i0:
+            return None
+        slices.append(slice(i0, i1))
+        axes.append(grid_axis(grid, which)[i0:i1])
+    sx, sy, sz = slices
+    ax, ay, az = axes
+    return (sz, sy, sx), ax[None, None, :], ay[None, :, None], az[:, None, None]
 
 
 class Layer:
