@@ -15,6 +15,10 @@ import numpy as np
 import SimpleITK as sitk
 from ruamel.yaml import YAML
 
+from appliance.config.fluoroscope import FluoroscopeProfile
+from appliance.config.loading import load_profile
+from appliance.xray.casting import at_resolution
+
 REPO = Path(__file__).resolve().parents[1]
 
 CASE_YAML = """title: Test cylinder
@@ -77,8 +81,11 @@ def make_appliance(tmp: Path, *, camera: str = "synthetic", script: list[str] | 
     # Most tests read the screen's brightness against the profile's fixed window and level
     # (with automatic brightness control any uniform object would sit at mid-grey) and the
     # dose against the reference rates, so they run without it.
+    # The detector is read out at twice the render matrix (its field and intrinsics scaled), so
+    # saved images take the native re-render path at a cost a test can afford.
     fluoroscope = configs / data["fluoroscope"]
-    profile = yaml.load(fluoroscope.read_text())
+    native = at_resolution(load_profile(fluoroscope, FluoroscopeProfile), 2 * render_px, 2 * render_px)
+    profile = native.model_dump(mode="json", exclude_none=True)
     profile["abc"]["enabled"] = abc
     with open(fluoroscope, "w") as f:
         yaml.dump(profile, f)

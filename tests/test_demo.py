@@ -83,5 +83,7 @@ def test_demo_runs_the_session_and_writes_everything_it_lists(tmp_path):
     assert sr.Modality == "SR"
     saved = sorted((data / "images").glob("*.dcm"))
     assert len(saved) == SCRIPT_SAVES
-    assert pydicom.dcmread(saved[0]).Rows == 64  # the demo renders the matrix the profile asks for
+    # Saved at the detector's native matrix (twice the 64-pixel live one here), 16-bit.
+    first = pydicom.dcmread(saved[0])
+    assert (first.Rows, first.Columns, first.BitsStored) == (128, 128, 16)
     assert f"fluoroscopy time:   {int(SCRIPT_FLUORO_S // 60):02d}:{int(SCRIPT_FLUORO_S % 60):02d}" in out

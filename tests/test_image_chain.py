@@ -269,8 +269,8 @@ def test_window_and_level_keys_reach_the_view():
 
 
 def test_a_frame_rendered_again_at_the_native_matrix_shows_the_same_view(adult):
-    """at_matrix: the same prepared volume read out at a finer matrix (what a save stores on a
-    GPU appliance) shows the same anatomy: the fine frame averaged down matches the coarse one."""
+    """at_matrix: the same prepared volume read out at a finer matrix (what a save stores) shows
+    the same anatomy: the fine frame averaged down matches the coarse one."""
     import cv2
 
     coarse = Renderer(at_resolution(II, 64, 64), Materials(), device="cpu")
@@ -285,3 +285,17 @@ def test_a_frame_rendered_again_at_the_native_matrix_shows_the_same_view(adult):
     down = cv2.resize(b, (64, 64), interpolation=cv2.INTER_AREA)
     assert np.corrcoef(down[inside], a[inside])[0, 1] > 0.98
     assert coarse.at_matrix(64, 64) is coarse
+
+
+def test_a_cast_in_bands_of_rows_is_the_whole_cast(adult):
+    """A saved image's native re-render on a CPU device is cast in bands of rows so live frames
+    run between them: every band of rows must land where the whole cast puts it, to the bit,
+    including a last band shorter than the rest (100 rows in bands of 15)."""
+    fine = Renderer(at_resolution(II, 96, 100), Materials(), device="cpu")
+    prepared = fine.prepare(adult)
+    T = acceptance.ap_pose(620.0, (0.0, 0.0, 30.0))
+    for quantity in ("intensity", "display"):
+        view = View(noise=False, quantity=quantity)
+        whole = fine.render(prepared, T, view).image
+        banded = fine.render(prepared, T, view, bands=7).image
+        assert whole.shape == (100, 96) and np.array_equal(whole, banded), quantity

@@ -46,6 +46,10 @@ CONSOLE_WAIT_S = 0.1
 POSE_WAIT_S = 0.02
 #: Renderer faults are kept to this many characters for the screen's banner.
 FAULT_CHARS = 120
+#: A saved image's native re-render on a CPU device is cast in this many bands of rows: at the
+#: shipped 1024 matrix one band costs about what a live frame does, so a live frame waits at
+#: most one band.
+NATIVE_SAVE_BANDS = 16
 
 
 def view_for(cfg: ApplianceConfig, state: ConsoleState) -> View:
@@ -182,16 +186,18 @@ class RenderWorker(Worker):
         """The last live view again at the detector's native matrix, the C-arm still (the
         recursive filter settled): a saved image as the unit stores it, 16-bit. With the
         profile read out at that matrix, for the saved image's pixel spacing. None before any
-        live frame, if the live matrix is already the native one, or on PoCL's CPU device,
-        where a native frame takes seconds (the image on screen is saved there)."""
+        live frame. On a CPU device a native frame takes a second or more: it is cast in bands
+        of rows, so the live frames go on between them (a few tens of ms late each) instead of
+        the screen freezing while the image is saved."""
         request = self._request
         renderer = self.parts.renderer
         fl = self.keeper.current.fluoroscope
-        if request is None or renderer.shape == (fl.detector.rows, fl.detector.columns) or is_cpu(renderer):
+        if request is None:
             return None
         volume, T, view, blend = request
         native = renderer.at_matrix(fl.detector.columns, fl.detector.rows)
-        frame = native.render(volume, T, dataclasses.replace(view, temporal="settled"), blend=blend)
+        frame = native.render(volume, T, dataclasses.replace(view, temporal="settled"), blend=blend,
+                              bands=NATIVE_SAVE_BANDS if is_cpu(renderer) else None)
         return np.rint(np.clip(frame.image, 0.0, 1.0) * 65535.0).astype(np.uint16), native.fluoroscope
 
     def _send_exposure_factor(self, factor: float) -> None:

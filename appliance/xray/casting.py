@@ -15,6 +15,7 @@ Units: lengths mm, energies keV, densities g/cm^3, mass attenuation cm^2/g.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -47,6 +48,8 @@ CROP_BLOCK = 16
 ENERGY_BINS = 24
 #: Pixels per work-item of the CPU kernel (LANES in drr.cl).
 PACKET = 16
+#: Pause between the bands of a banded cast (s): long enough for a waiting thread to take the lock.
+BAND_YIELD_S = 0.002
 
 
 @dataclass(eq=False)
@@ -271,8 +274,12 @@ class Caster:
         hi = np.max([b[1] for b in boxes], axis=0)
         return np.array([*lo, 0, *hi, 0], dtype=np.int32)
 
-    def cast(self, volume, T_xray_from_ct, zoom, collimation_mm, blend, distorted, circle):
-        """Device buffer of (rows, cols, 4) float32 material integrals, and the beam mask."""
+    def cast(self, volume, T_xray_from_ct, zoom, collimation_mm, blend, distorted, circle, bands=None):
+        """Device buffer of (rows, cols, 4) float32 material integrals, and the beam mask.
+
+        `bands` = (lock, n): cast in n bands of detector rows, holding `lock` for one band at
+        a time, so that a long cast (a saved image at the native matrix on a CPU device) lets
+        the live frames in between its bands instead of freezing the screen for its length."""
         dev, cl = self.dev, self.dev.cl
         rows, cols = self.shape
         geo = self._geometry(volume, T_xray_from_ct)
@@ -295,10 +302,18 @@ class Caster:
             kernel, first = self._joseph_blend, (volume.buffer, blend[0].buffer, np.float32(blend[1]))
         args = (*first, np.int32(nx), np.int32(ny), np.int32(nz), dirs, mask_buf, dev.upload(geo), dev.upload(box),
                 self._mat_buf)
-        if self.packet:
-            kernel(dev.queue, (-(-cols // PACKET), rows), None, *args, np.int32(cols), lines)
-        else:
-            kernel(dev.queue, (cols, rows), None, *args, lines)
+        tail = (np.int32(cols), lines) if self.packet else (lines,)
+        width = -(-cols // PACKET) if self.packet else cols
+        if bands is None:
+            kernel(dev.queue, (width, rows), None, *args, *tail)
+            return lines, mask
+        lock, n = bands
+        step = -(-rows // max(1, n))
+        for r0 in range(0, rows, step):
+            with lock:
+                kernel(dev.queue, (width, min(step, rows - r0)), None, *args, *tail, global_offset=(0, r0))
+                dev.queue.finish()
+            time.sleep(BAND_YIELD_S)    # a frame waiting for the lock gets it (Python's lock is not fair)
         return lines, mask
 
     def material_integrals(self, volume, T_xray_from_ct, zoom, collimation_mm, blend, distorted, circle) -> np.ndarray:
@@ -308,12 +323,18 @@ class Caster:
         return self.dev.download(lines, np.empty(self.shape + (4,), dtype=np.float32))
 
     def intensity(self, volume, T_xray_from_ct, zoom, collimation_mm, blend, circle, polychromatic,
-                  cast=None, tables=None) -> np.ndarray:
+                  cast=None, tables=None, bands=None) -> np.ndarray:
         """(rows, cols) float32 detector signal relative to the open beam, before any blur; 0 outside the beam.
 
         `cast` stands in for `self.cast` (same arguments and result) and `tables` for the
         (weights, mu/rho, bins) device tables: the projection cache (projection_cache.py)
-        hands in cached line integrals and a contrast concentration's table."""
+        hands in cached line integrals and a contrast concentration's table. `bands`: see
+        `cast`; the caller then holds no lock, and the lock is taken here for the rest."""
+        if bands is not None:
+            lines, _ = self.cast(volume, T_xray_from_ct, zoom, collimation_mm, blend, True, circle, bands)
+            with bands[0]:
+                return self.intensity(volume, T_xray_from_ct, zoom, collimation_mm, blend, circle, polychromatic,
+                                      cast=lambda *_: (lines, None), tables=tables)
         dev = self.dev
         rows, cols = self.shape
         lines, _ = (cast or self.cast)(volume, T_xray_from_ct, zoom, collimation_mm, blend, True, circle)

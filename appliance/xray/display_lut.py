@@ -14,6 +14,8 @@ it). The compositor and the saved images take the result as it is.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from ..config.image_chain import ImageChain
@@ -64,12 +66,30 @@ def to_display(p: np.ndarray, field: np.ndarray, edge: np.ndarray, chain: ImageC
                centre: float, width: float) -> np.ndarray:
     """(rows, cols) float32 grey in [0, 1] of the log signal `p` through window (centre, width),
     the soft knee and the polarity, faded by `edge` (1 inside the field, 0 outside)."""
-    x = (p - np.float32(centre)) / np.float32(width) + np.float32(0.5)
-    # Through a table of the knee: 1/2048 of the scale per step, far below one grey level.
-    grid = np.linspace(-4.0, 5.0, 18433, dtype=np.float32)
-    grey = np.interp(x, grid, soft_knee(grid, chain.display_knee)).astype(np.float32)
-    if invert:
-        grey = 1.0 - grey
+    # Through a table of the knee, polarity included: 1/2048 of the window per entry, a small
+    # fraction of one grey level, and looked up by index (an interpolation per pixel cost more
+    # than the rest of the display chain).
+    table = _knee_table(chain.display_knee, invert)
+    index = p - np.float32(centre - (0.5 - KNEE_TABLE_LOW) * width)
+    index *= np.float32(KNEE_TABLE_STEPS / width)
+    index += np.float32(0.5)
+    np.clip(index, 0, len(table) - 1, out=index)
+    grey = table[index.astype(np.int32)]
     grey *= edge
     grey[~field] = 0.0
-    return grey.astype(np.float32)
+    return grey
+
+
+#: The knee table spans window positions KNEE_TABLE_LOW .. KNEE_TABLE_HIGH (0 = the window's
+#: bottom, 1 = its top) in steps of 1 / KNEE_TABLE_STEPS; beyond, the soft knee is within a
+#: few grey levels of its end anyway.
+KNEE_TABLE_LOW, KNEE_TABLE_HIGH, KNEE_TABLE_STEPS = -4.0, 5.0, 2048
+
+
+@functools.lru_cache(maxsize=8)
+def _knee_table(knee: float, invert: bool) -> np.ndarray:
+    n = int(round((KNEE_TABLE_HIGH - KNEE_TABLE_LOW) * KNEE_TABLE_STEPS)) + 1
+    grey = soft_knee(np.linspace(KNEE_TABLE_LOW, KNEE_TABLE_HIGH, n, dtype=np.float64), knee)
+    table = ((1.0 - grey) if invert else grey).astype(np.float32)
+    table.setflags(write=False)      # shared by every frame
+    return table

@@ -207,7 +207,8 @@ class Renderer:
 
     # -- rendering -------------------------------------------------------------------
     def render(self, volume: PreparedVolume, T_xray_from_ct: np.ndarray, view: View,
-               blend: tuple[PreparedVolume, float] | None = None, *, cast=None, tables=None) -> Frame:
+               blend: tuple[PreparedVolume, float] | None = None, *, cast=None, tables=None,
+               bands: int | None = None) -> Frame:
         """A `Frame` whose image is `view.quantity`:
 
         - "line-integral": see `line_integral` (no blend, noise, blur, distortion);
@@ -217,6 +218,9 @@ class Renderer:
         - "display": in [0, 1], what the monitor shows: the exposure control's technique, the
           detector, the recursive filter (view.temporal), the log display with its window;
           bright = more attenuation unless view.invert; black outside the beam.
+
+        `bands`: cast in that many bands of rows, letting other frames on this device in
+        between (see Caster.cast): for a long render beside the live one.
         """
         import cv2
 
@@ -229,9 +233,13 @@ class Renderer:
             return Frame(self.line_integral(volume, T_xray_from_ct, view.zoom, view.collimation_mm))
         self._check(volume, *(() if blend is None else (blend[0],)))
         circle = self._circle(None)
-        with self._lock:
+        if bands is not None:
             image = self.caster.intensity(volume, T_xray_from_ct, view.zoom, view.collimation_mm, blend, circle,
-                                          view.polychromatic, cast=cast, tables=tables)
+                                          view.polychromatic, tables=tables, bands=(self._lock, bands))
+        with self._lock:
+            if bands is None:
+                image = self.caster.intensity(volume, T_xray_from_ct, view.zoom, view.collimation_mm, blend, circle,
+                                              view.polychromatic, cast=cast, tables=tables)
             mask, _, central = self.caster.beam(view.zoom, view.collimation_mm, circle)
             detector, chain, abc = self.detector, self.fluoroscope.image, self.fluoroscope.abc
         sigma = detector.focal_blur_px(view.zoom, self.depth_mm(volume, T_xray_from_ct))
