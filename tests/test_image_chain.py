@@ -131,7 +131,8 @@ def test_water_slab_snr_matches_photon_statistics_and_holds_across_zoom(ii128):
             frame = r.render(prepared, T, View(zoom=zoom, seed=seed))
             measured.append(1.0 / np.std(frame.signal[roi] / clean))
         expected = acceptance.expected_slab_snr(r.fluoroscope, zoom, transmission, frame.exposure_factor,
-                                                r.mu_water_per_mm, r.detector.psf_sigma_px(zoom), settled=True)
+                                                r.mu_water_per_mm, r.detector.psf_sigma_px(zoom), settled=True,
+                                                kvp=frame.kvp)
         assert np.median(measured) == pytest.approx(expected, rel=0.10), zoom
         snrs.append(np.median(measured))
     assert max(snrs) / min(snrs) < 1.25
@@ -147,8 +148,68 @@ def test_exposure_control_stays_within_the_dose_rate_limit(ii128):
     rate = II.zoom_levels[3].air_kerma_rate_mgy_per_min["continuous"]
     assert frame.limited
     assert frame.exposure_factor * rate == pytest.approx(88.0, rel=1e-6)
+    # Pulsed at 7.5/s the limit is far away: the generator runs to the top of its curve, and the
+    # rate follows spekpy's air kerma per mAs there and at the reference technique.
     pulsed = ii128.render(prepared, T, View(zoom=4, noise=False, mode="pulsed-7.5"))
-    assert pulsed.exposure_factor == II.abc.max_factor     # 4 x 10.6 mGy/min is within the limit
+    top = II.abc.curve[-1]
+    assert pulsed.limited and (pulsed.kvp, pulsed.ma) == (top.kvp, top.ma)
+    expected = top.ma * spekpy_kerma(top.kvp) / (II.tube.ma * spekpy_kerma(II.tube.kvp))
+    assert pulsed.exposure_factor == pytest.approx(expected, rel=1e-6)
+    rate_pulsed = II.zoom_levels[3].air_kerma_rate_mgy_per_min["pulsed-7.5"]
+    assert pulsed.exposure_factor * rate_pulsed < 88.0
+
+
+def spekpy_kerma(kvp: float) -> float:
+    """Air kerma per mAs at 1 m of the profile's tube at `kvp`, from spekpy itself."""
+    import spekpy
+
+    s = spekpy.Spek(kvp=kvp, th=12.0, dk=0.5)
+    s.filter("Al", II.tube.filtration_mm_al)
+    return float(s.get_kerma())
+
+
+def water_signal(kvp: float, water_mm: float) -> float:
+    """An energy-integrating detector's signal per mAs behind `water_mm` of water at `kvp`:
+    spekpy's spectrum (0.5 keV steps) through xraylib's water, summed over photons x energy."""
+    import spekpy
+    import xraylib
+
+    s = spekpy.Spek(kvp=kvp, th=12.0, dk=0.5)
+    s.filter("Al", II.tube.filtration_mm_al)
+    k, phi = s.get_spectrum()
+    mu = np.array([xraylib.CS_Total_CP("Water, Liquid", float(e)) for e in k]) / 10.0
+    return float(np.sum(phi * k * np.exp(-mu * water_mm)))
+
+
+@pytest.mark.parametrize("water_mm", [90.0, 200.0])
+def test_exposure_control_moves_along_its_kv_ma_curve_to_the_reference_signal(water_mm):
+    """With abc.curve the control raises kV and mA together: a thicker slab gets a higher point
+    of the curve, and at the point it sets, mA x the detector signal per mAs behind the slab
+    (spekpy's spectrum at that kV through water, computed here) equals the reference: the open
+    field at the reference technique times exp(-reference_attenuation), within the spectrum
+    model's and soft tissue's few per cent; the dose rate follows spekpy's air kerma per mAs."""
+    plain = with_chain(II, veiling_glare=0.0)        # no glare or vignetting: the slab's signal is uniform
+    plain = plain.model_copy(update={"detector": plain.detector.model_copy(update={"vignetting": 0.0})})
+    flat_ii = Renderer(at_resolution(plain, 64, 64), Materials(), device="cpu")
+    n = int(water_mm // 5)
+    vol = box_volume((n, 64, 64), (8.0, 8.0, 5.0), (0, 0, 0), (63, 63, n - 1), hu=0)[0]
+    T = np.eye(4)
+    T[2, 3] = 620.0
+    frame = flat_ii.render(flat_ii.prepare(vol), T, View(noise=False))
+    curve = II.abc.curve
+    assert not frame.limited and curve[0].kvp < frame.kvp < curve[-1].kvp
+    i = max(j for j in range(len(curve) - 1) if curve[j].kvp <= frame.kvp)
+    w = (frame.kvp - curve[i].kvp) / (curve[i + 1].kvp - curve[i].kvp)
+    # On the curve, the mA trimmed down within the last 1 kV step (a step moves the signal ~5-10 %).
+    on_curve = curve[i].ma + w * (curve[i + 1].ma - curve[i].ma)
+    assert 0.88 * on_curve <= frame.ma <= on_curve * (1 + 1e-9)
+    # The reference: the open field at the reference technique times exp(-reference_attenuation).
+    # (HU 0 is soft tissue to the renderer; its attenuation is within a few per cent of water's.)
+    signal = frame.ma * water_signal(frame.kvp, water_mm)
+    target = II.tube.ma * water_signal(II.tube.kvp, 0.0) * math.exp(-II.abc.reference_attenuation)
+    assert signal == pytest.approx(target, rel=0.10)
+    assert frame.exposure_factor == pytest.approx(frame.ma * spekpy_kerma(frame.kvp) /
+                                                  (II.tube.ma * spekpy_kerma(II.tube.kvp)), rel=0.02)
 
 
 @pytest.mark.parametrize("zoom", [1, 4])

@@ -10,7 +10,7 @@ import pytest
 from appliance.config import FluoroscopeProfile, KeymapProfile, load_profile
 from appliance.console.alarm_sound import AlarmSound
 from appliance.console.state import Console
-from appliance.daemon.handoff import LatestValue
+from appliance.daemon.handoff import LatestValue, Technique
 from appliance.daemon.input_worker import InputWorker
 from drivers.scripted_input import ScriptedInput
 
@@ -25,7 +25,7 @@ def test_a_new_tube_output_does_not_move_a_press_polled_in_the_same_step(tmp_pat
     now = [0.0]
     console = Console(II, KEYMAP, t0=0.0)
     events: queue.Queue = queue.Queue()
-    exposure: LatestValue[float] = LatestValue("exposure factor")
+    exposure: LatestValue[Technique] = LatestValue("technique")
     worker = InputWorker(console, [ScriptedInput(script, t0=0.0)], AlarmSound(), lambda: now[0],
                          console_state=LatestValue("console"), events=events, fluoroscope=LatestValue("fl"),
                          exposure_factor=exposure)
@@ -33,7 +33,7 @@ def test_a_new_tube_output_does_not_move_a_press_polled_in_the_same_step(tmp_pat
     # as the brightness control sends one after every live image.
     for t, factor in ((1.004, 1.5), (3.004, 0.5)):
         now[0] = t
-        exposure.put(factor)
+        exposure.put(Technique(factor))
         worker.step()
     recorded = []
     while not events.empty():

@@ -75,6 +75,7 @@ CASES = [
            "{continuous: 14.6, pulsed-15: 7.3}", "zoom_levels[1].air_kerma_rate_mgy_per_min"),
     Broken("isocentre-beyond-detector", FLUORO, replace("source_to_isocentre_mm: 620", "source_to_isocentre_mm: 1200"),
            "source_to_isocentre_mm: 1200", "geometry.source_to_isocentre_mm"),
+    Broken("falling-kv-curve", FLUORO, replace("    - {kvp: 90, ma: 3.0}", "    - {kvp: 70, ma: 3.0}"), "{kvp: 70, ma: 3.0}", "abc.curve[2]"),
     Broken("bad-detector-kind", FLUORO, replace("kind: image_intensifier", "kind: ccd"), "kind: ccd", "detector.kind"),
     Broken("non-rigid-scale", FLUORO, replace("    - [0.0, -1.0, 0.0, 0.0]", "    - [0.0, -1.2, 0.0, 0.0]"), "T_xray_from_webcam:", "webcam.T_xray_from_webcam"),
     Broken("mirror-transform", CASE, replace("  - [0, 0, 1, 0]", "  - [0, 0, -1, 0]"), "T_phantom_from_ct:", "T_phantom_from_ct"),

@@ -120,11 +120,24 @@ class Display(Section):
     noise: bool = Field(True, description="Add quantum noise set by mA and pulse width.")
 
 
+class CurvePoint(Section):
+    """One operating point of the exposure control's kV-mA curve."""
+
+    kvp: float = Field(ge=40, le=150, description="Tube peak voltage at this point (kV).")
+    ma: float = Field(gt=0, le=100, description="Tube current at this point (mA); in pulsed modes the current during "
+                                                "the pulse, scaled like the reference technique's.")
+
+
 class AutomaticBrightness(Section):
-    """Automatic brightness (dose-rate) control. The unit measures the median attenuation over the
-    central half of the beam and sets the tube current so that the image there is as bright as
-    for the reference patient: a thicker or denser part (a lateral view, contrast in the field)
-    costs proportionally more dose, a thinner one less. The tube voltage stays at tube.kvp."""
+    """Automatic brightness (dose-rate) control. The unit measures the detector signal over the
+    central half of the beam and sets the technique so that the image there is as bright as for
+    the reference patient at the reference technique (tube.kvp, tube.ma): a thicker or denser
+    part (a lateral view, contrast in the field) costs more dose, a thinner one less.
+
+    Without a `curve` only the tube current follows the patient (the tube voltage stays at
+    tube.kvp). With one, the generator moves along it as a real unit's does: from its first point
+    (low kV, low mA: the most contrast for thin parts) toward its last, kV and mA rising together,
+    to the first point that gives the reference signal; the dose-rate limit stops it earlier."""
 
     enabled: bool = Field(False, description="Off: fixed technique at the reference rates and the display's fixed level.")
     reference_attenuation: float = Field(3.0, gt=0, le=20, description="Median log-attenuation -ln(I/I0) over the "
@@ -135,6 +148,10 @@ class AutomaticBrightness(Section):
     max_factor: float = Field(8.0, ge=1, le=100, description="Highest tube output the control can set, relative to the "
                               "reference; keep max_factor x the highest reference rate within the unit's legal limit "
                               "(88 mGy/min in normal mode, 21 CFR 1020.32) (dimensionless).")
+    curve: list[CurvePoint] = Field(default_factory=list, description="The generator's kV-mA operating curve, lowest "
+                                    "point first (kV and mA each rising along it); empty: kV fixed at tube.kvp. With a "
+                                    "curve, its ends bound the output instead of min_factor and max_factor.")
+
 
 
 class Webcam(Section):
@@ -179,6 +196,15 @@ class FluoroscopeProfile(Section):
         if self.dose.reference_point_from_isocentre_mm >= self.geometry.source_to_isocentre_mm:
             yield (("dose", "reference_point_from_isocentre_mm"),
                    "must be less than geometry.source_to_isocentre_mm: the reference point lies between source and isocentre")
+        curve = self.abc.curve
+        if len(curve) == 1:
+            yield ("abc", "curve"), "give at least two points (kV and mA at its low and high ends), or none"
+        for i in range(1, len(curve)):
+            a, b = curve[i - 1], curve[i]
+            if not (b.kvp >= a.kvp and b.ma >= a.ma and (b.kvp > a.kvp or b.ma > a.ma)):
+                yield (("abc", "curve", i),
+                       f"{b.kvp:g} kV {b.ma:g} mA falls below the point before it ({a.kvp:g} kV {a.ma:g} mA): the "
+                       "curve rises in kV and mA from its first point")
         if self.collimator.min_opening_mm >= fovs[0]:
             yield ("collimator", "min_opening_mm"), "must be smaller than the widest field of view"
 

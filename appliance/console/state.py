@@ -157,6 +157,8 @@ class Console:
         # Tube output relative to the reference technique, as automatic brightness control set
         # it for the latest image (1 without it): the dose rate is the reference rate times this.
         self.exposure_factor = 1.0
+        # The tube voltage and current it set (kV, mA): the reference technique's until it says.
+        self.kvp, self.ma = fluoroscope.tube.kvp, fluoroscope.tube.ma
         self.save_count = 0
         self.runs = 0
         self._pulse_count = 0
@@ -282,7 +284,7 @@ class Console:
         h, v = self.collimation
         return {"mode": mode.name, "pulse_rate_per_s": mode.pulse_rate_per_s,
                 "pulse_width_ms": fl.tube.pulse_width_ms if mode.pulse_rate_per_s else None,
-                "kvp": fl.tube.kvp, "ma": fl.tube.ma, "focal_spot_mm": fl.tube.focal_spot_mm, "zoom": self.zoom,
+                "kvp": self.kvp, "ma": self.ma, "focal_spot_mm": fl.tube.focal_spot_mm, "zoom": self.zoom,
                 "fov_mm": fl.zoom_levels[self.zoom - 1].fov_mm, "collimation_h_mm": h, "collimation_v_mm": v,
                 "field_area_cm2": self._area_cm2(), "air_kerma_rate_mgy_per_min": self._rate(),
                 "sid_mm": fl.geometry.source_to_image_mm, "source_to_isocentre_mm": fl.geometry.source_to_isocentre_mm,
@@ -411,12 +413,17 @@ class Console:
         self._exposed_since_tick = self.fluoro_on
         return out
 
-    def set_exposure_factor(self, factor: float, now: float) -> list[ConsoleEvent]:
+    def set_exposure_factor(self, factor: float, now: float, kvp: float | None = None,
+                            ma: float | None = None) -> list[ConsoleEvent]:
         """The automatic brightness control changed the tube output to `factor` x the reference
-        technique at `now`: dose up to `now` accrues at the old rate, after it at the new."""
+        technique's air-kerma rate at `now`, at `kvp` and `ma` (None: the reference technique's):
+        dose up to `now` accrues at the old rate, after it at the new; runs record the technique."""
         out: list[ConsoleEvent] = []
         self._advance(now, out)
         self.exposure_factor = float(factor)
+        tube = self.fl.tube
+        self.kvp = tube.kvp if kvp is None else float(kvp)
+        self.ma = tube.ma if ma is None else float(ma)
         return out
 
     def note(self, t: float, kind: str, **detail) -> list[ConsoleEvent]:
@@ -488,6 +495,6 @@ class Console:
             alarm_sounding=self.alarm_sounding, alarm_count=self.alarm_count, save_count=self.save_count,
             runs=self.runs,
             new_image=self._frame_pulses > 0 if mode.pulse_rate_per_s else self._frame_exposed,
-            pulses_this_frame=self._frame_pulses, kvp=fl.tube.kvp, ma=fl.tube.ma, pulses=self._pulse_count,
+            pulses_this_frame=self._frame_pulses, kvp=self.kvp, ma=self.ma, pulses=self._pulse_count,
             window_scale=self.window_scale, level_shift=self.level_shift,
             breath_rate_steps=self.breath_rate_steps, breath_depth_steps=self.breath_depth_steps)

@@ -109,6 +109,15 @@ class Recorded:
 
 
 @dataclass(frozen=True)
+class Technique:
+    """render -> input: the technique the exposure control set for the latest image."""
+
+    factor: float               # air-kerma rate relative to the reference technique (the console doses at it)
+    kvp: float | None = None    # tube voltage (kV); None: the profile's tube.kvp
+    ma: float | None = None     # tube current (mA); None: the profile's tube.ma
+
+
+@dataclass(frozen=True)
 class SavedImage:
     """records -> render: an image just written, so the screen can flash "saved"."""
 

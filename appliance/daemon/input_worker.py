@@ -11,7 +11,7 @@ from ..config.fluoroscope import FluoroscopeProfile
 from ..console.alarm_sound import AlarmSound
 from ..console.state import Console, ConsoleEvent, ConsoleState
 from ..teaching.live import LiveTeaching, TeachingStatus
-from .handoff import LatestValue, Recorded
+from .handoff import LatestValue, Recorded, Technique
 from .worker import Worker
 
 #: How often the worker polls the keypad and pedal and advances the console (s).
@@ -29,7 +29,7 @@ class InputWorker(Worker):
     def __init__(self, console: Console, devices: Sequence[InputDevice], alarm: AlarmSound,
                  clock: Callable[[], float], *, console_state: LatestValue[ConsoleState],
                  events: queue.Queue[Recorded], fluoroscope: LatestValue[FluoroscopeProfile],
-                 exposure_factor: LatestValue[float], teaching: LiveTeaching | None = None,
+                 exposure_factor: LatestValue[Technique], teaching: LiveTeaching | None = None,
                  views: LatestValue[tuple[float, dict]] | None = None,
                  teaching_status: LatestValue[TeachingStatus] | None = None, badge: InputDevice | None = None):
         super().__init__("input", idle_s=0.0)
@@ -75,9 +75,9 @@ class InputWorker(Worker):
         # `now` must not be moved to `now` by it (that would add or drop fluoroscopy time).
         exposure = self.exposure_factor.newer(self._exposure_seq)
         if exposure is not None:
-            factor, self._exposure_seq = exposure
-            if factor is not None:
-                out += _plain(console.set_exposure_factor(factor, now))
+            technique, self._exposure_seq = exposure
+            if technique is not None:
+                out += _plain(console.set_exposure_factor(technique.factor, now, technique.kvp, technique.ma))
         out += _plain(console.tick(now))
         for item in out:
             self.events.put(item)  # blocks only if the ledger is stuck (see pipeline.EVENT_QUEUE)

@@ -46,7 +46,7 @@ from ..records.deferred_ledger import open_ledger
 from ..teaching.live import TeachingStatus, live_teaching_for
 from .capture_worker import CaptureWorker
 from .clock import SimClock
-from .handoff import LatestValue, PhaseValue, Recorded, SavedImage, ShownFrame, TrackedPose
+from .handoff import LatestValue, PhaseValue, Recorded, SavedImage, ShownFrame, Technique, TrackedPose
 from .health import (
     CameraState,
     DiskSpace,
@@ -119,7 +119,7 @@ class Appliance:
         self.console_state: LatestValue[ConsoleState] = LatestValue("console")            # input
         self.events: queue.Queue[Recorded] = queue.Queue(maxsize=EVENT_QUEUE)             # input
         self.shown: LatestValue[np.ndarray] = LatestValue("shown")                        # render
-        exposure_factor: LatestValue[float] = LatestValue("exposure factor")              # render
+        exposure_factor: LatestValue[Technique] = LatestValue("technique")              # render
         saves: LatestValue[SavedImage] = LatestValue("saves")                             # records
         self._new_fluoroscope: LatestValue[FluoroscopeProfile] = LatestValue("fluoroscope")  # reload
         views: LatestValue[tuple[float, dict]] = LatestValue("views")                     # render

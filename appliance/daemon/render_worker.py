@@ -27,7 +27,7 @@ from ..teaching.live import TeachingStatus
 from ..teaching.views import view_detail
 from ..xray.renderer import Frame, View
 from .frame_stats import FrameStats
-from .handoff import LatestValue, PhaseValue, SavedImage, ShownFrame, TrackedPose
+from .handoff import LatestValue, PhaseValue, SavedImage, ShownFrame, Technique, TrackedPose
 from .parts import Parts, is_cpu
 from .reload import ProfileKeeper
 from .worker import Worker
@@ -87,7 +87,7 @@ class RenderWorker(Worker):
 
     def __init__(self, parts: Parts, keeper: ProfileKeeper, *, poses: LatestValue[TrackedPose],
                  phases: LatestValue[PhaseValue], console_state: LatestValue[ConsoleState],
-                 saves: LatestValue[SavedImage], shown: LatestValue[np.ndarray], exposure_factor: LatestValue[float],
+                 saves: LatestValue[SavedImage], shown: LatestValue[np.ndarray], exposure_factor: LatestValue[Technique],
                  banners: Callable[[], list[str]], on_first_frame: Callable[[], None],
                  on_shown: Callable[[ShownFrame], None] | None = None,
                  views: LatestValue[tuple[float, dict]] | None = None,
@@ -107,7 +107,7 @@ class RenderWorker(Worker):
         self._image: np.ndarray | None = None          # the image on screen (last-image-hold)
         self._drawn: ConsoleState | None = None        # the console state it was rendered at
         self._last_compose = 0.0
-        self._factor_sent = 1.0
+        self._factor_sent = Technique(1.0)
         self._request: tuple | None = None        # what the last live frame was rendered from
 
     def step(self) -> bool:
@@ -131,7 +131,7 @@ class RenderWorker(Worker):
             frame = self._render(cfg, T_xray_from_ct, phase, state)
             if frame is not None:
                 self._image, self._drawn, live = frame.image, state, True
-                self._send_exposure_factor(frame.exposure_factor)
+                self._send_technique(Technique(frame.exposure_factor, frame.kvp, frame.ma))
                 if self.views is not None:
                     self.views.put((state.t, view_detail(self.parts.renderer.fluoroscope, T_xray_from_ct, state.zoom,
                                                          state.collimated_mm, phase.t_case_s)))
@@ -200,8 +200,9 @@ class RenderWorker(Worker):
                               bands=NATIVE_SAVE_BANDS if is_cpu(renderer) else None)
         return np.rint(np.clip(frame.image, 0.0, 1.0) * 65535.0).astype(np.uint16), native.fluoroscope
 
-    def _send_exposure_factor(self, factor: float) -> None:
-        """The console doses at the tube output the renderer's brightness control set; tell it on change."""
-        if factor != self._factor_sent:
-            self._factor_sent = factor
-            self.exposure_factor.put(factor)
+    def _send_technique(self, technique: Technique) -> None:
+        """The console doses at the technique the renderer's brightness control set (and records
+        its kV and mA); tell it on change."""
+        if technique != self._factor_sent:
+            self._factor_sent = technique
+            self.exposure_factor.put(technique)

@@ -19,7 +19,10 @@ fluoroscope profile). Nothing here is a hand-typed table.
 from __future__ import annotations
 
 import functools
+import math
+import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -109,7 +112,9 @@ class Spectrum:
 
     `energies_kev` are bin centres; `photons_per_mm2_per_mas` the fluence of each bin at
     1 m from the focal spot (photons / mm^2 / mAs). `effective_kev` is the energy of the
-    monoenergetic beam with the same aluminium half-value layer (spekpy's definition).
+    monoenergetic beam with the same aluminium half-value layer (spekpy's definition);
+    `air_kerma_ugy_per_mas` the beam's air kerma at 1 m (uGy / mAs, spekpy's), which sets the
+    dose rate of a technique.
     """
 
     kvp: float
@@ -118,6 +123,12 @@ class Spectrum:
     photons_per_mm2_per_mas: np.ndarray
     effective_kev: float
     mean_kev: float
+    air_kerma_ugy_per_mas: float = float("nan")
+
+    def detector_signal_per_mas(self) -> float:
+        """An energy-integrating detector's open-field signal per mAs at 1 m (keV / mm^2 / mAs):
+        what tells one kV's image brightness from another's at the same current."""
+        return float(np.sum(self.photons_per_mm2_per_mas * self.energies_kev))
 
     def energy_weights(self) -> np.ndarray:
         """N0(E)*E normalised to sum 1: each bin's share of an energy-integrating detector's open-field signal."""
@@ -125,8 +136,28 @@ class Spectrum:
         return w / w.sum()
 
 
+def spectra_cache_dir() -> Path:
+    """Where spekpy's spectra are kept between runs: systemd's CacheDirectory for the service,
+    else the user's cache (XDG). Each takes spekpy a second or more, and an exposure control's
+    curve needs several at start-up."""
+    base = os.environ.get("CACHE_DIRECTORY") or os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base.split(":")[0]) / "fluorosim" / "spectra"
+
+
 @functools.lru_cache(maxsize=16)
-def _spectrum(kvp: float, filtration_mm_al: float, n_bins: int) -> Spectrum:
+def _fine_spectrum(kvp: float, filtration_mm_al: float) -> tuple[np.ndarray, np.ndarray, float, float, float]:
+    """spekpy's spectrum in 0.5 keV steps: (keV, photons / mm^2 / mAs per step at 1 m, air kerma
+    uGy / mAs at 1 m, effective keV, mean keV). Cached in memory and on disk (a cache only:
+    an unreadable or unwritable one is recomputed and left alone)."""
+    from importlib.metadata import version
+
+    # (spekpy's own import takes about a second: the file's name needs only its version)
+    path = spectra_cache_dir() / f"{kvp:g}kV-{filtration_mm_al:g}mmAl-{ANODE_ANGLE_DEG:g}deg-spekpy{version('spekpy')}.npz"
+    try:
+        with np.load(path) as z:
+            return z["k"], z["counts"], float(z["kerma"]), float(z["eff"]), float(z["mean"])
+    except (OSError, KeyError, ValueError):
+        pass
     import spekpy
 
     try:
@@ -136,12 +167,27 @@ def _spectrum(kvp: float, filtration_mm_al: float, n_bins: int) -> Spectrum:
         k, phi = s.get_spectrum()   # keV, photons / cm^2 / mAs / keV at 1 m
         eff = float(s.get_eeff())
         mean = float(s.get_emean())
+        kerma = float(s.get_kerma())
     except Exception as e:  # spekpy raises plain Exceptions for out-of-range settings
         raise FluorosimError(f"spekpy cannot model a {kvp} kVp tube with {filtration_mm_al} mm Al: {e}; check "
                              "tube.kvp and tube.filtration_mm_al") from None
     dk = float(k[1] - k[0])
-    counts = phi * dk / 100.0    # photons / mm^2 / mAs per fine bin
-    # Equal-width coarse bins from the lowest energy carrying fluence to kVp.
+    k, counts = np.asarray(k, float), np.asarray(phi, float) * dk / 100.0
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        part = path.with_suffix(f".{os.getpid()}.part.npz")
+        np.savez(part, k=k, counts=counts, kerma=kerma, eff=eff, mean=mean)
+        os.replace(part, path)
+    except OSError:
+        pass
+    return k, counts, kerma, eff, mean
+
+
+def _binned(k: np.ndarray, counts: np.ndarray, kvp: float, filtration_mm_al: float, n_bins: int, eff: float,
+            mean: float, kerma: float) -> Spectrum:
+    """Equal-width coarse bins from the lowest energy carrying fluence to kVp, each at its
+    fluence-weighted mean energy."""
+    dk = float(k[1] - k[0])
     lo = float(k[np.argmax(counts > counts.max() * 1e-6)] - dk / 2)
     edges = np.linspace(lo, kvp, n_bins + 1)
     which = np.clip(np.searchsorted(edges, k, side="right") - 1, 0, n_bins - 1)
@@ -150,7 +196,53 @@ def _spectrum(kvp: float, filtration_mm_al: float, n_bins: int) -> Spectrum:
     centres = np.where(n > 0, e_sum / np.maximum(n, 1e-300), (edges[:-1] + edges[1:]) / 2)
     keep = n > 0
     return Spectrum(kvp=kvp, filtration_mm_al=filtration_mm_al, energies_kev=centres[keep],
-                    photons_per_mm2_per_mas=n[keep], effective_kev=eff, mean_kev=mean)
+                    photons_per_mm2_per_mas=n[keep], effective_kev=eff, mean_kev=mean, air_kerma_ugy_per_mas=kerma)
+
+
+@functools.lru_cache(maxsize=16)
+def _spectrum(kvp: float, filtration_mm_al: float, n_bins: int) -> Spectrum:
+    k, counts, kerma, eff, mean = _fine_spectrum(kvp, filtration_mm_al)
+    return _binned(k, counts, kvp, filtration_mm_al, n_bins, eff, mean, kerma)
+
+
+@functools.lru_cache(maxsize=8)
+def _air_energy_absorption(energies_kev: tuple[float, ...]) -> np.ndarray:
+    import xraylib
+
+    return np.array([xraylib.CS_Energy_CP(NIST_COMPOUNDS[0], float(e)) for e in energies_kev])
+
+
+@functools.lru_cache(maxsize=512)   # an exposure control's curve visits many kV values
+def curve_spectrum(kvp: float, anchors_kvp: tuple[float, ...], filtration_mm_al: float, n_bins: int = 24) -> Spectrum:
+    """The tube's spectrum at any `kvp` within `anchors_kvp` (the kV values of an exposure
+    control's curve, where spekpy computes it: a second or more each, too slow for every kV of a
+    control loop). Between two anchors a < kV <= b the shape is spekpy's at b scaled down by
+    Kramers' law (a thick target's photons at energy E scale as kV - E, the filtration acting
+    alike), and the air kerma per mAs is interpolated between spekpy's at a and b in log-log
+    (a tube's output follows a power of kV), the fluence scaled to match. At each anchor the
+    spectrum is spekpy's own. The effective energy (for monochromatic frames only) keeps b's
+    ratio to the mean energy."""
+    anchors = sorted(float(a) for a in anchors_kvp)
+    if not anchors[0] <= kvp <= anchors[-1]:
+        raise FluorosimError(f"{kvp:g} kV lies outside the exposure control's curve ({anchors[0]:g}-{anchors[-1]:g} kV)")
+    b = next(x for x in anchors if x >= kvp)
+    k, counts, kerma_b, eff, mean = _fine_spectrum(b, float(filtration_mm_al))
+    if kvp == b:
+        return _binned(k, counts, b, filtration_mm_al, n_bins, eff, mean, kerma_b)
+    a = max(x for x in anchors if x < kvp)
+    kerma_a = _fine_spectrum(a, float(filtration_mm_al))[2]
+    t = math.log(kvp / a) / math.log(b / a)
+    kerma = math.exp((1.0 - t) * math.log(kerma_a) + t * math.log(kerma_b))
+    scaled = counts * np.where(k < kvp, (kvp - k) / np.maximum(b - k, 1e-9), 0.0)
+    mu_en = _air_energy_absorption(tuple(k))
+    scaled *= kerma / (kerma_b * float(np.sum(scaled * k * mu_en) / np.sum(counts * k * mu_en)))
+    mean_kv = float(np.sum(scaled * k) / np.sum(scaled))
+    return _binned(k, scaled, float(kvp), filtration_mm_al, n_bins, eff * mean_kv / mean, mean_kv, kerma)
+
+
+def spectrum_at(kvp: float, filtration_mm_al: float, n_bins: int = 24) -> Spectrum:
+    """spekpy's spectrum of a tube at `kvp` with that filtration, binned as tube_spectrum's."""
+    return _spectrum(float(kvp), float(filtration_mm_al), int(n_bins))
 
 
 def tube_spectrum(tube: Tube, n_bins: int = 24) -> Spectrum:

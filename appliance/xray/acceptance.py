@@ -98,12 +98,14 @@ def gaussian_noise_gain(sigma_px: float) -> float:
 
 
 def expected_slab_snr(fl: FluoroscopeProfile, zoom: int, transmission: float, factor: float, mu_water_per_mm: float,
-                      psf_sigma_px: float, settled: bool) -> float:
+                      psf_sigma_px: float, settled: bool, kvp: float | None = None) -> float:
     """Pixel SNR that photon statistics give a uniform slab: sqrt(N) with N the photons per
     pixel per frame (profile rate -> air kerma per frame at the reference point -> inverse
     square to the detector -> spekpy fluence per air kerma behind the reference patient ->
     pixel area -> slab transmission x exposure factor), N raised by (1 + w)/(1 - w) for the
-    settled recursive filter, the noise lowered by the point-spread and by glare's (1 - g)."""
+    settled recursive filter, the noise lowered by the point-spread and by glare's (1 - g).
+    `kvp`: the tube voltage the exposure control set (None: tube.kvp); spekpy's own spectrum
+    there gives the fluence per air kerma."""
     import spekpy
 
     mode = fl.tube.modes[0]
@@ -111,7 +113,7 @@ def expected_slab_snr(fl: FluoroscopeProfile, zoom: int, transmission: float, fa
     fps = getattr(mode, "pulse_rate_per_s", None) or fl.image.frame_rate_per_s
     d_ref = fl.geometry.source_to_isocentre_mm - fl.dose.reference_point_from_isocentre_mm
     kerma_ugy = rate * 1000.0 / 60.0 / fps * (d_ref / fl.geometry.source_to_image_mm) ** 2
-    s = spekpy.Spek(kvp=fl.tube.kvp, th=12.0, dk=0.5)
+    s = spekpy.Spek(kvp=fl.tube.kvp if kvp is None else kvp, th=12.0, dk=0.5)
     s.filter("Al", fl.tube.filtration_mm_al)
     s.filter("Water, Liquid", fl.abc.reference_attenuation / mu_water_per_mm)
     per_mm2_per_ugy = s.get_flu() / s.get_kerma() / 100.0

@@ -24,7 +24,15 @@ from ..config.case import Contrast, Materials
 from ..config.fluoroscope import FluoroscopeProfile
 from ..errors import FluorosimError
 from ..geometry import invert, rigid_problem
-from ..patient.materials import density_model, mass_attenuation, tube_spectrum, water_mu_per_mm
+from ..patient.materials import (
+    Spectrum,
+    curve_spectrum,
+    density_model,
+    mass_attenuation,
+    spectrum_at,
+    tube_spectrum,
+    water_mu_per_mm,
+)
 from ..patient.volume import Volume
 from .device import ClDevice
 
@@ -48,8 +56,27 @@ CROP_BLOCK = 16
 ENERGY_BINS = 24
 #: Pixels per work-item of the CPU kernel (LANES in drr.cl).
 PACKET = 16
+#: Pixels of the measuring field the exposure control samples (its median needs no more).
+ABC_SAMPLE_PIXELS = 4096
 #: Pause between the bands of a banded cast (s): long enough for a waiting thread to take the lock.
 BAND_YIELD_S = 0.002
+
+
+@dataclass(frozen=True, eq=False)
+class DetectorTables:
+    """One technique's detector tables: the spectrum, each energy bin's share of the open-field
+    signal (weights) and each material's mass attenuation there (mu, cm^2/g), on the host and
+    on the device."""
+
+    spectrum: Spectrum
+    weights: np.ndarray          # (n_e,) float32, sum 1
+    mu: np.ndarray               # (n_e, 4) float32
+    weights_buf: object
+    mu_buf: object
+
+    def transmission(self, lines: np.ndarray) -> np.ndarray:
+        """I/I0 of (n, 4) material integrals (g/cm^3 * mm), as the polychromatic kernel computes it."""
+        return np.exp(-0.1 * (np.asarray(lines, np.float64) @ self.mu.T.astype(np.float64))) @ self.weights
 
 
 @dataclass(eq=False)
@@ -185,18 +212,45 @@ class Caster:
     def set_fluoroscope(self, fluoroscope: FluoroscopeProfile) -> None:
         """Adopt a (reloaded) fluoroscope profile: spectrum, attenuation tables, ray maps.
         Call with the device's lock held if frames may be in flight."""
-        dev = self.dev
         spectrum = tube_spectrum(fluoroscope.tube, ENERGY_BINS)
-        poly_mu = mass_attenuation(spectrum.energies_kev, self.contrast).astype(np.float32)
-        mono_mu = mass_attenuation([spectrum.effective_kev], self.contrast).astype(np.float32)
         self.fluoroscope = fluoroscope
         self.spectrum = spectrum
         self.mu_water_per_mm = water_mu_per_mm(spectrum.effective_kev)
-        self._poly = (dev.upload(spectrum.energy_weights().astype(np.float32)), dev.upload(np.ascontiguousarray(poly_mu)),
-                      len(spectrum.energies_kev))
-        self._mono = (dev.upload(np.ones(1, np.float32)), dev.upload(np.ascontiguousarray(mono_mu)), 1)
+        self._tables: dict = {}
         self._dirs: dict = {}
         self._masks: dict = {}
+
+    def tables(self, kvp: float | None = None, concentration_factor: float | None = None,
+               polychromatic: bool = True) -> DetectorTables:
+        """The detector's tables for a technique: the spectrum at `kvp` (None: tube.kvp; rounded to
+        1 kV, as a generator sets it) in ENERGY_BINS bins, or its effective energy alone for a
+        monochromatic frame, and the materials' mass attenuation there, with the iodine at
+        `concentration_factor` times the case's (None: the case's; mass attenuation is linear
+        in the concentration). Cached: a frame of a known technique builds nothing."""
+        tube = self.fluoroscope.tube
+        kv = float(tube.kvp) if kvp is None else float(round(kvp))
+        factor = None if concentration_factor is None else round(max(float(concentration_factor), 0.0), 4)
+        key = (kv, factor, polychromatic)
+        if key not in self._tables:
+            if len(self._tables) > 512:
+                self._tables.clear()
+            abc = self.fluoroscope.abc
+            anchors = tuple(sorted({point.kvp for point in abc.curve})) if abc.enabled else ()
+            if kv == float(tube.kvp):
+                spectrum = self.spectrum
+            elif anchors and anchors[0] <= kv <= anchors[-1]:
+                spectrum = curve_spectrum(kv, anchors, float(tube.filtration_mm_al), ENERGY_BINS)
+            else:
+                spectrum = spectrum_at(kv, float(tube.filtration_mm_al), ENERGY_BINS)
+            contrast = self.contrast
+            if contrast is not None and factor is not None:
+                contrast = None if factor == 0.0 else Contrast(
+                    agent=contrast.agent, concentration_mg_per_ml=min(contrast.concentration_mg_per_ml * factor, 400.0))
+            energies = spectrum.energies_kev if polychromatic else [spectrum.effective_kev]
+            weights = (spectrum.energy_weights() if polychromatic else np.ones(1)).astype(np.float32)
+            mu = np.ascontiguousarray(mass_attenuation(energies, contrast).astype(np.float32))
+            self._tables[key] = DetectorTables(spectrum, weights, mu, self.dev.upload(weights), self.dev.upload(mu))
+        return self._tables[key]
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -322,23 +376,24 @@ class Caster:
         lines, _ = self.cast(volume, T_xray_from_ct, zoom, collimation_mm, blend, distorted, circle)
         return self.dev.download(lines, np.empty(self.shape + (4,), dtype=np.float32))
 
-    def intensity(self, volume, T_xray_from_ct, zoom, collimation_mm, blend, circle, polychromatic,
-                  cast=None, tables=None, bands=None) -> np.ndarray:
-        """(rows, cols) float32 detector signal relative to the open beam, before any blur; 0 outside the beam.
+    def sample_lines(self, lines, where: np.ndarray, most: int = ABC_SAMPLE_PIXELS) -> np.ndarray:
+        """(n, 4) float32 material integrals of the cast `lines` at up to `most` pixels of `where`
+        (evenly spread): what the exposure control reads its measuring field from."""
+        host = self.dev.download(lines, np.empty(self.shape + (4,), dtype=np.float32))
+        picked = host[where]
+        return picked[:: max(1, len(picked) // most)]
 
-        `cast` stands in for `self.cast` (same arguments and result) and `tables` for the
-        (weights, mu/rho, bins) device tables: the projection cache (projection_cache.py)
-        hands in cached line integrals and a contrast concentration's table. `bands`: see
-        `cast`; the caller then holds no lock, and the lock is taken here for the rest."""
-        if bands is not None:
-            lines, _ = self.cast(volume, T_xray_from_ct, zoom, collimation_mm, blend, True, circle, bands)
-            with bands[0]:
-                return self.intensity(volume, T_xray_from_ct, zoom, collimation_mm, blend, circle, polychromatic,
-                                      cast=lambda *_: (lines, None), tables=tables)
+    def sample_pick(self, image: np.ndarray, where: np.ndarray, most: int = ABC_SAMPLE_PIXELS) -> np.ndarray:
+        """`image` at the pixels `sample_lines` picks from `where`, in the same order."""
+        picked = image[where]
+        return picked[:: max(1, len(picked) // most)]
+
+    def intensity(self, lines, tables: DetectorTables, zoom, collimation_mm, circle) -> np.ndarray:
+        """(rows, cols) float32 detector signal relative to the open beam, before any blur, of the
+        cast `lines` through the detector `tables`; 0 outside the beam."""
         dev = self.dev
         rows, cols = self.shape
-        lines, _ = (cast or self.cast)(volume, T_xray_from_ct, zoom, collimation_mm, blend, True, circle)
-        weights, mu_rho, n_e = tables or (self._poly if polychromatic else self._mono)
+        weights, mu_rho, n_e = tables.weights_buf, tables.mu_buf, len(tables.weights)
         _, mask_buf, _ = self.beam(zoom, collimation_mm, circle)
         out_buf = dev.scratch(rows * cols * 4)
         if self.packet:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,8 +20,8 @@ import numpy as np
 from ..config.fluoroscope import FluoroscopeProfile
 from ..console.dose import reference_distance_mm
 from ..errors import FluorosimError
-from ..patient.materials import ANODE_ANGLE_DEG
-from .casting import field_radius_px, pixel_pitch_at_zoom_mm
+from ..patient.materials import ANODE_ANGLE_DEG, Spectrum, tube_spectrum, water_mu_per_mm
+from .casting import DetectorTables, field_radius_px, pixel_pitch_at_zoom_mm
 
 #: MTF of the detector at its stated limiting resolution: the contrast at which the bars of
 #: a resolution pattern can no longer be told apart.
@@ -47,13 +48,49 @@ def fluence_per_air_kerma(kvp: float, filtration_mm_al: float, water_mm: float) 
                              "check tube.kvp and tube.filtration_mm_al") from None
 
 
+def _fluence_per_kerma(spectrum: Spectrum, water_mm: float) -> float:
+    """Photon fluence over air kerma (arbitrary units) of a binned spectrum behind `water_mm` of
+    water: the ratio between two kV values is what `open_photons_per_pixel` needs."""
+    key = (spectrum.kvp, spectrum.filtration_mm_al, len(spectrum.energies_kev), float(spectrum.energies_kev[0]),
+           round(water_mm, 3))
+    if key not in _FPK:
+        import xraylib
+
+        e = spectrum.energies_kev
+        through = spectrum.photons_per_mm2_per_mas * np.exp(-water_mm * np.array([water_mu_per_mm(x) for x in e]))
+        mu_en = np.array([xraylib.CS_Energy_CP("Air, Dry (near sea level)", float(x)) for x in e])
+        _FPK[key] = float(through.sum() / (through * e * mu_en).sum())
+    return _FPK[key]
+
+
+_FPK: dict[tuple, float] = {}
+
+#: Along a kV-mA curve the control is satisfied within this fraction of the reference signal
+#: (the kV steps of 1 kV move the signal by a few per cent; the mA between them is continuous).
+CURVE_MATCH = 0.01
+
+
+def _rising_root(f: Callable[[float], float], lo: float, hi: float, steps: int = 40) -> tuple[float, float]:
+    """(a, b), b - a < 1e-11 of [lo, hi], about where the non-decreasing f crosses 0: f(a) < 0 <=
+    f(b) (bisection; f(lo) < 0 <= f(hi)). f may jump (the kV steps): a stays below, b above."""
+    for _ in range(steps):
+        mid = 0.5 * (lo + hi)
+        if f(mid) < 0:
+            lo = mid
+        else:
+            hi = mid
+    return lo, hi
+
+
 @dataclass(frozen=True)
 class Exposure:
     """What the exposure control set for one frame."""
 
-    factor: float           # tube output (mA x pulse width) relative to the profile's reference technique
-    attenuation: float      # median log-attenuation -ln(I/I0) over the measuring field
+    factor: float           # air-kerma rate relative to the profile's reference technique (the dose follows it)
+    attenuation: float      # median log-attenuation -ln(I/I0) over the measuring field, at the reference kV
     limited: bool           # True where the control ran into its lowest or highest output
+    kvp: float | None = None    # the tube voltage it set (kV); None: the reference technique's
+    ma: float | None = None     # the tube current it set (mA); None: the reference technique's times factor
 
 
 class Detector:
@@ -78,20 +115,27 @@ class Detector:
         """The profile's air-kerma rate at the reference point for the reference patient (mGy/min)."""
         return float(self.fl.zoom_levels[zoom - 1].air_kerma_rate_mgy_per_min[self._mode(mode).name])
 
-    def open_photons_per_pixel(self, zoom: int, mode: str | None = None) -> float:
-        """Photons one pixel would count in one frame with nothing in the beam, at the reference technique.
+    def open_photons_per_pixel(self, zoom: int, mode: str | None = None, spectrum: Spectrum | None = None) -> float:
+        """Photons one pixel would count in one frame with nothing in the beam, at the reference
+        air-kerma rate (made at the reference technique, or with `spectrum`: another kV's).
 
         The air kerma per frame at the reference point (the profile's rate over the frame
         rate) carried to the detector by the inverse-square law, times spekpy's fluence per
         air kerma of the beam as it leaves the reference patient (reference_attenuation of
-        water), times the pixel's area at the input plane at this zoom.
+        water), times the pixel's area at the input plane at this zoom. At another kV the
+        fluence per air kerma is spekpy's at the reference kV times the ratio of the two
+        binned spectra's (see `_fluence_per_kerma`): spekpy per kV is too slow for a control loop.
         """
         f = self.fl
         kerma_ugy = (self.reference_rate_mgy_per_min(zoom, mode) * 1000.0 / 60.0 / self.frame_rate_per_s(mode)
                      * (reference_distance_mm(f) / f.geometry.source_to_image_mm) ** 2)
         water_mm = f.abc.reference_attenuation / self.mu_water_per_mm
         pitch = pixel_pitch_at_zoom_mm(f, zoom)
-        return kerma_ugy * fluence_per_air_kerma(float(f.tube.kvp), float(f.tube.filtration_mm_al), water_mm) * pitch * pitch
+        per_kerma = fluence_per_air_kerma(float(f.tube.kvp), float(f.tube.filtration_mm_al), water_mm)
+        if spectrum is not None and spectrum.kvp != float(f.tube.kvp):
+            reference = tube_spectrum(f.tube, len(spectrum.energies_kev) or 24)
+            per_kerma *= _fluence_per_kerma(spectrum, water_mm) / _fluence_per_kerma(reference, water_mm)
+        return kerma_ugy * per_kerma * pitch * pitch
 
     # -- exposure control --------------------------------------------------------------
     def exposure(self, measured_intensity: float, zoom: int, mode: str | None = None) -> Exposure:
@@ -105,6 +149,66 @@ class Detector:
         ceiling = min(abc.max_factor, self.chain.dose_rate_limit_mgy_per_min / self.reference_rate_mgy_per_min(zoom, mode))
         factor = min(max(wanted, abc.min_factor), ceiling)
         return Exposure(factor, attenuation, limited=factor != wanted)
+
+    def exposure_on_curve(self, lines: np.ndarray, gain: np.ndarray | None, zoom: int, mode: str | None,
+                          tables: Callable[[float], DetectorTables]) -> Exposure:
+        """The exposure control with a kV-mA curve (abc.curve): the lowest point of the curve at
+        which the detector signal over the measuring field reaches the reference patient's at
+        the reference technique, within the dose-rate limit.
+
+        `lines`: (n, 4) material integrals sampled over the measuring field; `gain`: the
+        vignetting there (None: none); `tables(kvp)`: the detector tables at a tube voltage.
+        The signal at (kV, mA) is mA x the open-field signal per mAs at that kV (spekpy) x
+        the median transmission of the sampled rays at that kV's spectrum; the air-kerma rate
+        relative to the reference technique, `factor`, is mA x air kerma per mAs at that kV
+        over the same at the reference technique."""
+        tube, abc = self.fl.tube, self.fl.abc
+        curve = abc.curve
+        ref = tables(float(tube.kvp))
+        g = 1.0 if gain is None else gain
+
+        @functools.cache
+        def transmission(kv: float) -> float:
+            return float(np.median(tables(kv).transmission(lines) * g))
+
+        def at(x: float) -> tuple[float, float]:
+            i = min(int(x), len(curve) - 2)
+            w = x - i
+            a, b = curve[i], curve[i + 1]
+            return round(a.kvp + w * (b.kvp - a.kvp)), a.ma + w * (b.ma - a.ma)
+
+        def signal(x: float) -> float:
+            kv, ma = at(x)
+            return ma * tables(kv).spectrum.detector_signal_per_mas() * transmission(kv)
+
+        def factor(x: float) -> float:
+            kv, ma = at(x)
+            return ma * tables(kv).spectrum.air_kerma_ugy_per_mas / (tube.ma * ref.spectrum.air_kerma_ugy_per_mas)
+
+        top = float(len(curve) - 1)
+        ceiling = self.chain.dose_rate_limit_mgy_per_min / self.reference_rate_mgy_per_min(zoom, mode)
+        # Never above the limit: the last point below it.
+        x_max = top if factor(top) <= ceiling else _rising_root(lambda x: factor(x) - ceiling, 0.0, top)[0]
+        target = tube.ma * ref.spectrum.detector_signal_per_mas() * math.exp(-abc.reference_attenuation)
+        if signal(0.0) >= target:
+            x, limited = 0.0, signal(0.0) > target * (1.0 + CURVE_MATCH)
+        elif signal(x_max) <= target:
+            x, limited = x_max, signal(x_max) < target * (1.0 - CURVE_MATCH)
+        else:
+            x, limited = _rising_root(lambda x: signal(x) - target, 0.0, x_max)[1], False
+        kv, ma = at(x)
+        # The generator sets kV in 1 kV steps and trims the mA within a step: to the reference
+        # signal where the curve reaches it, else to the dose-rate limit where that stopped it.
+        t = tables(kv).spectrum
+        exact = target / (t.detector_signal_per_mas() * max(transmission(kv), 1e-300))
+        capped = ceiling * tube.ma * ref.spectrum.air_kerma_ugy_per_mas / t.air_kerma_ugy_per_mas
+        if not limited:
+            ma = min(exact, capped)
+        elif x == x_max < top:
+            ma = capped
+        rate = ma * t.air_kerma_ugy_per_mas / (tube.ma * ref.spectrum.air_kerma_ugy_per_mas)
+        attenuation = -math.log(max(transmission(float(tube.kvp)), 1e-12))
+        return Exposure(rate, attenuation, limited or ma == capped < exact, float(kv), float(ma))
 
     # -- blur, glare, vignetting --------------------------------------------------------
     def psf_sigma_px(self, zoom: int) -> float:

@@ -18,8 +18,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..config.case import Contrast
-from ..patient.materials import mass_attenuation
 from .renderer import PACKET, Frame, PreparedVolume, Renderer, View, zoomed_K
 
 
@@ -72,7 +70,6 @@ class ProjectionCache:
         self._lines: dict[PreparedVolume, object] = {}     # phase -> device buffer of its integrals
         self._split = None            # the two-phase cast kernel, built on first use
         self._blend = None
-        self._tables: dict = {}       # (concentration factor, polychromatic) -> detector tables
 
     # -- what is cached ------------------------------------------------------------------
     def _geometry_key(self, zoom: int, collimation_mm, distorted: bool, circle) -> tuple:
@@ -159,27 +156,6 @@ class ProjectionCache:
                     np.float32(blend[1]), out)
         return out, mask
 
-    # -- the detector's tables at a contrast concentration ---------------------------------
-    def _detector_tables(self, view: View, concentration_factor: float):
-        """(weights, mu/rho, bins) device tables with the iodine at `concentration_factor` times
-        the case's concentration (mass attenuation is linear in the concentration)."""
-        r = self.renderer
-        key = (round(float(concentration_factor), 4), view.polychromatic, id(r.spectrum))
-        if key not in self._tables:
-            if len(self._tables) > 256:
-                self._tables.clear()
-            s = r.spectrum
-            energies = s.energies_kev if view.polychromatic else [s.effective_kev]
-            weights = s.energy_weights() if view.polychromatic else np.ones(1)
-            contrast = r.contrast
-            factor = max(float(concentration_factor), 0.0)
-            scaled = None if contrast is None or factor == 0.0 else Contrast(
-                agent=contrast.agent, concentration_mg_per_ml=min(contrast.concentration_mg_per_ml * factor, 400.0))
-            mu = mass_attenuation(energies, scaled).astype(np.float32)
-            self._tables[key] = (r.dev.upload(np.asarray(weights, np.float32)), r.dev.upload(np.ascontiguousarray(mu)),
-                                 len(energies))
-        return self._tables[key]
-
     # -- frames ----------------------------------------------------------------------------
     def render(self, volume: PreparedVolume, T_xray_from_ct: np.ndarray, view: View,
                blend: tuple[PreparedVolume, float] | None = None,
@@ -190,8 +166,8 @@ class ProjectionCache:
         self.counts.frames += 1
         if view.quantity == "line-integral":
             return self.renderer.render(volume, T_xray_from_ct, view)
-        tables = None if concentration_factor is None else self._detector_tables(view, concentration_factor)
-        return self.renderer.render(volume, T_xray_from_ct, view, blend, cast=self._cached_cast, tables=tables)
+        return self.renderer.render(volume, T_xray_from_ct, view, blend, cast=self._cached_cast,
+                                    concentration_factor=concentration_factor)
 
     def material_integrals(self, volume: PreparedVolume, T_xray_from_ct, view: View,
                            blend: tuple[PreparedVolume, float] | None = None) -> np.ndarray:

@@ -78,6 +78,8 @@ class Frame:
     photons_per_pixel: float = 0.0      # photons per pixel per frame in the measuring field (median)
     window: tuple[float, float] | None = None   # (centre, width) of the display window on -ln(I/I0)
     signal: np.ndarray | None = None    # display frames: the detector signal (after the recursive filter) the LUT was given
+    kvp: float | None = None            # the tube voltage the exposure control set (kV); None: the profile's tube.kvp
+    ma: float | None = None             # the tube current it set (mA); None: tube.ma x exposure_factor
 
 
 class Renderer:
@@ -207,8 +209,8 @@ class Renderer:
 
     # -- rendering -------------------------------------------------------------------
     def render(self, volume: PreparedVolume, T_xray_from_ct: np.ndarray, view: View,
-               blend: tuple[PreparedVolume, float] | None = None, *, cast=None, tables=None,
-               bands: int | None = None) -> Frame:
+               blend: tuple[PreparedVolume, float] | None = None, *, cast=None,
+               concentration_factor: float | None = None, bands: int | None = None) -> Frame:
         """A `Frame` whose image is `view.quantity`:
 
         - "line-integral": see `line_integral` (no blend, noise, blur, distortion);
@@ -219,8 +221,10 @@ class Renderer:
           detector, the recursive filter (view.temporal), the log display with its window;
           bright = more attenuation unless view.invert; black outside the beam.
 
-        `bands`: cast in that many bands of rows, letting other frames on this device in
-        between (see Caster.cast): for a long render beside the live one.
+        `cast` stands in for the ray cast (Caster.cast's arguments and result: the projection
+        cache's cached line integrals); `concentration_factor` scales the case's iodine (None:
+        as the case gives it); `bands`: cast in that many bands of rows, letting other frames on
+        this device in between (see Caster.cast), for a long render beside the live one.
         """
         import cv2
 
@@ -233,25 +237,34 @@ class Renderer:
             return Frame(self.line_integral(volume, T_xray_from_ct, view.zoom, view.collimation_mm))
         self._check(volume, *(() if blend is None else (blend[0],)))
         circle = self._circle(None)
+        display = view.quantity == "display"
+        args = (volume, T_xray_from_ct, view.zoom, view.collimation_mm, blend, True, circle)
         if bands is not None:
-            image = self.caster.intensity(volume, T_xray_from_ct, view.zoom, view.collimation_mm, blend, circle,
-                                          view.polychromatic, tables=tables, bands=(self._lock, bands))
+            done, _ = self.caster.cast(*args, bands=(self._lock, bands))
+            cast = lambda *_: (done, None)  # noqa: E731 - the cast is done; the rest takes the lock once
         with self._lock:
-            if bands is None:
-                image = self.caster.intensity(volume, T_xray_from_ct, view.zoom, view.collimation_mm, blend, circle,
-                                              view.polychromatic, cast=cast, tables=tables)
+            lines, _ = (cast or self.caster.cast)(*args)
             mask, _, central = self.caster.beam(view.zoom, view.collimation_mm, circle)
             detector, chain, abc = self.detector, self.fluoroscope.image, self.fluoroscope.abc
+            exposure = None
+            if display and abc.enabled and abc.curve and central.any():
+                # The control sets kV and mA from the rays of its measuring field, before the frame.
+                gain = detector.gain(view.zoom)
+                exposure = detector.exposure_on_curve(
+                    self.caster.sample_lines(lines, central), None if gain is None else self.caster.sample_pick(gain, central),
+                    view.zoom, view.mode, lambda kv: self.caster.tables(kv, None, True))
+            tables = self.caster.tables(None if exposure is None else exposure.kvp, concentration_factor, view.polychromatic)
+            image = self.caster.intensity(lines, tables, view.zoom, view.collimation_mm, circle)
         sigma = detector.focal_blur_px(view.zoom, self.depth_mm(volume, T_xray_from_ct))
         if sigma > 0.3:
             image = cv2.GaussianBlur(image, (0, 0), sigma)
-        display = view.quantity == "display"
-        exposure = Exposure(1.0, float("nan"), False)
-        if display and abc.enabled and central.any():
-            gain = detector.gain(view.zoom)
-            seen = image[central] if gain is None else image[central] * gain[central]
-            exposure = detector.exposure(float(np.median(seen)), view.zoom, view.mode)
-        photons = detector.open_photons_per_pixel(view.zoom, view.mode) * exposure.factor
+        if exposure is None:
+            exposure = Exposure(1.0, float("nan"), False)
+            if display and abc.enabled and central.any():
+                gain = detector.gain(view.zoom)
+                seen = image[central] if gain is None else image[central] * gain[central]
+                exposure = detector.exposure(float(np.median(seen)), view.zoom, view.mode)
+        photons = detector.open_photons_per_pixel(view.zoom, view.mode, tables.spectrum) * exposure.factor
         if display and view.temporal == "settled":
             photons *= settled_noise_gain(chain.recursive_weight)
         if view.noise:
@@ -260,7 +273,8 @@ class Renderer:
         image[~mask] = 0.0
         measured = float(np.median(image[central])) if central.any() else 0.0
         if not display:
-            return Frame(image, exposure.factor, exposure.attenuation, exposure.limited, photons * measured)
+            return Frame(image, exposure.factor, exposure.attenuation, exposure.limited, photons * measured,
+                         kvp=exposure.kvp, ma=exposure.ma)
         if view.temporal == "live":
             image = self.lag.step(image, (view.zoom, view.collimation_mm, image.shape))
         # Half a photon stands in for none, so a pixel that caught nothing reads as very dense.
@@ -276,4 +290,5 @@ class Renderer:
         centre += view.level_shift * width
         edge = self._edge(view.zoom, view.collimation_mm, circle, mask)
         out = to_display(p, mask, edge, chain, view.invert, centre, width)
-        return Frame(out, exposure.factor, exposure.attenuation, exposure.limited, photons * measured, (centre, width), image)
+        return Frame(out, exposure.factor, exposure.attenuation, exposure.limited, photons * measured, (centre, width), image,
+                     exposure.kvp, exposure.ma)
