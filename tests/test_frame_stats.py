@@ -16,6 +16,17 @@ def test_frame_stats_against_hand_worked_numbers():
     assert s["fps"] == pytest.approx(10.0)
     assert s["latency_median_ms"] == pytest.approx(50.0)
     assert s["latency_p99_ms"] == pytest.approx(99.0)
-    # The last second holds frames at 109.0 .. 110.0: 11 frames over a 1 s window.
-    assert stats.fps(110.0) == pytest.approx(11.0)
-    assert stats.fps(200.0) == 0.0
+    # The last second holds frames at 109.0 .. 110.0: 10 intervals of 0.1 s, 10 fps.
+    assert stats.fps(110.0) == pytest.approx(10.0)
+    assert stats.fps(200.0) is None          # nothing shown for a while: no rate to tell
+
+
+def test_the_first_frames_of_a_run_read_their_true_rate():
+    """The first wave showed "0 fps" on the first live frame (one frame over a 2 s window)."""
+    from appliance.daemon.frame_stats import FrameStats, fps_text
+    stats = FrameStats(window_s=2.0)
+    stats.add(5.0, 0.05)
+    assert stats.fps(5.0) is None and fps_text(None).strip() == "-- fps"
+    stats.add(5.04, 0.05)                    # 25 fps from the second frame on
+    assert stats.fps(5.04) == pytest.approx(25.0)
+    assert fps_text(stats.fps(5.04)) == "25.0 fps"

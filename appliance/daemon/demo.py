@@ -18,6 +18,7 @@ from pathlib import Path
 from drivers.scripted_input import ScriptedInput
 
 from ..errors import FluorosimError
+from .frame_stats import fps_text
 from .logqueue import start_logging
 from .notify import Notifier
 from .reload import ProfileKeeper
@@ -135,7 +136,7 @@ def progress_line(app, elapsed_s: float) -> str:
     stats = app.stats
     fluoro = _mmss(state.fluoro_time_s) if state is not None else "--:--"
     banners = app.supervisor.banners()
-    return (f"{elapsed_s:5.1f} s  fluoro {fluoro}  frames {stats.frames}  {stats.fps(time.monotonic()):4.1f} fps"
+    return (f"{elapsed_s:5.1f} s  fluoro {fluoro}  frames {stats.frames}  {fps_text(stats.fps(time.monotonic()))}"
             + (f"  [{'; '.join(banners)}]" if banners else ""))
 
 

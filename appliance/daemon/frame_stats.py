@@ -8,6 +8,11 @@ from collections import deque
 import numpy as np
 
 
+def fps_text(fps: float | None) -> str:
+    """A frame rate as the status lines print it ("-- fps" before there is one)."""
+    return "  -- fps" if fps is None else f"{fps:4.1f} fps"
+
+
 class FrameStats:
     """Records each live frame written to the display: when, and how old its camera frame was.
 
@@ -32,11 +37,15 @@ class FrameStats:
             while self._recent and t_shown - self._recent[0] > self.window_s:
                 self._recent.popleft()
 
-    def fps(self, now: float) -> float:
-        """Live frames per second over the last `window_s` seconds."""
+    def fps(self, now: float) -> float | None:
+        """Live frames per second over the last `window_s` seconds: frame intervals over the time
+        they span, so the first frames of a run read their true rate rather than a count over a
+        window not yet filled. None until two frames are in the window (no rate to tell)."""
         with self._lock:
             recent = [t for t in self._recent if now - t <= self.window_s]
-        return len(recent) / self.window_s
+        if len(recent) < 2 or recent[-1] <= recent[0]:
+            return None
+        return (len(recent) - 1) / (recent[-1] - recent[0])
 
     def summary(self) -> dict[str, float]:
         """frames, fps over the whole run (first to last frame), latency median and p99 (ms)."""

@@ -46,6 +46,7 @@ from ..records.deferred_ledger import open_ledger
 from ..teaching.live import TeachingStatus, live_teaching_for
 from .capture_worker import CaptureWorker
 from .clock import SimClock
+from .frame_stats import fps_text
 from .handoff import LatestValue, PhaseValue, Recorded, SavedImage, ShownFrame, Technique, TrackedPose
 from .health import (
     CameraState,
@@ -197,8 +198,8 @@ class Appliance:
                 log.warning("devices still closing at exit")
 
     def status_text(self) -> str:
-        fps = self.stats.fps(time.monotonic())
-        return (f"{fps:.1f} fps; camera {self.parts.camera.state}; keypad {self.parts.keypad.state}; "
+        fps = fps_text(self.stats.fps(time.monotonic())).strip()
+        return (f"{fps}; camera {self.parts.camera.state}; keypad {self.parts.keypad.state}; "
                 f"pedal {self.parts.pedal.state}; renderer {self.parts.renderer_device}")
 
     def reload(self) -> None:
