@@ -71,6 +71,7 @@ def overlay_for(cfg: ApplianceConfig, state: ConsoleState, *, live: bool, saved_
                    fluoro_time_s=state.fluoro_time_s, air_kerma_mgy=state.air_kerma_mgy,
                    air_kerma_rate_mgy_per_min=state.air_kerma_rate_mgy_per_min,
                    dap_gy_cm2=state.dap_gy_cm2, mode=state.mode, alarm=state.alarm_sounding,
+                   technique=(state.kvp, state.ma) if state.fluoro_on else None,
                    saved_flash=saved_flash, invert=state.invert, breath_hold=state.breath_hold,
                    case=cfg.case.title, operator=(teaching.trainee if teaching is not None and teaching.trainee
                                                   else cfg.appliance.operator), fluoroscope=cfg.fluoroscope.name,

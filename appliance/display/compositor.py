@@ -73,6 +73,7 @@ class Overlay:
     air_kerma_rate_mgy_per_min: float = 0.0
     dap_gy_cm2: float = 0.0
     mode: str = ""
+    technique: tuple[float, float] | None = None   # (kV, mA) the exposure control set, shown while exposing
     alarm: bool = False
     saved_flash: bool = False
     invert: bool = False               # shows the INVERT label; the image arrives already inverted
@@ -243,6 +244,8 @@ class Compositor:
         right = []
         if overlay.mode:
             right.append((overlay.mode.upper(), WHITE))
+        if overlay.technique is not None:
+            right.append((f"{overlay.technique[0]:.0f} kV   {overlay.technique[1]:.1f} mA", WHITE))
         right.append((f"ZOOM {overlay.zoom}   FOV {overlay.fov_mm:.0f} mm", WHITE))
         if overlay.collimation_mm is not None:
             h_mm, v_mm = overlay.collimation_mm
