@@ -24,6 +24,7 @@ from appliance.patient.volume import Volume
 from appliance.xray import acceptance
 from appliance.xray.detector import Detector, RecursiveFilter
 from appliance.xray.display_lut import soft_knee
+from appliance.xray.casting import CastCancelled
 from appliance.xray.renderer import Renderer, View, at_resolution
 from appliance.xray.truth.analytic import box_volume
 from drivers.framebuffer import open_display
@@ -360,3 +361,8 @@ def test_a_cast_in_bands_of_rows_is_the_whole_cast(adult):
         whole = fine.render(prepared, T, view).image
         banded = fine.render(prepared, T, view, bands=7).image
         assert whole.shape == (100, 96) and np.array_equal(whole, banded), quantity
+    # A shutdown cuts a banded cast short between bands: after the third, here.
+    asked = []
+    with pytest.raises(CastCancelled):
+        fine.render(prepared, T, View(noise=False), bands=7, cancelled=lambda: asked.append(1) or len(asked) > 3)
+    assert len(asked) == 4

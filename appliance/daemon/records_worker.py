@@ -49,7 +49,7 @@ class RecordsWorker(Worker):
 
     def __init__(self, ledger: Ledger | DeferredLedger, keeper: ProfileKeeper, parts: Parts, clock: Callable[[], float],
                  *, events: queue.Queue[Recorded], shown: LatestValue[np.ndarray], saves: LatestValue[SavedImage],
-                 native: Callable[[], tuple[np.ndarray, FluoroscopeProfile] | None] | None = None):
+                 native: Callable[[Callable[[], bool]], tuple[np.ndarray, FluoroscopeProfile] | None] | None = None):
         super().__init__("records", idle_s=0.0)
         self.ledger, self.keeper, self.parts, self.console_clock = ledger, keeper, parts, clock
         self.events, self.shown, self.saves = events, shown, saves
@@ -174,9 +174,11 @@ class RecordsWorker(Worker):
         fluoroscope = self.parts.renderer.fluoroscope
         if self.native is not None:
             try:
-                native = self.native()
+                # Between the cast's bands the worker beats (a native cast on a CPU takes seconds,
+                # and is not a hang) and, stopping, saves what is on screen instead of waiting.
+                native = self.native(self._beat_unless_stopping)
             except Exception as e:  # noqa: BLE001 - the image on screen is saved instead
-                log.warning("saving the live matrix: the native re-render failed (%s)", e)
+                log.warning("saving the live matrix: the native re-render failed or was cut short (%s)", e)
                 native = None
             if native is not None:
                 image, fluoroscope = native
@@ -192,6 +194,10 @@ class RecordsWorker(Worker):
                 raise FluorosimError(f"{dicom}: cannot read the saved image back to queue it ({e.strerror or e})") from None
             queue_object(self._outbox, cfg.appliance.dicom, data, "image",
                          f"image {state.save_count} of session {self.session_id}", self.session_id)
+
+    def _beat_unless_stopping(self) -> bool:
+        self.beat()
+        return self.stopping
 
     def _send_report_now(self, report: bytes) -> None:
         """At shutdown, try to send the session's dose report within dicom.send_at_shutdown_s

@@ -183,13 +183,14 @@ class RenderWorker(Worker):
             self.fault = f"{type(e).__name__}: {e}"[:FAULT_CHARS]
             return None
 
-    def native_image(self) -> tuple[np.ndarray, FluoroscopeProfile] | None:
+    def native_image(self, cancelled: Callable[[], bool] | None = None) -> tuple[np.ndarray, FluoroscopeProfile] | None:
         """The last live view again at the detector's native matrix, the C-arm still (the
         recursive filter settled): a saved image as the unit stores it, 16-bit. With the
         profile read out at that matrix, for the saved image's pixel spacing. None before any
         live frame. On a CPU device a native frame takes a second or more: it is cast in bands
         of rows, so the live frames go on between them (a few tens of ms late each) instead of
-        the screen freezing while the image is saved."""
+        the screen freezing while the image is saved; `cancelled()` true between bands ends it
+        with CastCancelled (the records worker stopping)."""
         request = self._request
         renderer = self.parts.renderer
         fl = self.keeper.current.fluoroscope
@@ -198,7 +199,7 @@ class RenderWorker(Worker):
         volume, T, view, blend = request
         native = renderer.at_matrix(fl.detector.columns, fl.detector.rows)
         frame = native.render(volume, T, dataclasses.replace(view, temporal="settled"), blend=blend,
-                              bands=NATIVE_SAVE_BANDS if is_cpu(renderer) else None)
+                              bands=NATIVE_SAVE_BANDS if is_cpu(renderer) else None, cancelled=cancelled)
         return np.rint(np.clip(frame.image, 0.0, 1.0) * 65535.0).astype(np.uint16), native.fluoroscope
 
     def _send_technique(self, technique: Technique) -> None:

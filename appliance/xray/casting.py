@@ -63,6 +63,10 @@ ABC_SAMPLE_PIXELS = 1024
 BAND_YIELD_S = 0.002
 
 
+class CastCancelled(Exception):
+    """A banded cast stopped between bands because its caller asked (see Caster.cast)."""
+
+
 @dataclass(frozen=True, eq=False)
 class DetectorTables:
     """One technique's detector tables: the spectrum, each energy bin's share of the open-field
@@ -332,9 +336,11 @@ class Caster:
     def cast(self, volume, T_xray_from_ct, zoom, collimation_mm, blend, distorted, circle, bands=None):
         """Device buffer of (rows, cols, 4) float32 material integrals, and the beam mask.
 
-        `bands` = (lock, n): cast in n bands of detector rows, holding `lock` for one band at
-        a time, so that a long cast (a saved image at the native matrix on a CPU device) lets
-        the live frames in between its bands instead of freezing the screen for its length."""
+        `bands` = (lock, n) or (lock, n, cancelled): cast in n bands of detector rows, holding
+        `lock` for one band at a time, so that a long cast (a saved image at the native matrix on
+        a CPU device) lets the live frames in between its bands instead of freezing the screen
+        for its length; between bands, `cancelled()` true raises CastCancelled (a shutdown must
+        not wait for the whole cast)."""
         dev, cl = self.dev, self.dev.cl
         rows, cols = self.shape
         geo = self._geometry(volume, T_xray_from_ct)
@@ -362,9 +368,12 @@ class Caster:
         if bands is None:
             kernel(dev.queue, (width, rows), None, *args, *tail)
             return lines, mask
-        lock, n = bands
+        lock, n, *rest = bands
+        cancelled = rest[0] if rest else None
         step = -(-rows // max(1, n))
         for r0 in range(0, rows, step):
+            if cancelled is not None and cancelled():
+                raise CastCancelled(f"cast cancelled after {r0} of {rows} rows")
             with lock:
                 kernel(dev.queue, (width, min(step, rows - r0)), None, *args, *tail, global_offset=(0, r0))
                 dev.queue.finish()

@@ -14,6 +14,7 @@ It strings together the three jobs, each in its own module:
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -210,7 +211,8 @@ class Renderer:
     # -- rendering -------------------------------------------------------------------
     def render(self, volume: PreparedVolume, T_xray_from_ct: np.ndarray, view: View,
                blend: tuple[PreparedVolume, float] | None = None, *, cast=None,
-               concentration_factor: float | None = None, bands: int | None = None) -> Frame:
+               concentration_factor: float | None = None, bands: int | None = None,
+               cancelled: Callable[[], bool] | None = None) -> Frame:
         """A `Frame` whose image is `view.quantity`:
 
         - "line-integral": see `line_integral` (no blend, noise, blur, distortion);
@@ -224,7 +226,8 @@ class Renderer:
         `cast` stands in for the ray cast (Caster.cast's arguments and result: the projection
         cache's cached line integrals); `concentration_factor` scales the case's iodine (None:
         as the case gives it); `bands`: cast in that many bands of rows, letting other frames on
-        this device in between (see Caster.cast), for a long render beside the live one.
+        this device in between (see Caster.cast), for a long render beside the live one;
+        `cancelled()` is asked between them and, true, ends the render with CastCancelled.
         """
         import cv2
 
@@ -240,7 +243,7 @@ class Renderer:
         display = view.quantity == "display"
         args = (volume, T_xray_from_ct, view.zoom, view.collimation_mm, blend, True, circle)
         if bands is not None:
-            done, _ = self.caster.cast(*args, bands=(self._lock, bands))
+            done, _ = self.caster.cast(*args, bands=(self._lock, bands, cancelled))
             cast = lambda *_: (done, None)  # noqa: E731 - the cast is done; the rest takes the lock once
         with self._lock:
             lines, _ = (cast or self.caster.cast)(*args)
