@@ -9,7 +9,8 @@ wired into supervised workers, one class each, handing each other typed values.
                             -> Compositor.compose -> Display.show         -> shown, exposure_factor
     records  RecordsWorker  events -> Ledger.record(); saves -> PNG + DICOM -> saves
                             saved images, ended sessions' dose reports    -> DICOM send queue (ledger file)
-    dicom-send DicomSendWorker  DICOM send queue -> C-STORE to the PACS and the dose registry
+    send     SendWorker     send queue -> C-STORE to the PACS and the dose registry,
+                            xAPI statements to the LRS
 
 Teaching rides on two of them: the render worker hands each live image's geometry to the
 input worker (`views`), whose LiveTeaching records it through the console and sends the shot
@@ -63,7 +64,7 @@ from .phase_worker import PhaseWorker
 from .records_worker import RecordsWorker
 from .reload import ProfileKeeper
 from .render_worker import RenderWorker
-from .send_worker import DicomSendWorker, dicom_send_check
+from .send_worker import SendWorker, dicom_send_check, xapi_send_check
 from .supervisor import Supervisor
 
 log = logging.getLogger(__name__)
@@ -140,7 +141,7 @@ class Appliance:
                                  badge=parts.badge)
         self.records = RecordsWorker(self.ledger, keeper, parts, self.clock, events=self.events, shown=self.shown,
                                      saves=saves, native=self.render.native_image)
-        self.sender = DicomSendWorker(self.ledger.path, keeper)
+        self.sender = SendWorker(self.ledger.path, keeper)
         self.stats = self.render.stats
         self.supervisor = Supervisor(
             # In this order: at shutdown the input worker ends its exposure before records flushes,
@@ -159,6 +160,7 @@ class Appliance:
                 profile_reload_check(lambda: self.keeper.problem),
                 records_check(lambda: self.records.problem),
                 dicom_send_check(lambda: self.sender.problem),
+                xapi_send_check(lambda: self.sender.xapi_problem),
             ])
 
     # --- what the demo, the benchmarks and the tests read --------------------------------------
