@@ -20,6 +20,8 @@ from appliance.cli import main
 from appliance.daemon.notify import Notifier
 from appliance.daemon.pipeline import Appliance
 from appliance.daemon.reload import ProfileKeeper
+from appliance.records import rdsr_anchor
+from appliance.records.ledger import open_readonly
 from appliance.records.outbox import Outbox
 
 SCRIPT = ['{"t": 0.3, "hold": "pedal", "for_s": 1.5}',
@@ -89,6 +91,15 @@ def test_the_appliance_queues_and_sends_its_images_and_dose_report(tmp_path, rec
     report = pydicom.dcmread(pacs.out / f"{pacs.received()[-1]}.dcm")
     assert report.Modality == "SR" and report.StationName == "FS-TEST" and report.DeviceSerialNumber == "FS-0001"
     assert {ds.StudyInstanceUID for ds in images} == {report.StudyInstanceUID}
+    # The report the PACS holds names the ledger's entry that ended the session, as the ledger has it.
+    conn = open_readonly(ledger)
+    try:
+        end = conn.execute("SELECT id, hash FROM events WHERE session_id = ? AND kind = 'session_end'",
+                           (app.session_id,)).fetchone()
+        assert rdsr_anchor.read(report) == {"count": end["id"], "hash": end["hash"]}
+        assert rdsr_anchor.check(conn, rdsr_anchor.read(report)).ok
+    finally:
+        conn.close()
     events = [i for i in report.ContentSequence if i.ConceptNameCodeSequence[0].CodeMeaning ==
               "Irradiation Event X-Ray Data"]
     assert len(events) == 1

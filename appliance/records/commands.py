@@ -27,18 +27,30 @@ def ledger_path(args: argparse.Namespace) -> Path:
 
 
 def run_verify(args: argparse.Namespace) -> int:
+    from . import rdsr_anchor
+
     path = ledger_path(args)
+    anchors = [(Path(f), rdsr_anchor.read_file(Path(f))[1]) for f in args.rdsr or []]
     conn = open_readonly(path)
     try:
         report = integrity.check(conn, integrity.reading_seal())
+        # Each dose report's anchor is a copy of a ledger entry kept outside the ledger: a removed
+        # tail or a rewritten ledger that passes its own chain shows against it.
+        against = [(f, rdsr_anchor.check(conn, anchor)) for f, anchor in anchors]
     finally:
         conn.close()
+    intact = report.ok and all(r.ok for _, r in against)
     if report.ok:
         print(f"{path}: {report.message}")
-        return 0
-    where = f"first broken link at event {report.first_bad_id}: " if report.first_bad_id is not None else ""
-    print(f"{path}: NOT INTACT: {where}{report.message}", file=sys.stderr)
-    return 1
+    else:
+        where = f"first broken link at event {report.first_bad_id}: " if report.first_bad_id is not None else ""
+        print(f"{path}: NOT INTACT: {where}{report.message}", file=sys.stderr)
+    for f, r in against:
+        if r.ok:
+            print(f"{f}: {r.message}")
+        else:
+            print(f"{f}: NOT INTACT against this dose report: {r.message}", file=sys.stderr)
+    return 0 if intact else 1
 
 
 def run_export(args: argparse.Namespace) -> int:
@@ -112,9 +124,13 @@ def register(commands: argparse._SubParsersAction[argparse.ArgumentParser],
     ls.add_argument("--until", metavar="DATE", help="last day (or date-time, exclusive) to include")
     ls.set_defaults(run=run_list)
     v = logs.add_parser("verify", help="check the ledger's hash chain",
-                        description="Walk the ledger's hash chain and the sessions' totals. Exit 0 when intact; "
+                        description="Walk the ledger's hash chain and the sessions' totals, and check the ledger "
+                                    "against the anchor each given dose report (RDSR) carries: the entry that ended "
+                                    "its session, which the ledger must still hold unchanged. Exit 0 when intact; "
                                     "1 with the first broken link when an event was changed or removed.")
     _ledger_options(v)
+    v.add_argument("--rdsr", nargs="+", metavar="FILE",
+                   help="dose reports (as sent to the PACS or exported) whose ledger anchors to check")
     v.set_defaults(run=run_verify)
     e = logs.add_parser("export", help="export sessions and events as CSV, JSON or DICOM dose reports",
                         description="Export the sessions that started in [--since, --until] (dates as YYYY-MM-DD, local "

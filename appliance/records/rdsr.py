@@ -21,6 +21,7 @@ from pydicom.sequence import Sequence
 
 from ..config.case import CaseProfile
 from ..config.fluoroscope import FluoroscopeProfile
+from . import rdsr_anchor
 from .dicom import ds_number
 from .study import (
     LOCAL_SCHEME,
@@ -329,6 +330,8 @@ def session_report(session: dict, events: list[dict]) -> Dataset:
     template.TemplateIdentifier = "10001"
     ds.ContentTemplateSequence = Sequence([template])
     ds.ContentSequence = Sequence(content)
+    # The ledger's entry that ends the session, kept outside the ledger with the report (records.rdsr_anchor).
+    rdsr_anchor.stamp(ds, events)
     return ds
 
 
