@@ -76,6 +76,10 @@ def test_the_appliance_queues_and_sends_its_images_and_dose_report(tmp_path, rec
         # Each saved image reaches the PACS while the session goes on (the report is sent at the end).
         assert _wait(lambda: len(app.saved) == 2 and len(pacs.received()) == 2, 60), (app.saved, pacs.received())
     images = [pydicom.dcmread(dcm) for _, dcm in app.saved]
+    # Each image carries the angulation it was rendered at. The test case's CT +z is the box's up
+    # (T_phantom_from_ct turns nothing) and the beam runs up from the tube under the table to the
+    # intensifier above it: along the CT's head-foot axis, secondary angle +90 (primary undefined).
+    assert all(85.0 <= float(ds.PositionerSecondaryAngle) <= 90.0 for ds in images), images
     # The session ended at shutdown and its dose report went to the PACS at once; the registry,
     # which is down, keeps it queued, with the reason.
     received = pacs.received()

@@ -35,8 +35,6 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
-
 from drivers.camera import CaptureState
 
 from ..config import ApplianceConfig
@@ -47,7 +45,7 @@ from ..records.deferred_ledger import open_ledger
 from ..teaching.live import TeachingStatus, live_teaching_for
 from .capture_worker import CaptureWorker
 from .clock import SimClock
-from .handoff import LatestValue, PhaseValue, Recorded, SavedImage, ShownFrame, TrackedPose
+from .handoff import LatestValue, PhaseValue, Recorded, SavedImage, ShownFrame, ShownImage, TrackedPose
 from .health import (
     CameraState,
     DiskSpace,
@@ -119,7 +117,7 @@ class Appliance:
         self.phases: LatestValue[PhaseValue] = LatestValue("phases")                      # phases
         self.console_state: LatestValue[ConsoleState] = LatestValue("console")            # input
         self.events: queue.Queue[Recorded] = queue.Queue(maxsize=EVENT_QUEUE)             # input
-        self.shown: LatestValue[np.ndarray] = LatestValue("shown")                        # render
+        self.shown: LatestValue[ShownImage] = LatestValue("shown")                        # render
         exposure_factor: LatestValue[float] = LatestValue("exposure factor")              # render
         saves: LatestValue[SavedImage] = LatestValue("saves")                             # records
         self._new_fluoroscope: LatestValue[FluoroscopeProfile] = LatestValue("fluoroscope")  # reload

@@ -27,7 +27,7 @@ from ..records.rdsr import patient_of
 from ..records.saved_images import save_image
 from ..records.study import saved_image_context
 from ..teaching import xapi
-from .handoff import LatestValue, Recorded, SavedImage
+from .handoff import LatestValue, Recorded, SavedImage, ShownImage
 from .parts import Parts
 from .reload import ProfileKeeper
 from .worker import Worker
@@ -50,7 +50,7 @@ class RecordsWorker(Worker):
     """
 
     def __init__(self, ledger: Ledger | DeferredLedger, keeper: ProfileKeeper, parts: Parts, clock: Callable[[], float],
-                 *, events: queue.Queue[Recorded], shown: LatestValue[np.ndarray], saves: LatestValue[SavedImage],
+                 *, events: queue.Queue[Recorded], shown: LatestValue[ShownImage], saves: LatestValue[SavedImage],
                  native: Callable[[], tuple[np.ndarray, FluoroscopeProfile] | None] | None = None):
         super().__init__("records", idle_s=0.0)
         self.ledger, self.keeper, self.parts, self.console_clock = ledger, keeper, parts, clock
@@ -167,10 +167,11 @@ class RecordsWorker(Worker):
         return True
 
     def _save_image(self, state: ConsoleState) -> None:
-        image, _ = self.shown.get()
-        if image is None:
+        shown, _ = self.shown.get()
+        if shown is None:
             log.warning("save pressed before any image was shown; nothing saved")
             return
+        image = shown.image
         cfg = self.keeper.current
         assert self.session_id is not None   # setup() opened it before any event is recorded
         # The image joins its session's study and names the run it shows (records.study).
@@ -186,7 +187,7 @@ class RecordsWorker(Worker):
             if native is not None:
                 image, fluoroscope = native
         png, dicom = save_image(image, state, fluoroscope, cfg.data_dir / "images",
-                                t_wall=time.time(), study=study, event_uid=event_uid)
+                                t_wall=time.time(), study=study, event_uid=event_uid, T_xray_from_ct=shown.T_xray_from_ct)
         self.saved.append((png, dicom))
         self.saves.put(SavedImage(png, dicom, time.monotonic()))
         log.info("saved %s and %s", png, dicom)

@@ -1,0 +1,50 @@
+"""Positioner angles of saved images from the pose of the C-arm to the patient, against views
+whose angles follow from the anatomy by hand: the patient's LPS frame has +x to the left,
++y posterior, +z to the head; the beam runs from the focal spot to the detector."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pydicom
+import pytest
+from dicom_session import record_session
+from teaching_script import pose
+
+from appliance.geometry import rotation_about
+from appliance.records.positioner import positioner_angles
+
+C30, S30 = math.sqrt(3) / 2, 0.5
+C20, S20 = math.cos(math.radians(20)), math.sin(math.radians(20))
+
+
+@pytest.mark.parametrize("view, beam, angles", [
+    ("AP: detector over the chest", (0, -1, 0), (0.0, 0.0)),
+    ("PA: detector under the table", (0, 1, 0), (180.0, 0.0)),
+    ("left lateral: detector at the patient's left", (1, 0, 0), (90.0, 0.0)),
+    ("right lateral", (-1, 0, 0), (-90.0, 0.0)),
+    ("LAO 45", (1, -1, 0), (45.0, 0.0)),
+    ("RAO 30", (-S30, -C30, 0), (-30.0, 0.0)),
+    ("cranial 30: detector tilted toward the head", (0, -C30, S30), (0.0, 30.0)),
+    ("caudal 30", (0, -C30, -S30), (0.0, -30.0)),
+    ("LAO 30 CRA 20", (S30 * C20, -C30 * C20, S20), (30.0, 20.0)),
+])
+def test_angles_of_known_views(view, beam, angles):
+    T = pose(beam, (12.0, -40.0, 250.0))      # through any point: the angles are the direction's
+    assert positioner_angles(T) == pytest.approx(angles, abs=1e-9), view
+
+
+def test_rolling_the_detector_about_the_beam_changes_nothing():
+    T = pose((S30 * C20, -C30 * C20, S20), (0, 0, 0))
+    roll = np.eye(4)
+    roll[:3, :3] = rotation_about([0, 0, 1], math.radians(70))   # about the xray frame's beam axis
+    assert positioner_angles(roll @ T) == pytest.approx((30.0, 20.0), abs=1e-9)
+
+
+def test_the_saved_image_carries_the_angles_of_its_pose(tmp_path):
+    # dicom_session saves its images at LAO 30 CRA 20 (its POSE).
+    session = record_session(tmp_path / "var")
+    for path in session.images:
+        ds = pydicom.dcmread(path)
+        assert (float(ds.PositionerPrimaryAngle), float(ds.PositionerSecondaryAngle)) == (30.0, 20.0)
