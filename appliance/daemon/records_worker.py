@@ -69,22 +69,34 @@ class RecordsWorker(Worker):
         self._session_start: tuple[float, float] | None = None
 
     def setup(self) -> None:
-        if self._outbox is None and not isinstance(self.ledger, DeferredLedger):
-            # Its own connection to the ledger's file: the send queue is outside the event chain.
-            # (An appliance started on a full disk queues nothing to send until it restarts.)
-            self._outbox = Outbox(self.ledger.path, KIND)
-            self._xapi_outbox = Outbox(self.ledger.path, xapi.KIND)
-            # Sessions a crash or power loss left open were closed when the ledger opened, and the
-            # last run may have been cut off before it queued its report: queue what is missing.
-            for sid in sorted(set(self.ledger.recovered) | set(self._last_ended())):
-                self._queue_report(sid)
-                self._queue_statements(sid)
+        self._open_send_queue()
         if self.session_id is not None:
             return  # restarted after a crash: the session goes on
         if self._session_start is None:
             # When the session began, even if the disk lets it be written only later.
             self._session_start = (time.time(), self.console_clock())
         self._start_session()
+
+    def _open_send_queue(self) -> None:
+        """Open the send queue once the ledger is open: at start, or, on a disk that was full at
+        start, when the ledger opens. Its own connections to the ledger's file: the send queue is
+        outside the event chain."""
+        if self._outbox is not None or (isinstance(self.ledger, DeferredLedger) and not self.ledger.opened):
+            return
+        try:
+            self._outbox = Outbox(self.ledger.path, KIND)
+            self._xapi_outbox = Outbox(self.ledger.path, xapi.KIND)
+        except FluorosimError as e:
+            log.error("send queue not opened, nothing is queued to send until it opens: %s", e)
+            if self._outbox is not None:
+                self._outbox.close()
+            self._outbox = None
+            return
+        # Sessions a crash or power loss left open were closed when the ledger opened, and the
+        # last run may have been cut off before it queued its report: queue what is missing.
+        for sid in sorted(set(self.ledger.recovered) | set(self._last_ended())):
+            self._queue_report(sid)
+            self._queue_statements(sid)
 
     def _start_session(self) -> bool:
         """Open the session in the ledger; on a full disk say so and try again later, never crash."""
@@ -111,6 +123,7 @@ class RecordsWorker(Worker):
         self.problem = None
         log.info("session %s started: operator %s, case %s, fluoroscope %s",
                  self.session_id, cfg.appliance.operator, cfg.case.title, fl.name)
+        self._open_send_queue()    # a ledger that opened late, after a full disk at start
         return True
 
     def step(self) -> bool:
@@ -308,6 +321,7 @@ class RecordsWorker(Worker):
         log.info("session %s ended; ledger flushed", self.session_id)
         if self.session_id is not None:
             self._last_report = None
+            self._open_send_queue()
             self._queue_report(self.session_id)
             statements = self._queue_statements(self.session_id)
             self._send_now(self._last_report, statements)

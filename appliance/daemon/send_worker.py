@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from ..errors import FluorosimError
 from ..records.dicom_sender import KIND, DicomSender
 from ..records.outbox import Outbox
 from ..teaching import xapi
@@ -32,15 +33,28 @@ class SendWorker(Worker):
         self._xapi_outbox: Outbox | None = None
         self._sender: DicomSender | None = None
         self._xapi: xapi.XapiSender | None = None
+        self._unopened: str | None = None
 
-    def setup(self) -> None:
+    def _open(self) -> bool:
+        """Open the queue; on a disk that was full at start the ledger's file may not be there yet:
+        say so once and try again next round (nothing can have been queued meanwhile)."""
         if self._outbox is None:
-            self._outbox = Outbox(self.ledger_path, KIND)
-            self._xapi_outbox = Outbox(self.ledger_path, xapi.KIND)
+            try:
+                outbox = Outbox(self.ledger_path, KIND)
+            except FluorosimError as e:
+                if self._unopened is None:
+                    log.warning("send queue not open yet, trying again: %s", e)
+                self._unopened = str(e)
+                return False
+            self._outbox, self._xapi_outbox, self._unopened = outbox, Outbox(self.ledger_path, xapi.KIND), None
+        return True
 
     def step(self) -> bool:
         cfg = self.keeper.current
         dicom, lrs = cfg.appliance.dicom, cfg.appliance.teaching.lrs
+        if not self._open():
+            self._wait(dicom.retry.poll_period_s)
+            return False
         assert self._outbox is not None and self._xapi_outbox is not None
         if self._sender is None or self._sender.dicom is not dicom:
             failures = self._sender.failures if self._sender is not None else {}
@@ -64,13 +78,15 @@ class SendWorker(Worker):
             for n in report.sent.values():
                 log.info("xAPI: %d statement(s) sent to %s", n, lrs.endpoint)
             sent = sent or bool(report.sent)
+        self._wait(min([dicom.retry.poll_period_s] + ([lrs.retry.poll_period_s] if lrs is not None else [])))
+        return sent
+
+    def _wait(self, period_s: float) -> None:
         # Wait for the next round in short steps, beating, so a long poll period is not a hang.
-        period = min([dicom.retry.poll_period_s] + ([lrs.retry.poll_period_s] if lrs is not None else []))
-        until = self.clock() + period
+        until = self.clock() + period_s
         while not self.stopping and self.clock() < until:
             self.beat()
             self.sleep(min(0.5, until - self.clock()))
-        return sent
 
     def teardown(self) -> None:
         if self.stopping and self._outbox is not None and self._xapi_outbox is not None:
