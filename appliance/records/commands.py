@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import json
+import sqlite3
 import sys
 from pathlib import Path
 
@@ -87,19 +89,35 @@ def run_list(args: argparse.Namespace) -> int:
     conn = open_readonly(path)
     try:
         sessions = export_module.sessions_between(conn, since, until)
+        trainees = trainees_of(conn)
         report = integrity.check(conn, integrity.reading_seal())
     finally:
         conn.close()
     if not report.ok:
         print(f"warning: {path}: NOT INTACT: {report.message}; these figures cannot be trusted "
               "(see `fluorosim logs verify`)", file=sys.stderr)
-    print(f"{'id':>6}  {'started (UTC)':<24} {'operator':<16} {'fluoro min':>10} {'kerma mGy':>10} {'DAP Gy cm2':>11} "
-          f"{'runs':>5} {'alarms':>6}  end")
+    print(f"{'id':>6}  {'started (UTC)':<24} {'operator':<16} {'trainee':<20} {'fluoro min':>10} {'kerma mGy':>10} "
+          f"{'DAP Gy cm2':>11} {'runs':>5} {'alarms':>6}  end")
     for s in sessions:
         print(f"{s['id']:>6}  {export_module.iso(s['started_wall']):<24} {s['operator'][:16]:<16} "
+              f"{trainees.get(s['id'], '-')[:20]:<20} "
               f"{s['fluoro_time_s'] / 60:>10.1f} {s['air_kerma_mgy']:>10.2f} {s['dap_gy_cm2']:>11.3f} "
               f"{s['runs']:>5} {s['alarms']:>6}  {s['end_reason'] or 'open'}")
     return 0
+
+
+def trainees_of(conn: sqlite3.Connection) -> dict[int, str]:
+    """Session id -> the trainee's name entered in it (the last, if changed; recorded by
+    teaching through the console as a chained `trainee` event)."""
+    out: dict[int, str] = {}
+    for sid, detail in conn.execute("SELECT session_id, detail FROM events WHERE kind = 'trainee' ORDER BY id"):
+        try:
+            name = json.loads(detail).get("name")
+        except (ValueError, AttributeError):
+            continue
+        if isinstance(name, str) and name.strip():
+            out[sid] = name.strip()
+    return out
 
 
 def _ledger_options(p: argparse.ArgumentParser) -> None:
@@ -117,8 +135,9 @@ def register(commands: argparse._SubParsersAction[argparse.ArgumentParser],
 
     logs = command_group(commands, "logs", "read, verify and export the dose and session ledger")
     ls = logs.add_parser("list", help="list sessions with their fluoroscopy time and dose",
-                         description="One line per session that started in [--since, --until]: fluoroscopy time "
-                                     "(minutes), reference air kerma (mGy), dose-area product (Gy cm2), runs, alarms.")
+                         description="One line per session that started in [--since, --until]: the operator, the "
+                                     "trainee entered at its start ('-' if none), fluoroscopy time (minutes), reference "
+                                     "air kerma (mGy), dose-area product (Gy cm2), runs, alarms.")
     _ledger_options(ls)
     ls.add_argument("--since", metavar="DATE", help="first day (or date-time) to include")
     ls.add_argument("--until", metavar="DATE", help="last day (or date-time, exclusive) to include")
