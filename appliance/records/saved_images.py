@@ -74,6 +74,10 @@ def dicom_image(pixels: np.ndarray, state: ConsoleState, fl: FluoroscopeProfile,
     ds.PatientOrientation = ""
     ds.ImageLaterality = "U"      # the trunk: an unpaired body part
     ds.ReferencedPerformedProcedureStepSequence = procedure_step_reference(study)
+    # The step as PS3.17 J.2.2 asks a modality without MPPS to describe it (see study.procedure_step_uid).
+    ds.PerformedProcedureStepID = ds.StudyID
+    ds.PerformedProcedureStepStartDate, ds.PerformedProcedureStepStartTime = ds.StudyDate, ds.StudyTime
+    ds.PerformedProcedureStepDescription = f"Training session, {study.case_title}"[:64]
     if event_uid is not None:
         ds.IrradiationEventUID = event_uid
     ds.ImageComments = f"{'Held' if state.image == 'held' else 'Live'} image; fluoroscopy time {state.fluoro_time_display} min"
