@@ -48,3 +48,30 @@ def test_the_saved_image_carries_the_angles_of_its_pose(tmp_path):
     for path in session.images:
         ds = pydicom.dcmread(path)
         assert (float(ds.PositionerPrimaryAngle), float(ds.PositionerSecondaryAngle)) == (30.0, 20.0)
+
+
+def test_the_dose_reports_events_carry_the_angles_of_their_runs(tmp_path):
+    from teaching_script import II, Session
+
+    from appliance.records import rdsr
+    from appliance.records.ledger import Ledger
+
+    with Ledger(tmp_path / "ledger.sqlite") as ledger:
+        sid = ledger.start_session("trainee", "child", II.name, 1.7e9, t_monotonic=0.0)
+        s = Session(ledger)
+        s.expose(1.0, 2.0, pose((S30 * C20, -C30 * C20, S20), (0, 0, 0)))     # LAO 30 CRA 20
+        s.expose(3.0, 4.0, pose((-1, -1, 0), (0, 0, 50)))                     # RAO 45
+        s.advance(5.0)
+        ledger.record(s.console.end(5.0))
+        ledger.end_session(1.7e9 + 5.0)
+        ds = rdsr.session_report(*ledger.session_rows(sid))
+
+    def meaning(item):
+        return item.ConceptNameCodeSequence[0].CodeMeaning
+
+    events = [i for i in ds.ContentSequence if meaning(i) == "Irradiation Event X-Ray Data"]
+    got = [tuple(float(c.MeasuredValueSequence[0].NumericValue) for c in e.ContentSequence
+                 if meaning(c) in ("Positioner Primary Angle", "Positioner Secondary Angle")) for e in events]
+    assert got == [(30.0, 20.0), (-45.0, 0.0)]
+    mechanical = next(i for i in ds.ContentSequence if meaning(i) == "X-Ray Mechanical Data Available")
+    assert mechanical.ConceptCodeSequence[0].CodeMeaning == "Yes"
