@@ -45,7 +45,7 @@ def mine(url: str) -> list[dict]:
     return [s for s in read_back(url, USER) if s["context"]["extensions"]["urn:fluorosim:appliance"] == USER]
 
 
-def test_an_ended_sessions_statements_reach_the_lrs_through_the_send_worker(lrs, tmp_path):  # noqa: F811
+def test_an_ended_sessions_statements_reach_the_lrs_through_the_send_worker(lrs, tmp_path, capsys):  # noqa: F811
     # The console clock at x3: the script's 6 s in 2.
     config = make_appliance(tmp_path, script=SCRIPT, clock_rate=3.0)
     (config.parent / "exercises" / "cylinder.yaml").write_text(EXERCISE)
@@ -71,6 +71,10 @@ def test_an_ended_sessions_statements_reach_the_lrs_through_the_send_worker(lrs,
     assert all(p.attempts == 1 and "cannot be reached" in p.last_error for p in pending), pending
     assert sorted(p.label for p in pending) == ["xAPI 'completed Cylinder drill' of session 1",
                                                 "xAPI 'failed nowhere' of session 1", "xAPI 'passed cylinder' of session 1"]
+    capsys.readouterr()
+    assert main(["lrs", "queue", "--config", str(config)]) == 0
+    rows = capsys.readouterr().out.strip().splitlines()[1:]
+    assert len(rows) == 3 and all("xAPI '" in r and " lrs " in r and "cannot be reached" in r for r in rows), rows
     # The send worker (the appliance's own, run on its own here to spare a second start-up)
     # while the LRS is still down: the banner; then the admin fixes the endpoint and reloads,
     # and the queued statements go.

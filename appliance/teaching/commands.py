@@ -75,6 +75,18 @@ def run_lrs_send(args) -> int:
     return 0
 
 
+def run_lrs_queue(args) -> int:
+    from ..config import ApplianceProfile, load_profile, resolve
+    from ..records.dicom_commands import print_queue
+    from .xapi import KIND
+
+    config = Path(args.config)
+    if not config.is_file():
+        raise FluorosimError(f"{config}: no appliance profile there; give --config PATH")
+    appliance = load_profile(config, ApplianceProfile)
+    return print_queue(resolve(config, appliance.data_dir) / "ledger.sqlite", KIND)
+
+
 def register(commands, benches) -> None:
     from ..cli import command_group
 
@@ -108,3 +120,9 @@ def register(commands, benches) -> None:
     send.add_argument("--config", default="configs/appliance.yaml", metavar="PATH",
                       help="appliance profile with the teaching.lrs section (default configs/appliance.yaml)")
     send.set_defaults(run=run_lrs_send)
+    q = lrs.add_parser("queue", help="the statements not yet taken by the LRS, and why",
+                       description="One line per statement in the send queue that the LRS has not confirmed: its "
+                                   "session, tries, when it is tried next and the last error.")
+    q.add_argument("--config", default="configs/appliance.yaml", metavar="PATH",
+                   help="appliance profile whose data_dir holds the ledger (default configs/appliance.yaml)")
+    q.set_defaults(run=run_lrs_queue)
