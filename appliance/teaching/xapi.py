@@ -124,6 +124,8 @@ def queue_session(outbox: Outbox, conn: sqlite3.Connection, session_id: int, lrs
     statement id); returns how many were new. Queuing a session again adds nothing."""
     from .metrics import session_metrics
 
+    if outbox.has(_marker(session_id)):
+        return 0        # queued before (an ended session's statements never change): spare the replay
     items = statements(session_metrics(conn, session_id), lrs)
     new = outbox.put_many([(st["id"], _label(st, session_id), json.dumps(st, sort_keys=True).encode()) for st in items],
                           [DESTINATION], session_id=session_id)
