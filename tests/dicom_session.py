@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from teaching_script import pose
 
 from appliance.config import FluoroscopeProfile, KeymapProfile, load_profile
 from appliance.config.dicom import Dicom
@@ -25,6 +26,8 @@ T0 = 1_700_000_000.0   # 2023-11-14T22:13:20Z
 IDENTITY = Dicom(institution="St Elsewhere Teaching Hospital", department="Radiology training",
                  station_name="FLUOROSIM-3", serial_number="FS-0042", patient_id_issuer="STELSEWHERE-SIM")
 PATIENT = {"sex": "O", "age_years": 6, "weight_kg": 21.0, "height_m": 1.16}
+# The C-arm at LAO 30 CRA 20 (beam direction in the patient's LPS frame), central ray through the origin.
+POSE = pose((0.5 * np.cos(np.radians(20)), -np.sqrt(3) / 2 * np.cos(np.radians(20)), np.sin(np.radians(20))), (0, 0, 0))
 
 
 @dataclass
@@ -70,7 +73,7 @@ def record_session(tmp: Path, operator: str = "Jane Q Trainee", rng_seed: int = 
                 study, event_uid = saved_image_context(session, events, state.save_count)
                 pixels = rng.integers(0, 256, size=(64, 80), dtype=np.uint8)
                 _, dcm = save_image(pixels, state, II, tmp / "images", t_wall=T0 + events[-1]["t_monotonic"],
-                                    study=study, event_uid=event_uid)
+                                    study=study, event_uid=event_uid, T_xray_from_ct=POSE)
                 images.append(dcm)
         ledger.end_session(T0 + 20.0)
         session, events = ledger.session_rows(sid)

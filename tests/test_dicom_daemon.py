@@ -20,6 +20,8 @@ from appliance.cli import main
 from appliance.daemon.notify import Notifier
 from appliance.daemon.pipeline import Appliance
 from appliance.daemon.reload import ProfileKeeper
+from appliance.records import rdsr_anchor
+from appliance.records.ledger import open_readonly
 from appliance.records.outbox import Outbox
 
 SCRIPT = ['{"t": 0.3, "hold": "pedal", "for_s": 1.5}',
@@ -74,6 +76,10 @@ def test_the_appliance_queues_and_sends_its_images_and_dose_report(tmp_path, rec
         # Each saved image reaches the PACS while the session goes on (the report is sent at the end).
         assert _wait(lambda: len(app.saved) == 2 and len(pacs.received()) == 2, 60), (app.saved, pacs.received())
     images = [pydicom.dcmread(dcm) for _, dcm in app.saved]
+    # Each image carries the angulation it was rendered at. The test case's CT +z is the box's up
+    # (T_phantom_from_ct turns nothing) and the beam runs up from the tube under the table to the
+    # intensifier above it: along the CT's head-foot axis, secondary angle +90 (primary undefined).
+    assert all(85.0 <= float(ds.PositionerSecondaryAngle) <= 90.0 for ds in images), images
     # The session ended at shutdown and its dose report went to the PACS at once; the registry,
     # which is down, keeps it queued, with the reason.
     received = pacs.received()
@@ -89,6 +95,15 @@ def test_the_appliance_queues_and_sends_its_images_and_dose_report(tmp_path, rec
     report = pydicom.dcmread(pacs.out / f"{pacs.received()[-1]}.dcm")
     assert report.Modality == "SR" and report.StationName == "FS-TEST" and report.DeviceSerialNumber == "FS-0001"
     assert {ds.StudyInstanceUID for ds in images} == {report.StudyInstanceUID}
+    # The report the PACS holds names the ledger's entry that ended the session, as the ledger has it.
+    conn = open_readonly(ledger)
+    try:
+        end = conn.execute("SELECT id, hash FROM events WHERE session_id = ? AND kind = 'session_end'",
+                           (app.session_id,)).fetchone()
+        assert rdsr_anchor.read(report) == {"count": end["id"], "hash": end["hash"]}
+        assert rdsr_anchor.check(conn, rdsr_anchor.read(report)).ok
+    finally:
+        conn.close()
     events = [i for i in report.ContentSequence if i.ConceptNameCodeSequence[0].CodeMeaning ==
               "Irradiation Event X-Ray Data"]
     assert len(events) == 1

@@ -51,6 +51,10 @@ def test_report_and_images_form_one_study(session):
             report.IssuerOfPatientIDQualifiersSequence[0].UniversalEntityID
         assert ds.ReferencedPerformedProcedureStepSequence[0].ReferencedSOPInstanceUID == \
             report.ReferencedPerformedProcedureStepSequence[0].ReferencedSOPInstanceUID
+        # No MPPS is sent (study.procedure_step_uid): the images describe the step for a system that
+        # creates it later (PS3.17 J.2.2): its ID and start, the session's.
+        assert (ds.PerformedProcedureStepID, ds.PerformedProcedureStepStartDate, ds.PerformedProcedureStepStartTime) == \
+            (report.StudyID, "20231114", report.StudyTime)
     # The session started at 22:13:20 UTC: the study and the image series start then.
     assert report.StudyDate == "20231114" and report.StudyTime.startswith("221320")
     assert {(ds.SeriesInstanceUID, ds.SeriesDate, ds.SeriesTime) for ds in images} == \

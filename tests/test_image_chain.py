@@ -22,9 +22,9 @@ from appliance.display.compositor import Compositor, Overlay
 from appliance.patient.adult_chest import SIZES, build_adult_chest
 from appliance.patient.volume import Volume
 from appliance.xray import acceptance
+from appliance.xray.casting import CastCancelled
 from appliance.xray.detector import Detector, RecursiveFilter
 from appliance.xray.display_lut import soft_knee
-from appliance.xray.casting import CastCancelled
 from appliance.xray.renderer import Renderer, View, at_resolution
 from appliance.xray.truth.analytic import box_volume
 from drivers.framebuffer import open_display

@@ -27,7 +27,7 @@ ralph = pytest.importorskip("ralph", reason="ralph-malph is not installed: make 
 bcrypt = pytest.importorskip("bcrypt", reason="ralph-malph's bcrypt is not installed")
 
 PASSWORD = "s3cret-for-the-test"
-USERS = ("box-1", "box-2")
+USERS = ("box-1", "box-2", "box-4")
 
 
 def _free_port() -> int:
@@ -118,8 +118,9 @@ def test_statements_reach_the_lrs_once_and_read_back(lrs, tmp_path, capsys):
     assert main(["lrs", "send", "--config", str(config)]) == 0
     assert capsys.readouterr().out.startswith("0 session(s) queued, 0 statement(s) sent")
     # An answer lost on the way (the queue thinks nothing was sent): resent, still stored once.
-    with sqlite3.connect(tmp_path / "data" / "xapi-outbox.sqlite") as q:
-        q.execute("UPDATE statements SET sent_wall = NULL")
+    with sqlite3.connect(tmp_path / "data" / "ledger.sqlite") as q:
+        q.execute("UPDATE outbox_deliveries SET sent_wall = NULL WHERE item_id IN "
+                  "(SELECT id FROM outbox_items WHERE kind = 'xapi')")
     assert main(["lrs", "send", "--config", str(config)]) == 0
     capsys.readouterr()
     again = [s for s in read_back(lrs, "box-1") if s["context"]["extensions"]["urn:fluorosim:appliance"] == "box-1"]

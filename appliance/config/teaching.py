@@ -7,6 +7,7 @@ from urllib.parse import urlsplit
 from pydantic import Field, field_validator
 
 from .base import Section
+from .dicom import Retry
 
 
 def _url(value: str) -> str:
@@ -28,6 +29,11 @@ class Lrs(Section):
                                                "(the xAPI actor's account.homePage), e.g. the centre's booking system.")
     appliance_id: str = Field("fluorosim", min_length=1, description="Names this appliance in each statement's context.")
     timeout_s: float = Field(10.0, gt=0, le=120, description="How long one request to the LRS may take (s).")
+    send_at_shutdown_s: float = Field(0.5, ge=0, le=1, description="When the session ends at shutdown, how long its "
+                                      "statements may take to send at once (s); what does not go in time stays queued "
+                                      "for the running appliance's next start. 0: always leave them queued.")
+    retry: Retry = Field(default_factory=Retry, description="Retry and warning policy for the LRS, as for a DICOM "
+                                                            "destination: the statements wait in the ledger's send queue.")
 
     _check_endpoint = field_validator("endpoint", "account_home_page")(lambda cls, v: _url(v))
 

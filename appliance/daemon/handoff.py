@@ -118,6 +118,15 @@ class Technique:
 
 
 @dataclass(frozen=True)
+class ShownImage:
+    """render -> records: the newest live image and the pose it was rendered at, together, so a
+    save writes the angulation of the image it saves."""
+
+    image: np.ndarray
+    T_xray_from_ct: np.ndarray     # 4x4, mm
+
+
+@dataclass(frozen=True)
 class SavedImage:
     """records -> render: an image just written, so the screen can flash "saved"."""
 

@@ -9,7 +9,8 @@ wired into supervised workers, one class each, handing each other typed values.
                             -> Compositor.compose -> Display.show         -> shown, exposure_factor
     records  RecordsWorker  events -> Ledger.record(); saves -> PNG + DICOM -> saves
                             saved images, ended sessions' dose reports    -> DICOM send queue (ledger file)
-    dicom-send DicomSendWorker  DICOM send queue -> C-STORE to the PACS and the dose registry
+    send     SendWorker     send queue -> C-STORE to the PACS and the dose registry,
+                            xAPI statements to the LRS
 
 Teaching rides on two of them: the render worker hands each live image's geometry to the
 input worker (`views`), whose LiveTeaching records it through the console and sends the shot
@@ -34,8 +35,6 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
-
 from drivers.camera import CaptureState
 
 from ..config import ApplianceConfig
@@ -47,7 +46,7 @@ from ..teaching.live import TeachingStatus, live_teaching_for
 from .capture_worker import CaptureWorker
 from .clock import SimClock
 from .frame_stats import fps_text
-from .handoff import LatestValue, PhaseValue, Recorded, SavedImage, ShownFrame, Technique, TrackedPose
+from .handoff import LatestValue, PhaseValue, Recorded, SavedImage, ShownFrame, ShownImage, Technique, TrackedPose
 from .health import (
     CameraState,
     DiskSpace,
@@ -64,7 +63,7 @@ from .phase_worker import PhaseWorker
 from .records_worker import RecordsWorker
 from .reload import ProfileKeeper
 from .render_worker import RenderWorker
-from .send_worker import DicomSendWorker, dicom_send_check
+from .send_worker import SendWorker, dicom_send_check, xapi_send_check
 from .supervisor import Supervisor
 
 log = logging.getLogger(__name__)
@@ -119,7 +118,7 @@ class Appliance:
         self.phases: LatestValue[PhaseValue] = LatestValue("phases")                      # phases
         self.console_state: LatestValue[ConsoleState] = LatestValue("console")            # input
         self.events: queue.Queue[Recorded] = queue.Queue(maxsize=EVENT_QUEUE)             # input
-        self.shown: LatestValue[np.ndarray] = LatestValue("shown")                        # render
+        self.shown: LatestValue[ShownImage] = LatestValue("shown")                        # render
         exposure_factor: LatestValue[Technique] = LatestValue("technique")              # render
         saves: LatestValue[SavedImage] = LatestValue("saves")                             # records
         self._new_fluoroscope: LatestValue[FluoroscopeProfile] = LatestValue("fluoroscope")  # reload
@@ -141,7 +140,7 @@ class Appliance:
                                  badge=parts.badge)
         self.records = RecordsWorker(self.ledger, keeper, parts, self.clock, events=self.events, shown=self.shown,
                                      saves=saves, native=self.render.native_image)
-        self.sender = DicomSendWorker(self.ledger.path, keeper)
+        self.sender = SendWorker(self.ledger.path, keeper)
         self.stats = self.render.stats
         self.supervisor = Supervisor(
             # In this order: at shutdown the input worker ends its exposure before records flushes,
@@ -160,6 +159,7 @@ class Appliance:
                 profile_reload_check(lambda: self.keeper.problem),
                 records_check(lambda: self.records.problem),
                 dicom_send_check(lambda: self.sender.problem),
+                xapi_send_check(lambda: self.sender.xapi_problem),
             ])
 
     # --- what the demo, the benchmarks and the tests read --------------------------------------

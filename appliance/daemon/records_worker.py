@@ -1,5 +1,6 @@
 """The records worker: console events -> the ledger (SQLite); save presses -> PNG + DICOM images;
-each saved image, and the session's dose report when it ends, into the DICOM send queue."""
+each saved image, and the session's dose report and xAPI statements when it ends, into the send
+queue (records.outbox, in the ledger's file)."""
 
 from __future__ import annotations
 
@@ -25,7 +26,8 @@ from ..records.outbox import Outbox
 from ..records.rdsr import patient_of
 from ..records.saved_images import save_image
 from ..records.study import saved_image_context
-from .handoff import LatestValue, Recorded, SavedImage
+from ..teaching import xapi
+from .handoff import LatestValue, Recorded, SavedImage, ShownImage
 from .parts import Parts
 from .reload import ProfileKeeper
 from .worker import Worker
@@ -48,7 +50,7 @@ class RecordsWorker(Worker):
     """
 
     def __init__(self, ledger: Ledger | DeferredLedger, keeper: ProfileKeeper, parts: Parts, clock: Callable[[], float],
-                 *, events: queue.Queue[Recorded], shown: LatestValue[np.ndarray], saves: LatestValue[SavedImage],
+                 *, events: queue.Queue[Recorded], shown: LatestValue[ShownImage], saves: LatestValue[SavedImage],
                  native: Callable[[Callable[[], bool]], tuple[np.ndarray, FluoroscopeProfile] | None] | None = None):
         super().__init__("records", idle_s=0.0)
         self.ledger, self.keeper, self.parts, self.console_clock = ledger, keeper, parts, clock
@@ -62,24 +64,39 @@ class RecordsWorker(Worker):
         self.saved: list[tuple[Path, Path]] = []
         self._unwritten: list[Recorded] = []
         self._outbox: Outbox | None = None
+        self._xapi_outbox: Outbox | None = None
         self._last_report: bytes | None = None
         self._session_start: tuple[float, float] | None = None
 
     def setup(self) -> None:
-        if self._outbox is None and not isinstance(self.ledger, DeferredLedger):
-            # Its own connection to the ledger's file: the send queue is outside the event chain.
-            # (An appliance started on a full disk queues nothing to send until it restarts.)
-            self._outbox = Outbox(self.ledger.path, KIND)
-            # Sessions a crash or power loss left open were closed when the ledger opened, and the
-            # last run may have been cut off before it queued its report: queue what is missing.
-            for sid in sorted(set(self.ledger.recovered) | set(self._last_ended())):
-                self._queue_report(sid)
+        self._open_send_queue()
         if self.session_id is not None:
             return  # restarted after a crash: the session goes on
         if self._session_start is None:
             # When the session began, even if the disk lets it be written only later.
             self._session_start = (time.time(), self.console_clock())
         self._start_session()
+
+    def _open_send_queue(self) -> None:
+        """Open the send queue once the ledger is open: at start, or, on a disk that was full at
+        start, when the ledger opens. Its own connections to the ledger's file: the send queue is
+        outside the event chain."""
+        if self._outbox is not None or (isinstance(self.ledger, DeferredLedger) and not self.ledger.opened):
+            return
+        try:
+            self._outbox = Outbox(self.ledger.path, KIND)
+            self._xapi_outbox = Outbox(self.ledger.path, xapi.KIND)
+        except FluorosimError as e:
+            log.error("send queue not opened, nothing is queued to send until it opens: %s", e)
+            if self._outbox is not None:
+                self._outbox.close()
+            self._outbox = None
+            return
+        # Sessions a crash or power loss left open were closed when the ledger opened, and the
+        # last run may have been cut off before it queued its report: queue what is missing.
+        for sid in sorted(set(self.ledger.recovered) | set(self._last_ended())):
+            self._queue_report(sid)
+            self._queue_statements(sid)
 
     def _start_session(self) -> bool:
         """Open the session in the ledger; on a full disk say so and try again later, never crash."""
@@ -106,6 +123,7 @@ class RecordsWorker(Worker):
         self.problem = None
         log.info("session %s started: operator %s, case %s, fluoroscope %s",
                  self.session_id, cfg.appliance.operator, cfg.case.title, fl.name)
+        self._open_send_queue()    # a ledger that opened late, after a full disk at start
         return True
 
     def step(self) -> bool:
@@ -162,10 +180,11 @@ class RecordsWorker(Worker):
         return True
 
     def _save_image(self, state: ConsoleState) -> None:
-        image, _ = self.shown.get()
-        if image is None:
+        shown, _ = self.shown.get()
+        if shown is None:
             log.warning("save pressed before any image was shown; nothing saved")
             return
+        image = shown.image
         cfg = self.keeper.current
         assert self.session_id is not None   # setup() opened it before any event is recorded
         # The image joins its session's study and names the run it shows (records.study).
@@ -183,7 +202,7 @@ class RecordsWorker(Worker):
             if native is not None:
                 image, fluoroscope = native
         png, dicom = save_image(image, state, fluoroscope, cfg.data_dir / "images",
-                                t_wall=time.time(), study=study, event_uid=event_uid)
+                                t_wall=time.time(), study=study, event_uid=event_uid, T_xray_from_ct=shown.T_xray_from_ct)
         self.saved.append((png, dicom))
         self.saves.put(SavedImage(png, dicom, time.monotonic()))
         log.info("saved %s and %s", png, dicom)
@@ -199,29 +218,61 @@ class RecordsWorker(Worker):
         self.beat()
         return self.stopping
 
-    def _send_report_now(self, report: bytes) -> None:
-        """At shutdown, try to send the session's dose report within dicom.send_at_shutdown_s
-        (the sender worker has stopped); what does not go in time stays queued for the next start."""
+    def _send_now(self, report: bytes | None, statements: int) -> None:
+        """At shutdown (the send worker has stopped), try to send the session's dose report within
+        dicom.send_at_shutdown_s and its xAPI statements within teaching.lrs.send_at_shutdown_s,
+        side by side; what does not go in time stays queued for the next start."""
         cfg = self.keeper.current
-        dicom = cfg.appliance.dicom
-        budget = dicom.send_at_shutdown_s
-        if budget <= 0 or not any(d.takes("dose_report") for d in dicom.destinations):
-            return
-        key, sent = sop_instance_uid(report), {}
+        dicom, lrs = cfg.appliance.dicom, cfg.appliance.teaching.lrs
+        jobs: list[tuple[str, float, Callable[[], dict[str, int]]]] = []
+        if report is not None and dicom.send_at_shutdown_s > 0 and any(d.takes("dose_report") for d in dicom.destinations):
+            key, quick = sop_instance_uid(report), dicom.model_copy(update={"timeout_s": dicom.send_at_shutdown_s})
 
-        def send() -> None:
+            def send_report() -> dict[str, int]:
+                with Outbox(self.ledger.path, KIND) as box:
+                    return DicomSender(box, quick, cfg.path.parent).run_round(ignore_backoff=True, key=key).sent
+            jobs.append(("dose report", dicom.send_at_shutdown_s, send_report))
+        if statements and lrs is not None and lrs.send_at_shutdown_s > 0:
+            fast = lrs.model_copy(update={"timeout_s": lrs.send_at_shutdown_s})
+
+            def send_statements() -> dict[str, int]:
+                with Outbox(self.ledger.path, xapi.KIND) as box:
+                    return xapi.XapiSender(box, fast, cfg.path).run_round(ignore_backoff=True).sent
+            jobs.append(("xAPI statements", lrs.send_at_shutdown_s, send_statements))
+        threads = []
+        for what, budget, send in jobs:
+            done: dict[str, int] = {}
             # Its own connection: if the time runs out, this thread is left behind at exit.
-            with Outbox(self.ledger.path, KIND) as box:
-                quick = dicom.model_copy(update={"timeout_s": budget})
-                sent.update(DicomSender(box, quick, cfg.path.parent).run_round(ignore_backoff=True, key=key).sent)
-        sender = threading.Thread(target=send, name="fluorosim-dicom-shutdown", daemon=True)
-        sender.start()
-        sender.join(budget)
-        for name in sent:
-            log.info("dose report of session %s sent to '%s'", self.session_id, name)
-        if sender.is_alive():
-            log.warning("dose report of session %s not confirmed within %.1f s of shutdown; it stays queued",
-                        self.session_id, budget)
+            thread = threading.Thread(target=lambda send=send, done=done: done.update(send()),
+                                      name=f"fluorosim-send-{what.split()[0]}", daemon=True)
+            thread.start()
+            threads.append((what, budget, thread, done))
+        started = time.monotonic()
+        for what, budget, thread, done in threads:
+            thread.join(max(0.0, budget - (time.monotonic() - started)))
+            for name in done:
+                log.info("%s of session %s sent to '%s'", what, self.session_id, name)
+            if thread.is_alive() or not done:
+                log.warning("%s of session %s not confirmed within %.1f s of shutdown; left in the send queue "
+                            "for the next start",
+                            what, self.session_id, budget)
+
+    def _queue_statements(self, session_id: int) -> int:
+        """Queue an ended session's xAPI statements for the LRS; returns how many were new."""
+        lrs = self.keeper.current.appliance.teaching.lrs
+        if self._xapi_outbox is None or lrs is None:
+            return 0
+        conn = open_readonly(self.ledger.path)
+        try:
+            new = xapi.queue_session(self._xapi_outbox, conn, session_id, lrs)
+        except FluorosimError as e:
+            log.error("xAPI statements of session %s not queued: %s; 'fluorosim lrs send' queues them", session_id, e)
+            return 0
+        finally:
+            conn.close()
+        if new:
+            log.info("%d xAPI statement(s) of session %s queued for %s", new, session_id, lrs.endpoint)
+        return new
 
     def _last_ended(self) -> list[int]:
         conn = open_readonly(self.ledger.path)
@@ -276,9 +327,11 @@ class RecordsWorker(Worker):
         log.info("session %s ended; ledger flushed", self.session_id)
         if self.session_id is not None:
             self._last_report = None
+            self._open_send_queue()
             self._queue_report(self.session_id)
-            if self._last_report is not None:
-                self._send_report_now(self._last_report)
-        if self._outbox is not None:
-            self._outbox.close()
-            self._outbox = None
+            statements = self._queue_statements(self.session_id)
+            self._send_now(self._last_report, statements)
+        for box in (self._outbox, self._xapi_outbox):
+            if box is not None:
+                box.close()
+        self._outbox = self._xapi_outbox = None

@@ -27,7 +27,7 @@ from ..teaching.live import TeachingStatus
 from ..teaching.views import view_detail
 from ..xray.renderer import Frame, View
 from .frame_stats import FrameStats
-from .handoff import LatestValue, PhaseValue, SavedImage, ShownFrame, Technique, TrackedPose
+from .handoff import LatestValue, PhaseValue, SavedImage, ShownFrame, ShownImage, Technique, TrackedPose
 from .parts import Parts, is_cpu
 from .reload import ProfileKeeper
 from .worker import Worker
@@ -83,12 +83,12 @@ class RenderWorker(Worker):
 
     Holds the last image (last-image-hold) and redraws it at `daemon.hold_refresh_hz` so the
     overlays stay current while fluoroscopy is off. Publishes each live image to `shown`
-    (what a save writes) and the tube output the brightness control chose to `exposure_factor`.
+    (what a save writes, with its pose) and the tube output the brightness control chose to `exposure_factor`.
     """
 
     def __init__(self, parts: Parts, keeper: ProfileKeeper, *, poses: LatestValue[TrackedPose],
                  phases: LatestValue[PhaseValue], console_state: LatestValue[ConsoleState],
-                 saves: LatestValue[SavedImage], shown: LatestValue[np.ndarray], exposure_factor: LatestValue[Technique],
+                 saves: LatestValue[SavedImage], shown: LatestValue[ShownImage], exposure_factor: LatestValue[Technique],
                  banners: Callable[[], list[str]], on_first_frame: Callable[[], None],
                  on_shown: Callable[[ShownFrame], None] | None = None,
                  views: LatestValue[tuple[float, dict]] | None = None,
@@ -106,6 +106,7 @@ class RenderWorker(Worker):
         self.fault: str | None = None
         self._last_pose_seq = 0
         self._image: np.ndarray | None = None          # the image on screen (last-image-hold)
+        self._image_T: np.ndarray | None = None        # the pose it was rendered at (T_xray_from_ct)
         self._drawn: ConsoleState | None = None        # the console state it was rendered at
         self._last_compose = 0.0
         self._factor_sent = Technique(1.0)
@@ -131,7 +132,7 @@ class RenderWorker(Worker):
                               @ np.asarray(cfg.case.T_phantom_from_ct, dtype=np.float64))
             frame = self._render(cfg, T_xray_from_ct, phase, state)
             if frame is not None:
-                self._image, self._drawn, live = frame.image, state, True
+                self._image, self._image_T, self._drawn, live = frame.image, T_xray_from_ct, state, True
                 self._send_technique(Technique(frame.exposure_factor, frame.kvp, frame.ma))
                 if self.views is not None:
                     self.views.put((state.t, view_detail(self.parts.renderer.fluoroscope, T_xray_from_ct, state.zoom,
@@ -152,10 +153,10 @@ class RenderWorker(Worker):
         t_shown = time.monotonic()
         self._last_compose = t_shown
         latency = None
-        if live and tracked is not None and self._image is not None:
+        if live and tracked is not None and self._image is not None and self._image_T is not None:
             latency = t_shown - tracked.t_frame
             self.stats.add(t_shown, latency)
-            self.shown.put(self._image)
+            self.shown.put(ShownImage(self._image, self._image_T))
         self.on_first_frame()
         if self.on_shown is not None:
             self.on_shown(ShownFrame(self.parts.display.read_back, self._image, state, tracked if live else None,

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import json
+import sqlite3
 import sys
 from pathlib import Path
 
@@ -27,18 +29,30 @@ def ledger_path(args: argparse.Namespace) -> Path:
 
 
 def run_verify(args: argparse.Namespace) -> int:
+    from . import rdsr_anchor
+
     path = ledger_path(args)
+    anchors = [(Path(f), rdsr_anchor.read_file(Path(f))[1]) for f in args.rdsr or []]
     conn = open_readonly(path)
     try:
         report = integrity.check(conn, integrity.reading_seal())
+        # Each dose report's anchor is a copy of a ledger entry kept outside the ledger: a removed
+        # tail or a rewritten ledger that passes its own chain shows against it.
+        against = [(f, rdsr_anchor.check(conn, anchor)) for f, anchor in anchors]
     finally:
         conn.close()
+    intact = report.ok and all(r.ok for _, r in against)
     if report.ok:
         print(f"{path}: {report.message}")
-        return 0
-    where = f"first broken link at event {report.first_bad_id}: " if report.first_bad_id is not None else ""
-    print(f"{path}: NOT INTACT: {where}{report.message}", file=sys.stderr)
-    return 1
+    else:
+        where = f"first broken link at event {report.first_bad_id}: " if report.first_bad_id is not None else ""
+        print(f"{path}: NOT INTACT: {where}{report.message}", file=sys.stderr)
+    for f, r in against:
+        if r.ok:
+            print(f"{f}: {r.message}")
+        else:
+            print(f"{f}: NOT INTACT against this dose report: {r.message}", file=sys.stderr)
+    return 0 if intact else 1
 
 
 def run_export(args: argparse.Namespace) -> int:
@@ -75,19 +89,35 @@ def run_list(args: argparse.Namespace) -> int:
     conn = open_readonly(path)
     try:
         sessions = export_module.sessions_between(conn, since, until)
+        trainees = trainees_of(conn)
         report = integrity.check(conn, integrity.reading_seal())
     finally:
         conn.close()
     if not report.ok:
         print(f"warning: {path}: NOT INTACT: {report.message}; these figures cannot be trusted "
               "(see `fluorosim logs verify`)", file=sys.stderr)
-    print(f"{'id':>6}  {'started (UTC)':<24} {'operator':<16} {'fluoro min':>10} {'kerma mGy':>10} {'DAP Gy cm2':>11} "
-          f"{'runs':>5} {'alarms':>6}  end")
+    print(f"{'id':>6}  {'started (UTC)':<24} {'operator':<16} {'trainee':<20} {'fluoro min':>10} {'kerma mGy':>10} "
+          f"{'DAP Gy cm2':>11} {'runs':>5} {'alarms':>6}  end")
     for s in sessions:
         print(f"{s['id']:>6}  {export_module.iso(s['started_wall']):<24} {s['operator'][:16]:<16} "
+              f"{trainees.get(s['id'], '-')[:20]:<20} "
               f"{s['fluoro_time_s'] / 60:>10.1f} {s['air_kerma_mgy']:>10.2f} {s['dap_gy_cm2']:>11.3f} "
               f"{s['runs']:>5} {s['alarms']:>6}  {s['end_reason'] or 'open'}")
     return 0
+
+
+def trainees_of(conn: sqlite3.Connection) -> dict[int, str]:
+    """Session id -> the trainee's name entered in it (the last, if changed; recorded by
+    teaching through the console as a chained `trainee` event)."""
+    out: dict[int, str] = {}
+    for sid, detail in conn.execute("SELECT session_id, detail FROM events WHERE kind = 'trainee' ORDER BY id"):
+        try:
+            name = json.loads(detail).get("name")
+        except (ValueError, AttributeError):
+            continue
+        if isinstance(name, str) and name.strip():
+            out[sid] = name.strip()
+    return out
 
 
 def _ledger_options(p: argparse.ArgumentParser) -> None:
@@ -105,16 +135,21 @@ def register(commands: argparse._SubParsersAction[argparse.ArgumentParser],
 
     logs = command_group(commands, "logs", "read, verify and export the dose and session ledger")
     ls = logs.add_parser("list", help="list sessions with their fluoroscopy time and dose",
-                         description="One line per session that started in [--since, --until]: fluoroscopy time "
-                                     "(minutes), reference air kerma (mGy), dose-area product (Gy cm2), runs, alarms.")
+                         description="One line per session that started in [--since, --until]: the operator, the "
+                                     "trainee entered at its start ('-' if none), fluoroscopy time (minutes), reference "
+                                     "air kerma (mGy), dose-area product (Gy cm2), runs, alarms.")
     _ledger_options(ls)
     ls.add_argument("--since", metavar="DATE", help="first day (or date-time) to include")
     ls.add_argument("--until", metavar="DATE", help="last day (or date-time, exclusive) to include")
     ls.set_defaults(run=run_list)
     v = logs.add_parser("verify", help="check the ledger's hash chain",
-                        description="Walk the ledger's hash chain and the sessions' totals. Exit 0 when intact; "
+                        description="Walk the ledger's hash chain and the sessions' totals, and check the ledger "
+                                    "against the anchor each given dose report (RDSR) carries: the entry that ended "
+                                    "its session, which the ledger must still hold unchanged. Exit 0 when intact; "
                                     "1 with the first broken link when an event was changed or removed.")
     _ledger_options(v)
+    v.add_argument("--rdsr", nargs="+", metavar="FILE",
+                   help="dose reports (as sent to the PACS or exported) whose ledger anchors to check")
     v.set_defaults(run=run_verify)
     e = logs.add_parser("export", help="export sessions and events as CSV, JSON or DICOM dose reports",
                         description="Export the sessions that started in [--since, --until] (dates as YYYY-MM-DD, local "

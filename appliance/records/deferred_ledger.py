@@ -46,6 +46,11 @@ class DeferredLedger:
         return self._ledger
 
     @property
+    def opened(self) -> bool:
+        """Whether the real ledger is open (and the send queue in its file can be used)."""
+        return self._ledger is not None
+
+    @property
     def session_id(self) -> int | None:
         return None if self._ledger is None else self._ledger.session_id
 

@@ -121,22 +121,27 @@ def _when(t: float) -> str:
 
 
 def run_queue(args: argparse.Namespace) -> int:
-    config, appliance, data_dir = _profile(args)
-    if not (data_dir / "ledger.sqlite").is_file():
-        print(f"nothing queued (no ledger yet in {data_dir})")
+    _, _, data_dir = _profile(args)
+    return print_queue(data_dir / "ledger.sqlite", KIND)
+
+
+def print_queue(ledger: Path, kind: str) -> int:
+    """What the send queue in `ledger` holds of `kind` and not yet delivered, one line each, with why."""
+    if not ledger.is_file():
+        print(f"nothing queued (no ledger yet in {ledger.parent})")
         return 0
-    conn = open_readonly(data_dir / "ledger.sqlite")
+    conn = open_readonly(ledger)
     try:
-        pending = pending_in(conn, KIND, time.time())
+        pending = pending_in(conn, kind, time.time())
     finally:
         conn.close()
     if not pending:
         print("nothing queued")
         return 0
-    print(f"{'session':>7}  {'object':<28} {'destination':<14} {'tries':>5}  {'next try (UTC)':<21} last error")
+    print(f"{'session':>7}  {'object':<40} {'destination':<14} {'tries':>5}  {'next try (UTC)':<21} last error")
     for p in pending:
         state = "sending now" if p.leased else _when(p.next_try_wall)
-        print(f"{p.session_id if p.session_id is not None else '-':>7}  {p.label[:28]:<28} {p.destination[:14]:<14} "
+        print(f"{p.session_id if p.session_id is not None else '-':>7}  {p.label[:40]:<40} {p.destination[:14]:<14} "
               f"{p.attempts:>5}  {state:<21} {p.last_error or ''}")
     return 0
 

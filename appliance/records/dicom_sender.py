@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import io
 import logging
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import pydicom
@@ -21,7 +20,7 @@ import pydicom
 from ..config.dicom import Destination, Dicom
 from . import dicom_network
 from .dicom_network import DestinationError, StoreResult
-from .outbox import Item, Outbox
+from .outbox import FailureStreaks, Item, Outbox, RoundReport
 
 log = logging.getLogger(__name__)
 
@@ -44,12 +43,6 @@ def sop_instance_uid(data: bytes) -> str:
     return str(pydicom.dcmread(io.BytesIO(data), stop_before_pixels=True).SOPInstanceUID)
 
 
-@dataclass
-class RoundReport:
-    sent: dict[str, int] = field(default_factory=dict)          # destination -> objects confirmed
-    errors: list[str] = field(default_factory=list)              # one line each
-
-
 class DicomSender:
     """Sends what the outbox holds for the destinations of `dicom`; `base` is the profile's folder."""
 
@@ -57,8 +50,9 @@ class DicomSender:
         self.outbox = outbox
         self.dicom = dicom
         self.base = base
+        self.streaks = FailureStreaks("DICOM", dicom.retry.warn_after_failures, log, failures)
         #: Destination -> (failed rounds in a row, the last error's short reason); kept across a reload.
-        self.failures: dict[str, tuple[int, str]] = dict(failures or {})
+        self.failures = self.streaks.counts
 
     def run_round(self, *, ignore_backoff: bool = False, key: str | None = None) -> RoundReport:
         """Send what is due (or only the object `key`) to each destination, one association each."""
@@ -91,25 +85,12 @@ class DicomSender:
                     if item.key not in done:
                         self.outbox.failed(item, message, first_delay_s=retry.first_delay_s, max_delay_s=retry.max_delay_s)
                 report.errors.append(message)
-                self._count_failure(dest.name, message, e.short)
+                self.streaks.failed(dest.name, message, e.short)
                 continue
-            self._count_success(dest.name)
+            self.streaks.answered(dest.name)
         return report
-
-    def _count_failure(self, name: str, message: str, short: str) -> None:
-        n = self.failures.get(name, (0, ""))[0] + 1
-        self.failures[name] = (n, short)
-        if n == self.dicom.retry.warn_after_failures:
-            log.warning("DICOM destination keeps failing (%d attempts in a row); objects stay queued: %s", n, message)
-
-    def _count_success(self, name: str) -> None:
-        if self.failures.get(name, (0, ""))[0] >= self.dicom.retry.warn_after_failures:
-            log.info("DICOM destination '%s' answers again; its queue is being sent", name)
-        self.failures.pop(name, None)
 
     def problems(self) -> list[str]:
         """A few words per destination that keeps failing, for the on-screen banner; they stay
         the same while it keeps failing the same way (the log has the full line once)."""
-        limit = self.dicom.retry.warn_after_failures
-        return [f"DICOM send to '{name}' failing ({short})" for name, (n, short) in sorted(self.failures.items())
-                if n >= limit]
+        return self.streaks.problems()

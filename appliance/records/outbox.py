@@ -21,11 +21,12 @@ running appliance) may use the same file: every change is one short transaction.
 
 from __future__ import annotations
 
+import logging
 import os
 import sqlite3
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TypeVar
 
@@ -60,6 +61,44 @@ class Pending:
     next_try_wall: float
     last_error: str | None
     leased: bool
+
+
+@dataclass
+class RoundReport:
+    """What one round of a sender did."""
+
+    sent: dict[str, int] = field(default_factory=dict)          # destination -> objects confirmed
+    errors: list[str] = field(default_factory=list)              # one line each
+
+
+class FailureStreaks:
+    """Rounds in a row each destination failed, for a sender's banner and its one log line.
+
+    After `warn_after` failed rounds in a row a destination counts as failing: one warning
+    goes to the log and `problems()` names it (a few stable words, for the banner) until it
+    answers again, which is logged once too. `counts` is kept across a profile reload."""
+
+    def __init__(self, what: str, warn_after: int, logger: logging.Logger,
+                 counts: dict[str, tuple[int, str]] | None = None):
+        self.what, self.warn_after, self.log = what, warn_after, logger
+        #: Destination -> (failed rounds in a row, the last error's short reason).
+        self.counts: dict[str, tuple[int, str]] = dict(counts or {})
+
+    def failed(self, name: str, message: str, short: str) -> None:
+        n = self.counts.get(name, (0, ""))[0] + 1
+        self.counts[name] = (n, short)
+        if n == self.warn_after:
+            self.log.warning("%s destination keeps failing (%d attempts in a row); objects stay queued: %s", self.what, n, message)
+
+    def answered(self, name: str) -> None:
+        if self.counts.get(name, (0, ""))[0] >= self.warn_after:
+            self.log.info("%s destination '%s' answers again; its queue is being sent", self.what, name)
+        self.counts.pop(name, None)
+
+    def problems(self) -> list[str]:
+        """A few words per destination that keeps failing; the same while it fails the same way."""
+        return [f"{self.what} send to '{name}' failing ({short})" for name, (n, short) in sorted(self.counts.items())
+                if n >= self.warn_after]
 
 
 def _alive(pid: int | None) -> bool:
@@ -116,9 +155,15 @@ class Outbox:
         """Queue `payload` under `key` for each destination; True if anything new was queued.
         An object already queued keeps its deliveries (a sent one stays sent); a destination
         it was not yet queued for is added."""
+        return self.put_many([(key, label, payload)], destinations, session_id=session_id, now=now) > 0
+
+    def put_many(self, objects: list[tuple[str, str, bytes]], destinations: list[str], *,
+                 session_id: int | None = None, now: float | None = None) -> int:
+        """Queue several (key, label, payload) objects in one transaction, all or none; returns
+        how many objects had anything new queued (as `put`)."""
         now = time.time() if now is None else now
 
-        def work() -> bool:
+        def one(key: str, label: str, payload: bytes) -> bool:
             cur = self._conn.execute(
                 "INSERT OR IGNORE INTO outbox_items (kind, item_key, session_id, label, payload, created_wall) "
                 "VALUES (?, ?, ?, ?, ?, ?)", (self.kind, key, session_id, label, sqlite3.Binary(payload), now))
@@ -130,7 +175,12 @@ class Outbox:
                                          "VALUES (?, ?, ?)", (item_id, name, now))
                 added = added or cur.rowcount > 0
             return added
-        return self._write(work)
+        return self._write(lambda: sum(one(*o) for o in objects))
+
+    def has(self, key: str) -> bool:
+        """Whether an object `key` was ever queued (sent or not)."""
+        return self._conn.execute("SELECT 1 FROM outbox_items WHERE kind = ? AND item_key = ?",
+                                  (self.kind, key)).fetchone() is not None
 
     def claim(self, destination: str, *, now: float | None = None, lease_s: float, limit: int = 16,
               ignore_backoff: bool = False, key: str | None = None) -> list[Item]:

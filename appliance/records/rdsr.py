@@ -15,13 +15,17 @@ ms, mm, m2. The ledger records mGy and Gy cm^2; they are converted here.
 from __future__ import annotations
 
 import datetime as dt
+import json
 
+import numpy as np
 from pydicom.dataset import Dataset
 from pydicom.sequence import Sequence
 
 from ..config.case import CaseProfile
 from ..config.fluoroscope import FluoroscopeProfile
+from . import rdsr_anchor
 from .dicom import ds_number
+from .positioner import positioner_angles
 from .study import (
     LOCAL_SCHEME,
     TRAINING_PROCEDURE,
@@ -72,6 +76,8 @@ DAP_TOTAL = ("113722", "DCM", "Dose Area Product Total")
 DOSE_RP_TOTAL = ("113725", "DCM", "Dose (RP) Total")
 RADIOGRAPHIC_FRAMES = ("113731", "DCM", "Total Number of Radiographic Frames")
 DISTANCE_SOURCE_TO_RP = ("113737", "DCM", "Distance Source to Reference Point")
+POSITIONER_PRIMARY_ANGLE = ("112011", "DCM", "Positioner Primary Angle")
+POSITIONER_SECONDARY_ANGLE = ("112012", "DCM", "Positioner Secondary Angle")
 REFERENCE_POINT_DEFINITION = ("113780", "DCM", "Reference Point Definition")
 RP_15CM_FROM_ISOCENTER = ("113860", "DCM", "15cm from Isocenter toward Source")
 IRRADIATION_EVENT = ("113706", "DCM", "Irradiation Event X-Ray Data")
@@ -116,6 +122,7 @@ U_M2 = ("m2", "UCUM", "m2")
 U_PULSE_RATE = ("{pulse}/s", "UCUM", "pulse/s")
 U_PULSES = ("{pulses}", "UCUM", "pulses")
 U_NONE = ("1", "UCUM", "no units")
+U_DEG = ("deg", "UCUM", "deg")
 
 
 def _item(relationship: str | None, value_type: str, concept: tuple) -> Dataset:
@@ -215,7 +222,19 @@ def _person_participant(study: SessionStudy) -> Dataset:
     return pname_item("CONTAINS", PERSON_NAME, person_name(study.operator), properties)
 
 
-def _irradiation_event(run: dict, event_uid: str, study: SessionStudy) -> Dataset:
+def run_angles(events: list[dict], on: dict, off: dict) -> tuple[float, float] | None:
+    """Positioner angles (deg) of a run: of its first recorded image's pose (the ledger's `view`
+    records, which teaching writes for the first image of every exposure); None without one."""
+    for e in events:
+        if on["id"] < e["id"] < off["id"] and e["kind"] == "view":
+            T = json.loads(e["detail"]).get("T_xray_from_ct")
+            if T is not None:
+                return positioner_angles(np.asarray(T, dtype=np.float64))
+    return None
+
+
+def _irradiation_event(run: dict, event_uid: str, study: SessionStudy,
+                       angles: tuple[float, float] | None = None) -> Dataset:
     pulsed = run.get("pulse_rate_per_s") is not None
     kerma_gy = run["air_kerma_mgy"] / 1000.0
     children = [
@@ -234,6 +253,10 @@ def _irradiation_event(run: dict, event_uid: str, study: SessionStudy) -> Datase
     # OpenREM and TID 10003 read the distance per irradiation event.
     if run.get("source_to_reference_mm"):
         children.append(num_item("CONTAINS", DISTANCE_SOURCE_TO_RP, run["source_to_reference_mm"], U_MM))
+    if angles is not None:
+        # TID 10003C, at the run's start (the C-arm may move during the run; the images carry their own).
+        children += [num_item("CONTAINS", POSITIONER_PRIMARY_ANGLE, round(angles[0], 1), U_DEG),
+                     num_item("CONTAINS", POSITIONER_SECONDARY_ANGLE, round(angles[1], 1), U_DEG)]
     children.append(code_item("CONTAINS", FLUORO_MODE, PULSED if pulsed else CONTINUOUS))
     if pulsed:
         children += [num_item("CONTAINS", PULSE_RATE, run["pulse_rate_per_s"], U_PULSE_RATE),
@@ -260,6 +283,7 @@ def session_report(session: dict, events: list[dict]) -> Dataset:
     """The RDSR dataset of one ended session; `session` and `events` are ledger rows."""
     study = session_study(session, events)
     runs = runs_of(events)
+    angles = [run_angles(events, on, off) for on, off, _ in runs]
     started, ended = utc(session["started_wall"]), utc(session["ended_wall"] or session["started_wall"])
     dap_gy_m2 = session["dap_gy_cm2"] / 1e4
     kerma_gy = session["air_kerma_mgy"] / 1000.0
@@ -289,11 +313,11 @@ def session_report(session: dict, events: list[dict]) -> Dataset:
                   [uid_item("HAS PROPERTIES", STUDY_INSTANCE_UID, study.study_uid)]),
         code_item("CONTAINS", DETECTOR_DATA_AVAILABLE, NO),
         code_item("CONTAINS", SOURCE_DATA_AVAILABLE, YES),
-        # Positioner angles and table positions (TID 10003C) are not modelled; the fixed source
-        # to reference point distance is given with each irradiation event.
-        code_item("CONTAINS", MECHANICAL_DATA_AVAILABLE, NO),
+        # Positioner angles (TID 10003C) where the ledger holds a run's pose; no table positions.
+        # The fixed source to reference point distance is given with each irradiation event.
+        code_item("CONTAINS", MECHANICAL_DATA_AVAILABLE, YES if any(a is not None for a in angles) else NO),
         container("CONTAINS", ACCUMULATED, accumulated, "10002"),
-        *[_irradiation_event(detail, study.event_uid(on["hash"]), study) for on, _, detail in runs],
+        *[_irradiation_event(detail, study.event_uid(on["hash"]), study, a) for (on, _, detail), a in zip(runs, angles)],
         text_item("CONTAINS", COMMENT, f"Simulated fluoroscopy (fluorosim training session {session['id']}, "
                                        f"case '{session['case_title']}'); no patient was exposed."),
         code_item("CONTAINS", SOURCE_OF_DOSE_INFORMATION, AUTOMATED_DATA_COLLECTION),
@@ -329,6 +353,8 @@ def session_report(session: dict, events: list[dict]) -> Dataset:
     template.TemplateIdentifier = "10001"
     ds.ContentTemplateSequence = Sequence([template])
     ds.ContentSequence = Sequence(content)
+    # The ledger's entry that ends the session, kept outside the ledger with the report (records.rdsr_anchor).
+    rdsr_anchor.stamp(ds, events)
     return ds
 
 

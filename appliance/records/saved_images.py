@@ -28,6 +28,7 @@ from ..console.state import ConsoleState
 from ..errors import FluorosimError
 from .dicom import ds_number as _ds_number
 from .dicom import encode
+from .positioner import positioner_angles
 from .study import SessionStudy, apply_common, person_name, procedure_step_reference
 
 
@@ -46,8 +47,9 @@ def _as_display(image: np.ndarray) -> np.ndarray:
 
 
 def dicom_image(pixels: np.ndarray, state: ConsoleState, fl: FluoroscopeProfile, *, t_wall: float,
-                study: SessionStudy, event_uid: str | None) -> Dataset:
-    """The RF image of one save; `event_uid` is the Irradiation Event UID of the run it shows."""
+                study: SessionStudy, event_uid: str | None, T_xray_from_ct: np.ndarray | None = None) -> Dataset:
+    """The RF image of one save; `event_uid` is the Irradiation Event UID of the run it shows,
+    `T_xray_from_ct` the pose of the C-arm to the patient it was rendered at (None: unknown)."""
     rows, cols = pixels.shape
     when = dt.datetime.fromtimestamp(t_wall, tz=dt.UTC)
     # The field of view fills the image: this zoom's pixel size at the detector plane.
@@ -72,6 +74,10 @@ def dicom_image(pixels: np.ndarray, state: ConsoleState, fl: FluoroscopeProfile,
     ds.PatientOrientation = ""
     ds.ImageLaterality = "U"      # the trunk: an unpaired body part
     ds.ReferencedPerformedProcedureStepSequence = procedure_step_reference(study)
+    # The step as PS3.17 J.2.2 asks a modality without MPPS to describe it (see study.procedure_step_uid).
+    ds.PerformedProcedureStepID = ds.StudyID
+    ds.PerformedProcedureStepStartDate, ds.PerformedProcedureStepStartTime = ds.StudyDate, ds.StudyTime
+    ds.PerformedProcedureStepDescription = f"Training session, {study.case_title}"[:64]
     if event_uid is not None:
         ds.IrradiationEventUID = event_uid
     ds.ImageComments = f"{'Held' if state.image == 'held' else 'Live'} image; fluoroscopy time {state.fluoro_time_display} min"
@@ -91,6 +97,12 @@ def dicom_image(pixels: np.ndarray, state: ConsoleState, fl: FluoroscopeProfile,
     ds.DistanceSourceToDetector = _ds_number(fl.geometry.source_to_image_mm)
     ds.DistanceSourceToPatient = _ds_number(fl.geometry.source_to_isocentre_mm)
     ds.EstimatedRadiographicMagnificationFactor = _ds_number(fl.geometry.source_to_image_mm / fl.geometry.source_to_isocentre_mm)
+    if T_xray_from_ct is not None:
+        # The C-arm's angulation as a C-arm's RF image carries it (the XA Positioner's attributes:
+        # a Standard Extended RF image, as a mobile C-arm's are; the RF IOD has only Column Angulation).
+        primary, secondary = positioner_angles(T_xray_from_ct)
+        ds.PositionerPrimaryAngle = _ds_number(round(primary, 1))
+        ds.PositionerSecondaryAngle = _ds_number(round(secondary, 1))
     ds.ImagerPixelSpacing = [_ds_number(pitch), _ds_number(pitch)]
     round_field = fl.detector.kind == "image_intensifier"
     ds.FieldOfViewShape = "ROUND" if round_field else "RECTANGLE"
@@ -124,7 +136,8 @@ def dicom_image(pixels: np.ndarray, state: ConsoleState, fl: FluoroscopeProfile,
 
 
 def save_image(image: np.ndarray, state: ConsoleState, fluoroscope: FluoroscopeProfile, out_dir: Path, *,
-               t_wall: float, study: SessionStudy, event_uid: str | None) -> tuple[Path, Path]:
+               t_wall: float, study: SessionStudy, event_uid: str | None,
+               T_xray_from_ct: np.ndarray | None = None) -> tuple[Path, Path]:
     """Write image-<session>-<n>.png and .dcm into `out_dir`; never overwrites. Returns both paths."""
     pixels = _as_display(image)
     out_dir = Path(out_dir)
@@ -137,7 +150,8 @@ def save_image(image: np.ndarray, state: ConsoleState, fluoroscope: FluoroscopeP
     ok, png = cv2.imencode(".png", pixels)
     if not ok:
         raise FluorosimError(f"{out_dir / stem}.png: the image could not be encoded as PNG")
-    dicom = encode(dicom_image(pixels, state, fluoroscope, t_wall=t_wall, study=study, event_uid=event_uid))
+    dicom = encode(dicom_image(pixels, state, fluoroscope, t_wall=t_wall, study=study, event_uid=event_uid,
+                               T_xray_from_ct=T_xray_from_ct))
     png_path = write_atomic(out_dir / f"{stem}.png", png.tobytes(), overwrite=False)
     try:
         dcm_path = write_atomic(out_dir / f"{stem}.dcm", dicom, overwrite=False)

@@ -100,8 +100,16 @@ class SessionStudy:
 
     @property
     def procedure_step_uid(self) -> str:
-        """The session as a performed procedure step, which the report and the images reference
-        (IHE REM requires the reference; no MPPS message is sent for it)."""
+        """The session as a performed procedure step, which the report and the images reference.
+
+        No MPPS N-CREATE/N-SET is sent for it, by choice: a training session is no ordered
+        procedure (no worklist entry, a virtual patient), so an MPPS would put an unscheduled
+        procedure for a patient who does not exist into the RIS, and the dose registry and
+        PACS that take the objects do not need one. The reference stays because IHE REM makes
+        it Type 1 in the dose report (dciodvfy -profile IHEREM refuses it empty or absent), and
+        PS3.17 Annex J.2.2 describes exactly this: a modality that cannot N-CREATE generates the
+        MPPS SOP Instance UID and puts it in its objects, and a system that later N-CREATEs the
+        step (J.5) uses that UID, with the step's ID and start date and time from the images."""
         return uid("performed procedure step", self.start_hash)
 
     @staticmethod

@@ -47,7 +47,8 @@ def run_trainee(args) -> int:
 
 def run_lrs_send(args) -> int:
     from ..config import ApplianceProfile, load_profile, resolve
-    from .xapi import XapiQueue, queue_ended_sessions, read_password, send_pending
+    from ..records.outbox import Outbox
+    from .xapi import KIND, XapiSender, queue_ended_sessions
 
     config = Path(args.config)
     if not config.is_file():
@@ -57,17 +58,33 @@ def run_lrs_send(args) -> int:
     if lrs is None:
         raise FluorosimError(f"{config}: no teaching.lrs section; add the LRS's endpoint, username, password_file "
                              "and account_home_page to send results")
-    data_dir = resolve(config, appliance.data_dir)
-    conn = open_readonly(data_dir / "ledger.sqlite")
-    queue = XapiQueue(data_dir / "xapi-outbox.sqlite")
+    path = resolve(config, appliance.data_dir) / "ledger.sqlite"
+    conn = open_readonly(path)
     try:
-        sessions = queue_ended_sessions(conn, queue, lrs)
-        sent = send_pending(queue, lrs, read_password(resolve(config, lrs.password_file)))
-        print(f"{sessions} session(s) queued, {sent} statement(s) sent to {lrs.endpoint}; {queue.count_pending()} waiting")
+        # The running appliance's send queue, in the ledger's file: a statement it sent is not sent again.
+        with Outbox(path, KIND) as outbox:
+            sessions = queue_ended_sessions(conn, outbox, lrs)
+            report = XapiSender(outbox, lrs, config).run_round(ignore_backoff=True)
+            waiting = len(outbox.pending())
     finally:
-        queue.close()
         conn.close()
+    if report.errors:
+        raise FluorosimError(report.errors[0])
+    print(f"{sessions} session(s) queued, {sum(report.sent.values())} statement(s) sent to {lrs.endpoint}; "
+          f"{waiting} waiting")
     return 0
+
+
+def run_lrs_queue(args) -> int:
+    from ..config import ApplianceProfile, load_profile, resolve
+    from ..records.dicom_commands import print_queue
+    from .xapi import KIND
+
+    config = Path(args.config)
+    if not config.is_file():
+        raise FluorosimError(f"{config}: no appliance profile there; give --config PATH")
+    appliance = load_profile(config, ApplianceProfile)
+    return print_queue(resolve(config, appliance.data_dir) / "ledger.sqlite", KIND)
 
 
 def register(commands, benches) -> None:
@@ -96,9 +113,16 @@ def register(commands, benches) -> None:
     lrs = command_group(commands, "lrs", "send trainees' results to the Learning Record Store (xAPI)")
     send = lrs.add_parser("send", help="queue every ended session's xAPI statements and send what is queued",
                           description="Queues the xAPI statements of each ended session not queued before (in "
-                                      "xapi-outbox.sqlite in data_dir) and sends what is waiting to teaching.lrs. A "
+                                      "the ledger's send queue, which the running appliance sends from too) and sends "
+                                      "what is waiting to teaching.lrs now, ignoring the retry wait. A "
                                       "refusal or an unreachable LRS is one line, exit 2, and nothing is lost: the "
                                       "statements stay queued for the next run; none is ever stored twice.")
     send.add_argument("--config", default="configs/appliance.yaml", metavar="PATH",
                       help="appliance profile with the teaching.lrs section (default configs/appliance.yaml)")
     send.set_defaults(run=run_lrs_send)
+    q = lrs.add_parser("queue", help="the statements not yet taken by the LRS, and why",
+                       description="One line per statement in the send queue that the LRS has not confirmed: its "
+                                   "session, tries, when it is tried next and the last error.")
+    q.add_argument("--config", default="configs/appliance.yaml", metavar="PATH",
+                   help="appliance profile whose data_dir holds the ledger (default configs/appliance.yaml)")
+    q.set_defaults(run=run_lrs_queue)

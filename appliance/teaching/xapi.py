@@ -8,27 +8,34 @@ context names the appliance, the session and the case. Each statement's id is a 
 from the appliance, the session and the task, so queuing or sending it again can never
 make a second copy: the LRS keeps one statement per id.
 
-The queue is its own SQLite file (xapi-outbox.sqlite beside the ledger), not the ledger:
-the ledger stays the one record of what happened, the queue only what is still to send.
-It sits behind `put` / `pending` / `sent` / `failed`, the interface a shared outbox of the
-DICOM sends can take over.
+The statements wait in the ledger file's send queue (records.outbox, kind "xapi", one
+destination "lrs"), beside the DICOM objects and outside the event chain: they survive
+kill -9 and power loss, go out with backoff, and one confirmed is never handed out again.
+The running appliance queues an ended session's statements and its send worker delivers
+them (daemon.send_worker); `fluorosim lrs send` queues any ended session not yet queued and
+sends at once, from the same queue.
 """
 
 from __future__ import annotations
 
 import base64
 import json
+import logging
 import re
 import sqlite3
-import time
 import urllib.error
 import urllib.request
 import uuid
 from pathlib import Path
 
 from .. import __version__
+from ..config.loading import resolve
+from ..config.teaching import Lrs
 from ..errors import FluorosimError
 from ..records.export import iso
+from ..records.outbox import FailureStreaks, Outbox, RoundReport
+
+log = logging.getLogger(__name__)
 
 XAPI_VERSION = "1.0.3"
 VERB_PASSED = "http://adlnet.gov/expapi/verbs/passed"
@@ -40,6 +47,9 @@ ACTIVITY_TYPE_SIMULATION = "http://adlnet.gov/expapi/activities/simulation"
 ID_NAMESPACE = uuid.UUID("5b0f3f0e-8a53-4c6e-9a55-0f1a0e5c7d21")
 #: Statements sent in one request.
 BATCH = 50
+#: The outbox's kind and the one destination of the statements.
+KIND = "xapi"
+DESTINATION = "lrs"
 
 
 def _slug(text: str) -> str:
@@ -58,7 +68,7 @@ def _extensions(metrics: dict) -> dict:
     return out
 
 
-def statements(m: dict, lrs) -> list[dict]:
+def statements(m: dict, lrs: Lrs) -> list[dict]:
     """The statements of one session's metrics (`metrics.session_metrics`) for LRS profile `lrs`."""
     info = m["session"]
     actor = {"objectType": "Agent", "name": info["trainee"],
@@ -100,57 +110,36 @@ def statements(m: dict, lrs) -> list[dict]:
     return out
 
 
-class XapiQueue:
-    """Statements waiting for the LRS, kept on disk until it has taken them (SQLite, WAL, FULL sync)."""
+def _label(s: dict, session_id: int) -> str:
+    return f"xAPI '{s['verb']['display']['en']} {s['object']['definition']['name']['en']}' of session {session_id}"
 
-    def __init__(self, path: str | Path):
-        self.path = Path(path)
-        try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._conn = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
-            self._conn.execute("PRAGMA journal_mode = WAL")
-            self._conn.execute("PRAGMA synchronous = FULL")
-            self._conn.execute("PRAGMA busy_timeout = 5000")
-            self._conn.execute("CREATE TABLE IF NOT EXISTS statements (id TEXT PRIMARY KEY, session_id INTEGER NOT NULL, "
-                               "body TEXT NOT NULL, queued_wall REAL NOT NULL, attempts INTEGER NOT NULL DEFAULT 0, "
-                               "last_error TEXT, sent_wall REAL)")
-            self._conn.execute("CREATE TABLE IF NOT EXISTS sessions (session_id INTEGER PRIMARY KEY, queued_wall REAL NOT NULL)")
-        except (sqlite3.Error, OSError) as e:
-            raise FluorosimError(f"{self.path}: cannot open the xAPI queue ({e}); check the data folder") from None
 
-    def put(self, session_id: int, items: list[dict]) -> int:
-        """Queue a session's statements, all or none; one already queued (same id) is not queued
-        again. Returns how many were new."""
-        with self._conn:
-            before = self._conn.total_changes
-            self._conn.executemany("INSERT OR IGNORE INTO statements (id, session_id, body, queued_wall) VALUES (?, ?, ?, ?)",
-                                   [(s["id"], session_id, json.dumps(s, sort_keys=True), time.time()) for s in items])
-            new = self._conn.total_changes - before
-            self._conn.execute("INSERT OR IGNORE INTO sessions (session_id, queued_wall) VALUES (?, ?)", (session_id, time.time()))
-            return new
+def _marker(session_id: int) -> str:
+    # Queued last, with no delivery: the session's statements are all in the queue.
+    return f"session/{session_id}"
 
-    def queued_sessions(self) -> set[int]:
-        return {r[0] for r in self._conn.execute("SELECT session_id FROM sessions")}
 
-    def pending(self, limit: int = BATCH) -> list[dict]:
-        rows = self._conn.execute("SELECT body FROM statements WHERE sent_wall IS NULL ORDER BY rowid LIMIT ?", (limit,))
-        return [json.loads(r[0]) for r in rows]
+def queue_session(outbox: Outbox, conn: sqlite3.Connection, session_id: int, lrs: Lrs) -> int:
+    """Queue the statements of ended session `session_id` for the LRS (kind "xapi", keyed by
+    statement id); returns how many were new. Queuing a session again adds nothing."""
+    from .metrics import session_metrics
 
-    def count_pending(self) -> int:
-        return self._conn.execute("SELECT count(*) FROM statements WHERE sent_wall IS NULL").fetchone()[0]
+    if outbox.has(_marker(session_id)):
+        return 0        # queued before (an ended session's statements never change): spare the replay
+    items = statements(session_metrics(conn, session_id), lrs)
+    new = outbox.put_many([(st["id"], _label(st, session_id), json.dumps(st, sort_keys=True).encode()) for st in items],
+                          [DESTINATION], session_id=session_id)
+    outbox.put(_marker(session_id), f"xAPI statements of session {session_id} queued", b"", [], session_id=session_id)
+    return new
 
-    def sent(self, ids: list[str]) -> None:
-        with self._conn:
-            self._conn.executemany("UPDATE statements SET sent_wall = ?, last_error = NULL WHERE id = ?",
-                                   [(time.time(), i) for i in ids])
 
-    def failed(self, ids: list[str], error: str) -> None:
-        with self._conn:
-            self._conn.executemany("UPDATE statements SET attempts = attempts + 1, last_error = ? WHERE id = ?",
-                                   [(error, i) for i in ids])
-
-    def close(self) -> None:
-        self._conn.close()
+def queue_ended_sessions(conn: sqlite3.Connection, outbox: Outbox, lrs: Lrs) -> int:
+    """Queue the statements of every ended session of the ledger not queued before; returns how many sessions."""
+    ended = [r[0] for r in conn.execute("SELECT id FROM sessions WHERE ended_wall IS NOT NULL ORDER BY id")]
+    todo = [sid for sid in ended if not outbox.has(_marker(sid))]
+    for sid in todo:
+        queue_session(outbox, conn, sid, lrs)
+    return len(todo)
 
 
 def read_password(path: Path) -> str:
@@ -161,78 +150,99 @@ def read_password(path: Path) -> str:
                              "check teaching.lrs.password_file in the appliance profile") from None
 
 
-def _request(lrs, password: str, method: str, url: str, body: bytes | None = None):
+def _request(lrs: Lrs, password: str, method: str, url: str, body: bytes | None = None):
     auth = base64.b64encode(f"{lrs.username}:{password}".encode()).decode()
     req = urllib.request.Request(url, data=body, method=method, headers={
         "Authorization": f"Basic {auth}", "X-Experience-API-Version": XAPI_VERSION, "Content-Type": "application/json"})
     return urllib.request.urlopen(req, timeout=lrs.timeout_s)
 
 
-def _statements_url(lrs) -> str:
+def _statements_url(lrs: Lrs) -> str:
     return lrs.endpoint.rstrip("/") + "/statements"
 
 
-def _refusal(lrs, e: Exception, kept: int) -> FluorosimError:
+class LrsError(Exception):
+    """The LRS did not take a request: `str()` is the one line; `short` a few stable words for the banner."""
+
+    def __init__(self, message: str, short: str):
+        super().__init__(message)
+        self.short = short
+
+
+def _refusal(lrs: Lrs, e: Exception) -> LrsError:
     where = _statements_url(lrs)
     if isinstance(e, urllib.error.HTTPError):
         if e.code in (401, 403):
-            why = f"refused the credentials (HTTP {e.code}); check teaching.lrs.username and password_file"
+            why, short = (f"refused the credentials (HTTP {e.code}); check teaching.lrs.username and password_file",
+                          "credentials refused")
         else:
             detail = e.read(300).decode("utf-8", "replace").strip().replace("\n", " ")
-            why = f"answered HTTP {e.code} {e.reason}" + (f": {detail}" if detail else "")
+            why, short = f"answered HTTP {e.code} {e.reason}" + (f": {detail}" if detail else ""), f"HTTP {e.code}"
     else:
         reason = getattr(e, "reason", e)
-        why = f"cannot be reached ({reason}); check teaching.lrs.endpoint and the network"
-    return FluorosimError(f"LRS {where} {why}; {kept} statement(s) kept in the queue for the next try")
+        why, short = f"cannot be reached ({reason}); check teaching.lrs.endpoint and the network", str(reason)
+    return LrsError(f"LRS {where} {why}", short)
 
 
-def send_pending(queue: XapiQueue, lrs, password: str) -> int:
-    """Send what is queued, in batches; returns how many the LRS took. On a refusal or a network
-    failure nothing is lost: the statements stay queued and FluorosimError says why in one line."""
-    total = 0
-    while True:
-        batch = queue.pending()
-        if not batch:
-            return total
-        ids = [s["id"] for s in batch]
+def _post(lrs: Lrs, password: str, batch: list[dict]) -> None:
+    """Store `batch` in the LRS; LrsError if it does not take it. A statement the LRS holds
+    already (an earlier send whose answer was lost) counts as taken: a POST answered 409 is
+    sent again one by one with PUT, which an LRS answers 204 (or 409) for a statement it holds."""
+    try:
+        with _request(lrs, password, "POST", _statements_url(lrs), json.dumps(batch).encode()) as response:
+            response.read()
+        return
+    except urllib.error.HTTPError as e:
+        if e.code != 409:
+            raise _refusal(lrs, e) from None
+    except (urllib.error.URLError, OSError) as e:
+        raise _refusal(lrs, e) from None
+    for st in batch:
         try:
-            with _request(lrs, password, "POST", _statements_url(lrs), json.dumps(batch).encode()) as response:
+            with _request(lrs, password, "PUT", f"{_statements_url(lrs)}?statementId={st['id']}",
+                          json.dumps(st).encode()) as response:
                 response.read()
-            queue.sent(ids)
-            total += len(ids)
-            continue
         except urllib.error.HTTPError as e:
             if e.code != 409:
-                queue.failed(ids, f"HTTP {e.code}")
-                raise _refusal(lrs, e, queue.count_pending()) from None
+                raise _refusal(lrs, e) from None
         except (urllib.error.URLError, OSError) as e:
-            queue.failed(ids, str(getattr(e, "reason", e)))
-            raise _refusal(lrs, e, queue.count_pending()) from None
-        # 409: some of the batch is already in the LRS (an earlier send whose answer was lost);
-        # one by one, with PUT, which an LRS answers 204 for a statement it holds already.
-        for s in batch:
+            raise _refusal(lrs, e) from None
+
+
+class XapiSender:
+    """Sends the queued statements (outbox kind "xapi") to the LRS of `lrs`; `profile` is the
+    appliance profile's path (password_file is relative to it). A refusal or an unreachable LRS fails the batch,
+    which waits with backoff (lrs.retry); after `retry.warn_after_failures` failed rounds in
+    a row `problems()` gives the banner's words and one warning is logged."""
+
+    def __init__(self, outbox: Outbox, lrs: Lrs, profile: Path, *, failures: dict[str, tuple[int, str]] | None = None):
+        self.outbox, self.lrs, self.profile = outbox, lrs, profile
+        self.streaks = FailureStreaks("xAPI", lrs.retry.warn_after_failures, log, failures)
+        #: Kept across a reload, as the DICOM sender's.
+        self.failures = self.streaks.counts
+
+    def run_round(self, *, ignore_backoff: bool = False) -> RoundReport:
+        """Send what is due, in batches of BATCH, until the queue is empty or the LRS fails."""
+        report, retry = RoundReport(), self.lrs.retry
+        while True:
+            items = self.outbox.claim(DESTINATION, lease_s=self.lrs.timeout_s * (BATCH + 3), limit=BATCH,
+                                      ignore_backoff=ignore_backoff)
+            if not items:
+                return report
             try:
-                with _request(lrs, password, "PUT", f"{_statements_url(lrs)}?statementId={s['id']}",
-                              json.dumps(s).encode()) as response:
-                    response.read()
-            except urllib.error.HTTPError as e:
-                if e.code != 409:
-                    queue.failed([s["id"]], f"HTTP {e.code}")
-                    raise _refusal(lrs, e, queue.count_pending()) from None
-            except (urllib.error.URLError, OSError) as e:
-                queue.failed([s["id"]], str(getattr(e, "reason", e)))
-                raise _refusal(lrs, e, queue.count_pending()) from None
-            queue.sent([s["id"]])
-            total += 1
+                password = read_password(resolve(self.profile, self.lrs.password_file))
+                _post(self.lrs, password, [json.loads(i.payload) for i in items])
+            except (LrsError, FluorosimError) as e:
+                message = f"{e}; {len(self.outbox.pending())} statement(s) kept in the queue for the next try"
+                for item in items:
+                    self.outbox.failed(item, str(e), first_delay_s=retry.first_delay_s, max_delay_s=retry.max_delay_s)
+                report.errors.append(message)
+                self.streaks.failed(DESTINATION, message, getattr(e, "short", "password file unreadable"))
+                return report
+            for item in items:
+                self.outbox.delivered(item)
+            report.sent[DESTINATION] = report.sent.get(DESTINATION, 0) + len(items)
+            self.streaks.answered(DESTINATION)
 
-
-def queue_ended_sessions(conn: sqlite3.Connection, queue: XapiQueue, lrs) -> int:
-    """Queue the statements of every ended session of the ledger not queued before; returns how many sessions."""
-    from .metrics import session_metrics
-
-    done = queue.queued_sessions()
-    ended = [r[0] for r in conn.execute("SELECT id FROM sessions WHERE ended_wall IS NOT NULL ORDER BY id")]
-    todo = [sid for sid in ended if sid not in done]
-    for sid in todo:
-        queue.put(sid, statements(session_metrics(conn, sid), lrs))
-    return len(todo)
+    def problems(self) -> list[str]:
+        return self.streaks.problems()
