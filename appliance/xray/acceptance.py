@@ -277,12 +277,13 @@ def run(args) -> int:
     print(f"{'zoom':>4} {'SNR measured':>12} {'photon stats':>12} {'ratio':>6} {'tube x':>7}")
     snrs = []
     for zoom in (1, 2, 3, 4):
-        transmission = float(np.median(renderer.render(prepared, T, View(zoom=zoom, quantity="intensity", noise=False)).image[
-            _disc(renderer.shape, 0.1)]))
         roi = _disc(renderer.shape, 0.25)
         # The noise is the signal over its noise-free self (vignetting and the slab's own
-        # obliquity divide out), on the detector signal the display LUT is given.
-        clean = renderer.render(prepared, T, View(zoom=zoom, noise=False)).signal[roi]
+        # obliquity divide out), on the detector signal the display LUT is given. The slab's
+        # transmission is read from that signal: at the kV the exposure control set.
+        clean_frame = renderer.render(prepared, T, View(zoom=zoom, noise=False))
+        transmission = float(np.median(clean_frame.signal[_disc(renderer.shape, 0.1)]))
+        clean = clean_frame.signal[roi]
         measured = []
         for seed in range(3):
             frame = renderer.render(prepared, T, View(zoom=zoom, noise=True, seed=100 + seed))
@@ -290,7 +291,8 @@ def run(args) -> int:
         vig = renderer.detector.gain(zoom)
         transmission_at_detector = transmission / (1.0 if vig is None else float(np.median(vig[_disc(renderer.shape, 0.1)])))
         expected = expected_slab_snr(renderer.fluoroscope, zoom, transmission_at_detector, frame.exposure_factor,
-                                     renderer.mu_water_per_mm, renderer.detector.psf_sigma_px(zoom), settled=True)
+                                     renderer.mu_water_per_mm, renderer.detector.psf_sigma_px(zoom), settled=True,
+                                     kvp=frame.kvp)
         snr = statistics.median(measured)
         snrs.append(snr)
         print(f"{zoom:>4} {snr:12.1f} {expected:12.1f} {snr / expected:6.3f} {frame.exposure_factor:7.2f}")
