@@ -284,9 +284,41 @@ def test_saved_png_and_dicom_agree_with_the_screen_about_polarity(ii128, adult, 
         np.testing.assert_array_equal(ds.pixel_array, cv2.imread(str(png), cv2.IMREAD_UNCHANGED))
         saved.append(ds.pixel_array.astype(int))
     mask = ii128.field_mask(1, None, True)
-    inside = acceptance.interior(mask, ii128.detector.edge(mask, 1))
+    edge = ii128.detector.edge(mask, 1)
+    inside = acceptance.interior(mask, edge)
     assert np.abs(saved[1][inside] - (255 - saved[0][inside])).max() <= 1
-    assert saved[0][~mask].max() == 0 and saved[1][~mask].max() == 0
+    # Beyond the edge's penumbra the unit blanks the image, in either polarity.
+    assert saved[0][edge == 0].max() == 0 and saved[1][edge == 0].max() == 0
+
+
+def test_the_field_edge_fades_softly_across_the_geometric_edge():
+    """The aperture and the blades cast a blurred shadow: across the field's edge the displayed
+    grey falls over image.field_edge_mm, with half the inside's grey at the geometric edge and
+    rays cast out into the penumbra (the first wave's edge was hard, then half soft: a fade to
+    one half, then black). Read on the centre row of a uniform slab at a 256 matrix, collimated
+    to 150 mm (the circle meets the frame's border on that row), where the 3 mm fall spans
+    about 3 pixels."""
+    fl = at_resolution(II, 256, 256)
+    r = Renderer(fl, Materials(), device="cpu")
+    prepared = r.prepare(acceptance._water_slab(150.0))
+    blades = (150.0, 150.0)
+    grey = r.render(prepared, acceptance.ap_pose(620.0), View(noise=False, collimation_mm=blades)).image
+    mask = r.field_mask(1, blades, True)
+    row = 128
+    cols = np.flatnonzero(mask[row])
+    right = cols[-1]                                    # the last pixel inside the geometric circle
+    pitch = fl.detector.pixel_pitch_mm
+    fall_px = fl.image.field_edge_mm / pitch
+    start = int(np.floor(right - fall_px))
+    profile = grey[row, start - 2: right + int(np.ceil(fall_px)) + 3]
+    level = float(grey[row, start - 1])                 # just inside the fall
+    assert grey[row, right + 1] > 0.05 * level          # rays reach into the penumbra outside the field
+    assert np.all(np.diff(profile) <= 0.01 * level)      # it only falls (slab's own fall-off aside)
+    assert np.max(-np.diff(profile)) < 0.6 * level       # and over pixels, not at once (a hard edge drops it all)
+    # Half the inside's grey where the geometric edge lies (between the last pixel in and the first out).
+    at_edge = 0.5 * (grey[row, right] + grey[row, right + 1])
+    assert at_edge == pytest.approx(0.5 * level, rel=0.2)
+    assert grey[row, right + int(np.ceil(fall_px)) + 2] == 0.0          # black beyond the penumbra
 
 
 def test_bar_pattern_limiting_resolution_follows_the_profile_and_rises_with_zoom():

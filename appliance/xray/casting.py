@@ -178,6 +178,44 @@ def field_mask(fluoroscope: FluoroscopeProfile, zoom: int, collimation_mm, circl
     return m
 
 
+def penumbra_px(fluoroscope: FluoroscopeProfile, zoom: int) -> float:
+    """Half the width (pixels) of the field edge's fall-off at `zoom`: half of image.field_edge_mm
+    on each side of the geometric edge."""
+    return 0.5 * fluoroscope.image.field_edge_mm / pixel_pitch_at_zoom_mm(fluoroscope, zoom)
+
+
+def field_edge(mask: np.ndarray, half_px: float) -> np.ndarray:
+    """(rows, cols) float32 weight in [0, 1] of the blurred shadow of the aperture and blades
+    around the geometric field `mask`: a smoothstep of the signed distance from the edge over
+    [-half_px, +half_px], so one half at the geometric edge (where calibration finds it), 1 a
+    half-width inside and 0 a half-width outside. The frame's border counts as outside the
+    field: where the circle meets it, it fades as elsewhere."""
+    import cv2
+
+    if half_px < 0.25:
+        return mask.astype(np.float32)
+    # Distances (px) of pixel centres from the edge: a boundary pixel's is 0.5 on either side.
+    padded = np.pad(mask.astype(np.uint8), 1)
+    inside = cv2.distanceTransform(padded, cv2.DIST_L2, 5)[1:-1, 1:-1] - np.float32(0.5)
+    outside = cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, 5) - np.float32(0.5)
+    signed = np.where(mask, inside, -outside)
+    t = np.clip((signed + np.float32(half_px)) / np.float32(2.0 * half_px), 0.0, 1.0)
+    return (t * t * (3.0 - 2.0 * t)).astype(np.float32)
+
+
+@dataclass(frozen=True, eq=False)
+class Beam:
+    """One field's masks: `mask` the geometric field (inside the blades and the intensifier's
+    circle), `exposed` that and the edge's penumbra outside it (the pixels rays are cast for),
+    `central` the exposure control's measuring field; with their device buffers."""
+
+    mask: np.ndarray
+    mask_buf: object
+    central: np.ndarray
+    exposed: np.ndarray
+    exposed_buf: object
+
+
 def measuring_field(beam: np.ndarray) -> np.ndarray:
     """The automatic brightness control's measuring field: a disc half the diameter of the beam
     (the intensifier's circle or the collimated field), about its centre, as an ABC sensor
@@ -302,14 +340,16 @@ class Caster:
             self._dirs[key] = self.dev.upload(ray_directions(self.fluoroscope, zoom, distorted))
         return self._dirs[key]
 
-    def beam(self, zoom: int, collimation_mm, circle: bool):
-        """(beam mask, its device buffer, the brightness control's measuring field), cached."""
+    def beam(self, zoom: int, collimation_mm, circle: bool) -> Beam:
+        """The field's masks and their device buffers (see Beam), cached."""
         key = (zoom, None if collimation_mm is None else tuple(float(c) for c in collimation_mm), circle)
         if key not in self._masks:
             if len(self._masks) > 64:
                 self._masks.clear()
             m = field_mask(self.fluoroscope, zoom, collimation_mm, circle)
-            self._masks[key] = (m, self.dev.upload(m.astype(np.uint8)), measuring_field(m))
+            exposed = field_edge(m, penumbra_px(self.fluoroscope, zoom)) > 0
+            self._masks[key] = Beam(m, self.dev.upload(m.astype(np.uint8)), measuring_field(m), exposed,
+                                    self.dev.upload(exposed.astype(np.uint8)))
         return self._masks[key]
 
     # -- casting ---------------------------------------------------------------------
@@ -334,7 +374,8 @@ class Caster:
         return np.array([*lo, 0, *hi, 0], dtype=np.int32)
 
     def cast(self, volume, T_xray_from_ct, zoom, collimation_mm, blend, distorted, circle, bands=None):
-        """Device buffer of (rows, cols, 4) float32 material integrals, and the beam mask.
+        """Device buffer of (rows, cols, 4) float32 material integrals over the exposed field
+        (the edge's penumbra included; zero beyond it), and that field's mask.
 
         `bands` = (lock, n) or (lock, n, cancelled): cast in n bands of detector rows, holding
         `lock` for one band at a time, so that a long cast (a saved image at the native matrix on
@@ -344,7 +385,8 @@ class Caster:
         dev, cl = self.dev, self.dev.cl
         rows, cols = self.shape
         geo = self._geometry(volume, T_xray_from_ct)
-        mask, mask_buf, _ = self.beam(zoom, collimation_mm, circle)
+        beam = self.beam(zoom, collimation_mm, circle)
+        mask, mask_buf = beam.exposed, beam.exposed_buf
         dirs = self._dirs_buffer(zoom, distorted)
         vols = (volume,) if blend is None else (volume, blend[0])
         if blend is not None and not volume.same_grid(blend[0]):
@@ -404,7 +446,7 @@ class Caster:
         dev = self.dev
         rows, cols = self.shape
         weights, mu_rho, n_e = tables.weights_buf, tables.mu_buf, len(tables.weights)
-        _, mask_buf, _ = self.beam(zoom, collimation_mm, circle)
+        mask_buf = self.beam(zoom, collimation_mm, circle).exposed_buf
         out_buf = dev.scratch(rows * cols * 4)
         if self.packet:
             self._poly_kernel(dev.queue, (-(-rows * cols // PACKET),), None, lines, mask_buf, weights, mu_rho,
@@ -420,7 +462,7 @@ class Caster:
         dev = self.dev
         rows, cols = self.shape
         geo = self._geometry(volume, T_xray_from_ct)
-        _, mask_buf, _ = self.beam(zoom, collimation_mm, False)
+        mask_buf = self.beam(zoom, collimation_mm, False).mask_buf
         dirs = self._dirs_buffer(zoom, False)
         out = np.zeros((rows, cols), dtype=np.float32)
         box = self._box(volume)

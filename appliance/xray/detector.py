@@ -21,7 +21,7 @@ from ..config.fluoroscope import FluoroscopeProfile
 from ..console.dose import reference_distance_mm
 from ..errors import FluorosimError
 from ..patient.materials import ANODE_ANGLE_DEG, Spectrum, tube_spectrum, water_mu_per_mm
-from .casting import DetectorTables, field_radius_px, pixel_pitch_at_zoom_mm
+from .casting import DetectorTables, field_edge, field_radius_px, penumbra_px, pixel_pitch_at_zoom_mm
 
 #: MTF of the detector at its stated limiting resolution: the contrast at which the bars of
 #: a resolution pattern can no longer be told apart.
@@ -269,23 +269,10 @@ class Detector:
         return out.astype(np.float32)
 
     def edge(self, mask: np.ndarray, zoom: int) -> np.ndarray:
-        """(rows, cols) float32 weight in [0, 1]: 1 well inside the field, falling smoothly
-        toward the edge of the beam (the blurred shadow of the aperture and blades) to one half
-        at the geometric edge, so the edge is where calibration finds it; 0 outside the beam.
-        The fall spans half of field_edge_mm inside the field (the half outside the beam has
-        no rays cast)."""
-        import cv2
-
-        half_px = 0.5 * self.chain.field_edge_mm / pixel_pitch_at_zoom_mm(self.fl, zoom)
-        if half_px < 0.25:
-            return mask.astype(np.float32)
-        # Distance (px) of each in-beam pixel centre from the edge: the boundary pixel's is 0.5.
-        # The frame's border counts as outside: where the circle meets it, it fades as elsewhere.
-        padded = np.pad(mask.astype(np.uint8), 1)
-        inside = cv2.distanceTransform(padded, cv2.DIST_L2, 5)[1:-1, 1:-1] - np.float32(0.5)
-        t = np.clip(inside / np.float32(half_px), 0.0, 1.0)
-        w = 0.5 + 0.5 * t * t * (3.0 - 2.0 * t)
-        return np.where(mask, w, np.float32(0)).astype(np.float32)
+        """(rows, cols) float32 weight in [0, 1] of the field's edge at `zoom` (casting.field_edge
+        over image.field_edge_mm): the blurred shadow of the aperture and blades, one half at
+        the geometric edge of `mask`, 0 beyond the penumbra."""
+        return field_edge(mask, penumbra_px(self.fl, zoom))
 
 
 def settled_noise_gain(weight: float) -> float:

@@ -130,7 +130,7 @@ class ProjectionCache:
             for out in (out_a, out_b):
                 cl.enqueue_fill_buffer(dev.queue, out, np.float32(0), 0, rows * cols * 16)
             return out_a, out_b
-        _, mask_buf, _ = caster.beam(zoom, collimation_mm, circle)
+        mask_buf = caster.beam(zoom, collimation_mm, circle).exposed_buf
         nx, ny, nz = a.shape_xyz
         self._split(dev.queue, (-(-cols // PACKET), rows), None, a.buffer, b.buffer, np.int32(nx), np.int32(ny),
                     np.int32(nz), caster._dirs_buffer(zoom, distorted), mask_buf, dev.upload(caster._geometry(a, T)),
@@ -145,7 +145,7 @@ class ProjectionCache:
         # In projection space, phases on different grids blend as well.
         phases = [volume] if blend is None or blend[1] == 0.0 else [volume, blend[0]]
         self._cast_phases(phases, T, zoom, collimation_mm, distorted, circle)
-        mask = r.caster.beam(zoom, collimation_mm, circle)[0]
+        mask = r.caster.beam(zoom, collimation_mm, circle).exposed
         if len(phases) == 1:
             return self._lines[volume], mask
         if self._blend is None:

@@ -247,7 +247,8 @@ class Renderer:
             cast = lambda *_: (done, None)  # noqa: E731 - the cast is done; the rest takes the lock once
         with self._lock:
             lines, _ = (cast or self.caster.cast)(*args)
-            mask, _, central = self.caster.beam(view.zoom, view.collimation_mm, circle)
+            beam = self.caster.beam(view.zoom, view.collimation_mm, circle)
+            mask, exposed, central = beam.mask, beam.exposed, beam.central
             detector, chain, abc = self.detector, self.fluoroscope.image, self.fluoroscope.abc
             exposure = None
             if display and abc.enabled and abc.curve and central.any():
@@ -272,8 +273,9 @@ class Renderer:
             photons *= settled_noise_gain(chain.recursive_weight)
         if view.noise:
             image = self.quantum_noise(image, photons, view.seed)
-        image = detector.spread(image, mask, view.zoom)
-        image[~mask] = 0.0
+        # The detector sees the exposed field: the geometric field and the edge's penumbra.
+        image = detector.spread(image, exposed, view.zoom)
+        image[~(exposed if display else mask)] = 0.0
         measured = float(np.median(image[central])) if central.any() else 0.0
         if not display:
             return Frame(image, exposure.factor, exposure.attenuation, exposure.limited, photons * measured,
@@ -292,6 +294,6 @@ class Renderer:
         width *= view.window_scale
         centre += view.level_shift * width
         edge = self._edge(view.zoom, view.collimation_mm, circle, mask)
-        out = to_display(p, mask, edge, chain, view.invert, centre, width)
+        out = to_display(p, exposed, edge, chain, view.invert, centre, width)
         return Frame(out, exposure.factor, exposure.attenuation, exposure.limited, photons * measured, (centre, width), image,
                      exposure.kvp, exposure.ma)
