@@ -125,6 +125,21 @@ def minutes_and_tenths(seconds: float) -> str:
     return f"{tenths // 10}.{tenths % 10}"
 
 
+@dataclass
+class Run:
+    """The running account of one irradiation event (pedal-down to release or a settings change)."""
+
+    run: int                # 1, 2, ... this session
+    reason_on: str
+    start_t: float          # s, monotonic
+    next_pulse_t: float     # s; pulsed modes only
+    next_progress_t: float  # s; continuous modes only
+    duration_s: float = 0.0
+    air_kerma_mgy: float = 0.0
+    dap_gy_cm2: float = 0.0
+    pulses: int = 0
+
+
 class Console:
     def __init__(self, fluoroscope: FluoroscopeProfile, keymap: KeymapProfile, t0: float,
                  progress_period_s: float = PROGRESS_PERIOD_S):
@@ -135,7 +150,7 @@ class Console:
         self.zoom = 1
         self.mode_index = 0
         fov = fluoroscope.zoom_levels[0].fov_mm
-        self.collimation = (fov, fov)
+        self.collimation: tuple[float, float] = (fov, fov)
         self.invert = fluoroscope.display.invert
         self.window_scale, self.level_shift = 1.0, 0.0
         self.breath_hold = False
@@ -164,7 +179,7 @@ class Console:
         self._frame_pulses = 0
         self._exposed_since_tick = False
         self._frame_exposed = False
-        self._run: dict | None = None
+        self._run: Run | None = None
 
     # --- settings -----------------------------------------------------------------
     @property
@@ -190,9 +205,9 @@ class Console:
         dt = t - self._t
         if dt <= 0:
             return
-        if self.fluoro_on:
+        if self._run is not None:
             self.fluoro_time_s += dt
-            self._run["duration_s"] += dt
+            self._run.duration_s += dt
             if self.mode.pulse_rate_per_s is None:
                 kerma = self._rate() / 60.0 * dt
                 self._add_kerma(kerma)
@@ -202,34 +217,34 @@ class Console:
         dap = dose.dap_gy_cm2(kerma, self._area_cm2())
         self.air_kerma_mgy += kerma
         self.dap_gy_cm2 += dap
-        self._run["air_kerma_mgy"] += kerma
-        self._run["dap_gy_cm2"] += dap
+        if self._run is not None:
+            self._run.air_kerma_mgy += kerma
+            self._run.dap_gy_cm2 += dap
 
-    def _pulse(self, out: list, t: float) -> None:
-        run = self._run
-        rate = self.mode.pulse_rate_per_s
+    def _pulse(self, out: list, t: float, run: Run, rate: float) -> None:
         self._add_kerma(dose.kerma_per_pulse_mgy(self._rate(), rate))
-        run["pulses"] += 1
+        run.pulses += 1
         self._pulse_count += 1
         self.has_image = True
-        self._emit(out, t, "pulse", run=run["run"], n=run["pulses"])
-        run["pulses_since_origin"] += 1
-        run["next_pulse_t"] = run["pulse_origin_t"] + run["pulses_since_origin"] / rate
+        self._emit(out, t, "pulse", run=run.run, n=run.pulses)
+        # From the run's start, not the last pulse: no drift from summed periods.
+        run.next_pulse_t = run.start_t + run.pulses / rate
 
     def _advance(self, t: float, out: list) -> None:
         """Advance to `t`, emitting every pulse, progress record and alarm due on the way."""
         if t <= self._t:
             return
-        while self.fluoro_on:
+        while self._run is not None:
             run = self._run
+            rate = self.mode.pulse_rate_per_s
             # A pulse or progress record due exactly at `t` waits for the next advance (a release
             # at `t` comes first: pulses fall in [start, end)); the alarm is due at `t` itself,
             # with a nanosecond's slack for the rounding of summed time steps.
             due = []
-            if self.mode.pulse_rate_per_s is not None:
-                due.append((run["next_pulse_t"], 0, run["next_pulse_t"] < t))
+            if rate is not None:
+                due.append((run.next_pulse_t, 0, run.next_pulse_t < t))
             else:
-                due.append((run["next_progress_t"], 1, run["next_progress_t"] < t))
+                due.append((run.next_progress_t, 1, run.next_progress_t < t))
             alarm_t = self._t + (self._next_alarm_s - self.fluoro_time_s)
             due.append((alarm_t, 2, alarm_t <= t + ALARM_SLACK_S))
             due = [d for d in due if d[2]]
@@ -237,11 +252,11 @@ class Console:
                 break
             tn, what, _ = min(due)
             self._accrue(min(max(tn, self._t), t))
-            if what == 0:
-                self._pulse(out, tn)
+            if what == 0 and rate is not None:
+                self._pulse(out, tn, run, rate)
             elif what == 1:
-                self._emit(out, tn, "exposure", run=run["run"])
-                run["next_progress_t"] += self.progress_period_s
+                self._emit(out, tn, "exposure", run=run.run)
+                run.next_progress_t += self.progress_period_s
             else:
                 # Land exactly on the threshold: 21 CFR counts the alarm at 5:00, not a float near it.
                 self.fluoro_time_s = self._next_alarm_s
@@ -257,23 +272,24 @@ class Console:
     def _start_run(self, out: list, t: float, reason: str) -> None:
         self.runs += 1
         self.fluoro_on = True
-        mode = self.mode
-        self._run = {"run": self.runs, "reason_on": reason, "start_t": t, "duration_s": 0.0, "air_kerma_mgy": 0.0,
-                     "dap_gy_cm2": 0.0, "pulses": 0, "pulse_origin_t": t, "pulses_since_origin": 0,
-                     "next_pulse_t": t, "next_progress_t": t + self.progress_period_s}
+        rate = self.mode.pulse_rate_per_s
+        run = Run(self.runs, reason, start_t=t, next_pulse_t=t, next_progress_t=t + self.progress_period_s)
+        self._run = run
         self._emit(out, t, "fluoro_on", run=self.runs, reason=reason, **self._settings())
         self._exposed_since_tick = True
-        if mode.pulse_rate_per_s is None:
+        if rate is None:
             self.has_image = True
         else:
-            self._pulse(out, t)
+            self._pulse(out, t, run, rate)
 
     def _end_run(self, out: list, t: float, reason: str) -> None:
         run = self._run
         self.fluoro_on = False
-        self._emit(out, t, "fluoro_off", run=run["run"], reason=reason, start_t=run["start_t"],
-                   duration_s=run["duration_s"], air_kerma_mgy=run["air_kerma_mgy"], dap_gy_cm2=run["dap_gy_cm2"],
-                   pulses=run["pulses"], **self._settings())
+        if run is None:     # callers end a run only while exposing
+            return
+        self._emit(out, t, "fluoro_off", run=run.run, reason=reason, start_t=run.start_t,
+                   duration_s=run.duration_s, air_kerma_mgy=run.air_kerma_mgy, dap_gy_cm2=run.dap_gy_cm2,
+                   pulses=run.pulses, **self._settings())
         self._run = None
 
     def _settings(self) -> dict:
@@ -335,8 +351,8 @@ class Console:
             fov = fl.zoom_levels[self.zoom - 1].fov_mm
             new = min(max(self.collimation[axis] + step, fl.collimator.min_opening_mm), fov)
             if new != self.collimation[axis]:
-                target = (new, self.collimation[1]) if axis == 0 else (self.collimation[0], new)
-                self._change_settings(out, t, lambda: setattr(self, "collimation", target), "collimation",
+                opening = (new, self.collimation[1]) if axis == 0 else (self.collimation[0], new)
+                self._change_settings(out, t, lambda: setattr(self, "collimation", opening), "collimation",
                                       lambda: {"collimation_h_mm": self.collimation[0],
                                                "collimation_v_mm": self.collimation[1]})
         elif action == "mode_next":
@@ -398,7 +414,8 @@ class Console:
         old_fov = self.fl.zoom_levels[self.zoom - 1].fov_mm
         new_fov = self.fl.zoom_levels[target - 1].fov_mm
         # Blades fully open stay fully open at the new field; narrower ones are clipped to it.
-        self.collimation = tuple(new_fov if c >= old_fov else min(c, new_fov) for c in self.collimation)
+        h, v = (new_fov if c >= old_fov else min(c, new_fov) for c in self.collimation)
+        self.collimation = (h, v)
         self.zoom = target
 
     def tick(self, now: float) -> list[ConsoleEvent]:
@@ -451,7 +468,8 @@ class Console:
         self.mode_index = names.index(old_mode) if old_mode in names else 0
         fov = fluoroscope.zoom_levels[self.zoom - 1].fov_mm
         lo = fluoroscope.collimator.min_opening_mm
-        self.collimation = tuple(fov if c >= zoom_fov else min(max(c, lo), fov) for c in self.collimation)
+        h, v = (fov if c >= zoom_fov else min(max(c, lo), fov) for c in self.collimation)
+        self.collimation = (h, v)
         self._schedule_alarm()
         self._emit(out, t, "profile", fluoroscope=fluoroscope.name, mode=self.mode.name)
         if exposing:
@@ -481,7 +499,7 @@ class Console:
             t=self._t, fluoro_on=self.fluoro_on,
             image="live" if self.fluoro_on else ("held" if self.has_image else "none"),
             mode=mode.name, pulse_rate_per_s=mode.pulse_rate_per_s, zoom=self.zoom,
-            fov_mm=fl.zoom_levels[self.zoom - 1].fov_mm, collimation_mm=tuple(self.collimation),
+            fov_mm=fl.zoom_levels[self.zoom - 1].fov_mm, collimation_mm=self.collimation,
             invert=self.invert, breath_hold=self.breath_hold, fluoro_time_s=timer,
             fluoro_time_display=minutes_and_tenths(timer), air_kerma_mgy=self.air_kerma_mgy,
             dap_gy_cm2=self.dap_gy_cm2, air_kerma_rate_mgy_per_min=self._rate() if self.fluoro_on else 0.0,
