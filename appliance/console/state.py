@@ -22,7 +22,6 @@ so each run has one set of exposure settings.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 
 from drivers.input_event import InputEvent
 
@@ -30,114 +29,14 @@ from ..config.fluoroscope import FluoroscopeProfile
 from ..config.keymap import KeymapProfile
 from . import dose
 from .keys import action_for
+from .readout import ConsoleEvent, ConsoleState, minutes_and_tenths
+from .run import Run
 
 #: While continuous fluoroscopy runs, an `exposure` event is recorded this often (s), so a
 #: power cut loses at most this much of the record. Pulsed modes record every pulse.
 PROGRESS_PERIOD_S = 1.0
-#: The fluoroscopy time display counts tenths of a minute (s).
-SECONDS_PER_TENTH_MINUTE = 6.0
 #: Summed time steps may miss an alarm threshold by rounding; this much counts as reached (s).
 ALARM_SLACK_S = 1e-9
-
-
-@dataclass(frozen=True)
-class ConsoleEvent:
-    """Something the ledger records. Totals are cumulative after the event; d_* are the
-    increments since the previous event (s, mGy, Gy cm^2)."""
-
-    t_monotonic: float
-    kind: str
-    detail: dict = field(default_factory=dict)
-    fluoro_time_s: float = 0.0
-    air_kerma_mgy: float = 0.0
-    dap_gy_cm2: float = 0.0
-    d_fluoro_time_s: float = 0.0
-    d_air_kerma_mgy: float = 0.0
-    d_dap_gy_cm2: float = 0.0
-
-
-#: Kinds of ConsoleEvent, for readers of the ledger.
-EVENT_KINDS = ("fluoro_on", "fluoro_off", "pulse", "exposure", "zoom", "collimation", "mode", "invert", "save",
-               "hold_breath", "resume_breath", "alarm", "alarm_reset", "profile", "breath_rate", "breath_depth")
-
-
-@dataclass(frozen=True)
-class ConsoleState:
-    """What the display shows and the renderer needs, at time `t` (s)."""
-
-    t: float
-    fluoro_on: bool
-    image: str                      # "live", "held" (last-image-hold) or "none" (nothing exposed yet)
-    mode: str
-    pulse_rate_per_s: float | None  # None: continuous
-    zoom: int                       # 1 (widest) .. 4
-    fov_mm: float
-    collimation_mm: tuple[float, float]  # (horizontal, vertical) blade openings at the detector plane
-    invert: bool
-    breath_hold: bool
-    fluoro_time_s: float
-    fluoro_time_display: str        # minutes and tenths, e.g. "5.3"
-    air_kerma_mgy: float
-    dap_gy_cm2: float
-    air_kerma_rate_mgy_per_min: float  # now (0 when not exposing)
-    alarm_sounding: bool
-    alarm_count: int
-    save_count: int
-    runs: int
-    new_image: bool                 # render a new image this frame (a pulse, or continuous exposure)
-    pulses_this_frame: int
-    kvp: float
-    ma: float
-    pulses: int = 0                 # pulses so far this session (counts images in the pulsed modes)
-    window_scale: float = 1.0       # the radiographer's window: the automatic width times this
-    level_shift: float = 0.0        # the radiographer's level: the centre moved by this fraction of the width
-    breath_rate_steps: int = 0      # faster minus slower presses so far (the breathing model applies each step)
-    breath_depth_steps: int = 0     # deeper minus shallower presses so far
-
-    @property
-    def held(self) -> bool:
-        return self.image == "held"
-
-    @property
-    def collimated_mm(self) -> tuple[float, float] | None:
-        """The blade opening (horizontal, vertical mm at the detector plane) when the blades cut
-        into the field of view; None when they are fully open."""
-        c, fov = self.collimation_mm, self.fov_mm
-        return None if c[0] >= fov and c[1] >= fov else (c[0], c[1])
-
-    def image_due(self, drawn: ConsoleState | None) -> bool:
-        """Whether a new image is due, `drawn` being the state the image on screen was rendered at.
-
-        Continuous fluoroscopy shows a new image whenever one can be made; a pulsed mode only
-        one per pulse, as on the real unit. Unlike `new_image` (this tick only), this holds
-        across states a slower reader never saw: a pulse since `drawn` is a pulse not drawn.
-        """
-        if not self.fluoro_on:
-            return False
-        if self.pulse_rate_per_s is None:
-            return True
-        return drawn is None or self.pulses > drawn.pulses
-
-
-def minutes_and_tenths(seconds: float) -> str:
-    """Fluoroscopy time as a clinical display shows it: whole tenths of a minute, never rounded up."""
-    tenths = int(math.floor(max(seconds, 0.0) / SECONDS_PER_TENTH_MINUTE + 1e-9))
-    return f"{tenths // 10}.{tenths % 10}"
-
-
-@dataclass
-class Run:
-    """The running account of one irradiation event (pedal-down to release or a settings change)."""
-
-    run: int                # 1, 2, ... this session
-    reason_on: str
-    start_t: float          # s, monotonic
-    next_pulse_t: float     # s; pulsed modes only
-    next_progress_t: float  # s; continuous modes only
-    duration_s: float = 0.0
-    air_kerma_mgy: float = 0.0
-    dap_gy_cm2: float = 0.0
-    pulses: int = 0
 
 
 class Console:
@@ -175,10 +74,6 @@ class Console:
         self.save_count = 0
         self.runs = 0
         self._pulse_count = 0
-        self._pulses_at_last_tick = 0
-        self._frame_pulses = 0
-        self._exposed_since_tick = False
-        self._frame_exposed = False
         self._run: Run | None = None
 
     # --- settings -----------------------------------------------------------------
@@ -227,8 +122,7 @@ class Console:
         self._pulse_count += 1
         self.has_image = True
         self._emit(out, t, "pulse", run=run.run, n=run.pulses)
-        # From the run's start, not the last pulse: no drift from summed periods.
-        run.next_pulse_t = run.start_t + run.pulses / rate
+        run.schedule_next_pulse(rate)
 
     def _advance(self, t: float, out: list) -> None:
         """Advance to `t`, emitting every pulse, progress record and alarm due on the way."""
@@ -265,8 +159,6 @@ class Console:
                 self._emit(out, tn, "alarm", n=self.alarm_count, at_fluoro_time_s=self._next_alarm_s)
                 self._next_alarm_s += self.fl.dose.alarm_period_s
         self._accrue(t)
-        if self.fluoro_on:
-            self._exposed_since_tick = True
 
     # --- runs ---------------------------------------------------------------------
     def _start_run(self, out: list, t: float, reason: str) -> None:
@@ -276,7 +168,6 @@ class Console:
         run = Run(self.runs, reason, start_t=t, next_pulse_t=t, next_progress_t=t + self.progress_period_s)
         self._run = run
         self._emit(out, t, "fluoro_on", run=self.runs, reason=reason, **self._settings())
-        self._exposed_since_tick = True
         if rate is None:
             self.has_image = True
         else:
@@ -287,9 +178,7 @@ class Console:
         self.fluoro_on = False
         if run is None:     # callers end a run only while exposing
             return
-        self._emit(out, t, "fluoro_off", run=run.run, reason=reason, start_t=run.start_t,
-                   duration_s=run.duration_s, air_kerma_mgy=run.air_kerma_mgy, dap_gy_cm2=run.dap_gy_cm2,
-                   pulses=run.pulses, **self._settings())
+        self._emit(out, t, "fluoro_off", run=run.run, reason=reason, **run.summary(), **self._settings())
         self._run = None
 
     def _settings(self) -> dict:
@@ -422,10 +311,6 @@ class Console:
         """Advance timers, pulses and the alarm to `now`; call once per displayed frame."""
         out: list[ConsoleEvent] = []
         self._advance(now, out)
-        self._frame_pulses = self._pulse_count - self._pulses_at_last_tick
-        self._pulses_at_last_tick = self._pulse_count
-        self._frame_exposed = self._exposed_since_tick
-        self._exposed_since_tick = self.fluoro_on
         return out
 
     def set_exposure_factor(self, factor: float, now: float) -> list[ConsoleEvent]:
@@ -504,8 +389,6 @@ class Console:
             fluoro_time_display=minutes_and_tenths(timer), air_kerma_mgy=self.air_kerma_mgy,
             dap_gy_cm2=self.dap_gy_cm2, air_kerma_rate_mgy_per_min=self._rate() if self.fluoro_on else 0.0,
             alarm_sounding=self.alarm_sounding, alarm_count=self.alarm_count, save_count=self.save_count,
-            runs=self.runs,
-            new_image=self._frame_pulses > 0 if mode.pulse_rate_per_s else self._frame_exposed,
-            pulses_this_frame=self._frame_pulses, kvp=fl.tube.kvp, ma=fl.tube.ma, pulses=self._pulse_count,
+            runs=self.runs, kvp=fl.tube.kvp, ma=fl.tube.ma, pulses=self._pulse_count,
             window_scale=self.window_scale, level_shift=self.level_shift,
             breath_rate_steps=self.breath_rate_steps, breath_depth_steps=self.breath_depth_steps)
