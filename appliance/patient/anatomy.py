@@ -283,9 +283,9 @@ def _paint_pelvis(bones: Layer) -> None:
         sup_ramus = [(s * 45, -12, -146), (s * 20, -32, -155), (s * 4.5, -40, -162)]
         inf_ramus = [(s * 4.5, -38, -170), (s * 22, -24, -182), (s * 40, -2, -184)]
         ischium = [(s * 48, 4, -150), (s * 44, 4, -172), (s * 40, -2, -184)]
-        for path, radius in ((sup_ramus, 6.0), (inf_ramus, 5.5), (ischium, 8.0)):
-            paint_tube(bones, path, radius, HU_CORTICAL)
-            paint_tube(bones, path, radius - 1.5, HU_TRABECULAR)
+        for ramus, radius in ((sup_ramus, 6.0), (inf_ramus, 5.5), (ischium, 8.0)):
+            paint_tube(bones, ramus, radius, HU_CORTICAL)
+            paint_tube(bones, ramus, radius - 1.5, HU_TRABECULAR)
 
 
 def _paint_ribs(bones: Layer, lift: float) -> None:
@@ -461,11 +461,11 @@ def _paint_bowel(layer: Layer, rng: np.random.Generator) -> None:
     # Gas bubbles mottling the stool.
     for k in range(len(colon) - 1):
         for _ in range(3):
-            t = rng.uniform(0, 1)
-            p = colon[k] + t * (colon[k + 1] - colon[k]) + rng.uniform(-5, 5, 3)
-            r = rng.uniform(3.0, 7.0)
-            layer.paint(lambda X, Y, Z, p=p, r=r: np.maximum(ellipsoid(X, Y, Z, p, (r, r, r)), inside(X, Y, Z)), HU_AIR,
-                        *bounds([p], r + 3))
+            along = rng.uniform(0, 1)
+            p = colon[k] + along * (colon[k + 1] - colon[k]) + rng.uniform(-5, 5, 3)
+            bubble_r = float(rng.uniform(3.0, 7.0))
+            layer.paint(lambda X, Y, Z, p=p, r=bubble_r: np.maximum(ellipsoid(X, Y, Z, p, (r, r, r)), inside(X, Y, Z)),
+                        HU_AIR, *bounds([p], bubble_r + 3))
 
 
 # --- breathing ---

@@ -42,6 +42,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -224,7 +225,7 @@ def build(target: Path, progress: Callable[[str], None] | None = None) -> None:
     try:
         builder = Builder(progress)
         specs = timeline()
-        written = set()
+        written: set[str] = set()
         distinct = len({s.file_name for s in specs})
         T = builder.grid.T_ct_from_voxel
         # Compressing and writing one phase overlaps drawing the next (the second core);
@@ -295,4 +296,4 @@ def builtin_phases(name: str, cache_dir: Path,
         if not path.is_file():
             raise FluorosimError(f"{path}: missing from the cache of the built-in patient; delete the folder "
                                  f"{target} and it is rebuilt on next use")
-    return [(t, (lambda path=path: load_mha(path))) for t, path in phases]
+    return [(t, partial(load_mha, path)) for t, path in phases]
