@@ -55,7 +55,7 @@ def run_track(args) -> int:
             print(json.dumps({"image": path, "ok": pose.ok,
                               "T_webcam_from_phantom": None if T is None else np.round(T, 6).tolist(),
                               "markers": pose.markers}), flush=True)
-        elif pose.ok:
+        elif pose.ok and T is not None:
             print(f"{path}: phantom at {np.round(T[:3, 3], 2).tolist()} mm ({pose.method}, markers {pose.markers}, "
                   f"RMS {pose.rms_px:.2f} px)")
         else:
@@ -106,7 +106,8 @@ def _board(args) -> BoardSpec:
 def run_calibrate_webcam(args) -> int:
     load_profile(args.webcam, WebcamProfile)        # refuse to start on a profile we could not write back
     detector = BoardDetector(_board(args))
-    views, size, n, last_kept = [], None, 0, 0.0
+    views: list[tuple[np.ndarray, np.ndarray]] = []
+    size, n, last_kept = None, 0, 0.0
     for name, image in _frames(args):
         n += 1
         if image is None:
