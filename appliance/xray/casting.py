@@ -16,6 +16,7 @@ Units: lengths mm, energies keV, densities g/cm^3, mass attenuation cm^2/g.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -26,6 +27,9 @@ from ..geometry import invert, rigid_problem
 from ..patient.materials import density_model, mass_attenuation, tube_spectrum, water_mu_per_mm
 from ..patient.volume import Volume
 from .device import ClDevice
+
+if TYPE_CHECKING:
+    import pyopencl as cl
 
 #: Voxels of air added on every side of a prepared volume, so bilinear samples never leave it.
 PAD = 2
@@ -57,7 +61,7 @@ class PreparedVolume:
     inclusive padded-index bounds (lo, hi) of the voxels denser than EMPTY_MAX_HU.
     """
 
-    buffer: object
+    buffer: cl.Buffer
     shape_xyz: tuple[int, int, int]
     T_index_from_ct: np.ndarray
     box: tuple[tuple[int, int, int], tuple[int, int, int]] | None
@@ -210,7 +214,7 @@ class Caster:
         ks, js, is_ = (np.flatnonzero((mask.sum(axis=ax) > EMPTY_PLANE_MAX_VOXELS) | sure.any(axis=ax))
                        for ax in ((1, 2), (0, 2), (0, 1)))
         del mask, sure
-        box = None
+        box: tuple[tuple[int, int, int], tuple[int, int, int]] | None = None
         start = np.zeros(3, dtype=int)            # (i, j, k) of the first voxel kept
         if len(ks) and len(js) and len(is_):
             lo, hi = np.array([is_[0], js[0], ks[0]]), np.array([is_[-1], js[-1], ks[-1]])
@@ -222,7 +226,9 @@ class Caster:
             start = lo // CROP_BLOCK * CROP_BLOCK
             stop = np.minimum(-(-(hi + 1) // CROP_BLOCK) * CROP_BLOCK, n)
             hu = hu[start[2]:stop[2], start[1]:stop[1], start[0]:stop[0]]
-            box = (tuple(int(x) for x in lo - start + PAD), tuple(int(x) for x in hi - start + PAD))
+            l0, l1, l2 = (int(x) for x in lo - start + PAD)
+            h0, h1, h2 = (int(x) for x in hi - start + PAD)
+            box = ((l0, l1, l2), (h0, h1, h2))
         else:
             hu = hu[:1, :1, :1]
         padded = np.pad(hu, PAD, mode="constant", constant_values=-1000)
