@@ -28,17 +28,7 @@ from .anatomy import (
     HU_TRABECULAR,
     RIB_LIFT_MM,
 )
-from .shapes import (
-    Grid,
-    Layer,
-    bounds,
-    ellipsoid,
-    elliptic_prism,
-    intersect,
-    paint_bone,
-    paint_tube,
-    rotation,
-)
+from .shapes import Grid, Layer, bounds, ellipsoid, elliptic_prism, intersect, paint_bone, paint_tube, rotation
 
 # --- the spine ---
 
