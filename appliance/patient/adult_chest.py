@@ -55,15 +55,7 @@ from .adult_body import (
     skin,
 )
 from .adult_skeleton import paint_ribs_and_sternum, paint_spine
-from .shapes import (
-    Layer,
-    bounds,
-    ellipsoid,
-    elliptic_prism,
-    intersect,
-    paint_tube,
-    rotation,
-)
+from .shapes import Layer, bounds, ellipsoid, elliptic_prism, intersect, paint_tube, rotation
 
 #: Pulmonary vessels: a branch splits while its radius is above this (mm); Murray's law
 #: gives children of 2^(-1/3) of the parent's radius.
