@@ -296,7 +296,7 @@ class SyntheticCamera(CameraSource):
     """A webcam stand-in: renders the box phantom at `trajectory(t)` (T_webcam_from_phantom, mm) at `fps`."""
 
     def __init__(self, marker_ids: Sequence[int], T_phantom_from_marker: Sequence[np.ndarray], marker_size_mm: float,
-                 dictionary: str, box_mm: tuple, K: np.ndarray, dist: Sequence[float], width: int, height: int,
+                 dictionary: str, box_mm: tuple, K: np.ndarray, dist: np.ndarray | Sequence[float], width: int, height: int,
                  trajectory: Callable[[float], np.ndarray], clock: Callable[[], float] = time.monotonic,
                  fps: float = 30.0, settings: RenderSettings | None = None, seed: int | None = None) -> None:
         super().__init__()

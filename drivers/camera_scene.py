@@ -65,7 +65,7 @@ def marker_textures(dictionary: str, marker_id: int, margin_cells: float = 1.0,
 class SceneRenderer:
     """Renders a box with printed squares through a pinhole camera with OpenCV distortion."""
 
-    def __init__(self, K: np.ndarray, dist: Sequence[float], width: int, height: int,
+    def __init__(self, K: np.ndarray, dist: np.ndarray | Sequence[float], width: int, height: int,
                  box_mm: tuple | None, quads: list[TexturedQuad], settings: RenderSettings | None = None,
                  seed: int | None = None) -> None:
         self.K = np.asarray(K, dtype=np.float64)

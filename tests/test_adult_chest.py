@@ -14,7 +14,8 @@ import pytest
 from appliance.config.case import CaseProfile
 from appliance.config.loading import load_profile
 from appliance.errors import FluorosimError
-from appliance.patient.adult_chest import LEFT_DOME, RIGHT_DOME, SIZES, build_adult_chest
+from appliance.patient.adult_body import LEFT_DOME, RIGHT_DOME
+from appliance.patient.adult_chest import SIZES, build_adult_chest
 from appliance.patient.volume_io import load_volume
 
 

@@ -5,15 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from appliance.display.compositor import (
-    ALARM_FLASH_PERIOD_S,
-    COLLIMATED_BRIGHTNESS,
-    Compositor,
-    Overlay,
-    dose_number,
-    fluoro_time_clock,
-    fluoro_time_minutes,
-)
+from appliance.display.compositor import ALARM_FLASH_PERIOD_S, COLLIMATED_BRIGHTNESS, Compositor, Overlay
+from appliance.display.text import dose_number, fluoro_time_clock, fluoro_time_minutes
 
 SCREENS = [(1920, 1080), (1280, 1024)]
 

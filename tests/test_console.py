@@ -250,14 +250,16 @@ def test_increments_sum_to_totals():
     assert sum(o.detail["air_kerma_mgy"] for o in offs) == pytest.approx(s.air_kerma_mgy, rel=1e-9)
 
 
-def test_new_image_only_on_pulse_frames():
+def test_an_image_is_due_only_on_pulse_frames():
     console = Console(II, KEYMAP, t0=0.0)
     console.handle(press(0.0, "KEY_KP5"))                        # pulsed-15 at 60 frames/s
     console.handle(press(1.0, "pedal"))
-    flags = []
+    flags, drawn = [], None
     for i in range(1, 61):
         console.tick(1.0 + i / 60 - 1e-6)
-        flags.append(console.snapshot().new_image)
+        state = console.snapshot()
+        flags.append(state.image_due(drawn))
+        drawn = state
     # Pulses at 1 + k/15 s, k = 0..14: one frame in four shows a new image.
     assert sum(flags) == 15 and flags[0] and flags[4] and not any(flags[1:4])
 

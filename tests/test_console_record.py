@@ -41,10 +41,10 @@ def test_a_fresh_console_shows_nothing_and_has_recorded_nothing():
     assert (s.t, s.fluoro_on, s.image, s.invert, s.breath_hold, s.alarm_sounding) == (5.0, False, "none", False, False,
                                                                                         False)
     assert (s.fluoro_time_s, s.air_kerma_mgy, s.dap_gy_cm2, s.air_kerma_rate_mgy_per_min) == (0.0, 0.0, 0.0, 0.0)
-    assert (s.runs, s.alarm_count, s.save_count, s.pulses_this_frame, s.new_image) == (0, 0, 0, 0, False)
+    assert (s.runs, s.alarm_count, s.save_count, s.pulses, s.image_due(None)) == (0, 0, 0, 0, False)
     assert s.fluoro_time_display == "0.0" and s.zoom == 1 and s.collimation_mm == (300.0, 300.0)
     c.tick(6.0)
-    assert not c.snapshot().new_image and c.snapshot().pulses_this_frame == 0
+    assert not c.snapshot().image_due(s) and c.snapshot().pulses == 0
     # Saving with nothing exposed yet saves nothing; resetting a silent alarm records nothing.
     assert c.handle(act(7.0, "save")) == [] and c.handle(act(7.5, "alarm_reset")) == []
     assert c.handle(act(8.0, "resume_breath")) == []
@@ -134,14 +134,14 @@ def test_continuous_fluoroscopy_records_progress_each_second_with_its_run():
     c.handle(act(0.5, "pedal"))
     ev = c.tick(3.0)
     assert [(e.t_monotonic, e.detail) for e in ev if e.kind == "exposure"] == [(1.5, {"run": 1}), (2.5, {"run": 1})]
+    drawn = c.snapshot()
     c.tick(3.1)
     s = c.snapshot()
-    assert s.new_image and s.pulses_this_frame == 0          # continuous: every frame is a new image
+    assert s.image_due(drawn) and s.pulses == 0              # continuous: every frame is a new image
     c.handle(act(3.2, "pedal", False))
     c.tick(3.3)
-    assert c.snapshot().new_image                            # exposed for part of this frame
-    c.tick(3.4)
-    assert not c.snapshot().new_image
+    held = c.snapshot()
+    assert not held.image_due(s) and held.image == "held"   # released: the last image stays, none is made
 
 
 def with_modes(names: list[str]) -> FluoroscopeProfile:
@@ -197,10 +197,12 @@ def test_a_frame_drawn_at_the_moment_fluoroscopy_starts_or_continues_is_a_new_im
     c = Console(FLAT, KEYMAP, t0=0.0)
     c.handle(act(5.0, "pedal"))                             # continuous
     c.tick(5.0)                                             # the same instant: no time has passed
-    assert c.snapshot().new_image
+    first = c.snapshot()
+    assert first.image_due(None)
     c.tick(6.0)
+    drawn = c.snapshot()
     c.tick(6.0)                                             # a second frame at the same time, still exposing
-    assert c.snapshot().new_image
+    assert c.snapshot().image_due(drawn) and c.snapshot().image_due(first)
     (on,) = [e for e in c.handle(act(7.0, "pedal", False)) + c.handle(act(8.0, "pedal")) if e.kind == "fluoro_on"]
     assert on.detail["pulse_width_ms"] is None and on.detail["pulse_rate_per_s"] is None
 

@@ -106,10 +106,12 @@ def test_each_pulse_names_its_run_and_its_number_and_a_frame_counts_its_pulses()
     c.handle(act(0.0, "mode_next"))                          # pulsed-15
     events = c.handle(act(1.0, "pedal"))
     c.tick(1.0)
+    drawn = c.snapshot()                                     # the pulse at pedal-down
     events += c.tick(1.0 + 2.5 / 15)                         # pulses at 1 + 1/15 and 1 + 2/15
-    assert c.snapshot().pulses_this_frame == 2 and c.snapshot().new_image
+    s = c.snapshot()
+    assert s.pulses - drawn.pulses == 2 and s.image_due(drawn)
     events += c.tick(1.0 + 2.7 / 15)                         # no pulse in this frame
-    assert c.snapshot().pulses_this_frame == 0 and not c.snapshot().new_image
+    assert c.snapshot().pulses == s.pulses and not c.snapshot().image_due(s)
     events += c.handle(act(1.5, "pedal", False))             # pulses at 1 + k/15 < 1.5: k = 0..7
     events += c.handle(act(3.0, "pedal"))
     events += c.handle(act(3.2, "pedal", False))             # 3 + k/15 < 3.2: k = 0..2

@@ -14,9 +14,10 @@ import cv2
 import numpy as np
 import pytest
 
+from appliance.calibration.ball_matching import split_by_size
 from appliance.calibration.blobs import Blobs, detect_blobs
 from appliance.calibration.field_of_view import find_field_of_view
-from appliance.calibration.identification import IdentificationFailed, identify, split_by_size
+from appliance.calibration.identification import IdentificationFailed, identify
 from appliance.calibration.truth import scenario, shadowgraph
 from appliance.calibration.webcam_transform import average_rigid, webcam_in_xray
 from appliance.calibration.xray_calibration import calibrate

@@ -158,7 +158,9 @@ def _candidates(stack: np.ndarray, sigmas: np.ndarray, noise: np.ndarray, inside
     order = np.argsort(-strength)
     k, v, u, strength = k[order], v[order], u[order], strength[order]
 
-    kept_uv, kept_d, kept_s = [], [], []
+    kept_uv: list[tuple[float, float]] = []
+    kept_d: list[float] = []
+    kept_s: list[float] = []
     for ki, vi, ui, si in zip(k, v, u, strength):
         # Parabolic peak in log(sigma) gives the size between scale samples.
         r0, r1, r2 = stack[ki - 1, vi, ui], stack[ki, vi, ui], stack[ki + 1, vi, ui]
@@ -170,10 +172,10 @@ def _candidates(stack: np.ndarray, sigmas: np.ndarray, noise: np.ndarray, inside
             continue
         if any(np.hypot(ui - pu, vi - pv) < 0.5 * (diameter + pd) for (pu, pv), pd in zip(kept_uv, kept_d)):
             continue
-        if not _round_enough(stack[ki], ui, vi, detection.max_axis_ratio):
+        if not _round_enough(stack[ki], int(ui), int(vi), detection.max_axis_ratio):
             continue
         radius = diameter / 2
-        if fov.distance_inside([(ui, vi)])[0] < 1.5 * radius + detection.fov_margin_px:
+        if fov.distance_inside(np.array([(ui, vi)], float))[0] < 1.5 * radius + detection.fov_margin_px:
             continue
         kept_uv.append((float(ui), float(vi)))
         kept_d.append(diameter)

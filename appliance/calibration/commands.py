@@ -33,7 +33,7 @@ def run_calibrate_xray(args) -> int:
         if outcome.reason:
             print(f"rejected {outcome.reason}", file=sys.stderr)
     print(report(result))
-    if not result.passed:
+    if not result.passed or result.fit is None:     # passed implies a fit; said again for the type
         print(f"{args.fluoroscope}: left unchanged", file=sys.stderr)
         return 2
     if args.dry_run:

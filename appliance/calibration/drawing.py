@@ -22,7 +22,7 @@ A4_MM = (210.0, 297.0)
 PX_PER_MM = DPI / 25.4
 
 
-def _font(size_mm: float) -> ImageFont.ImageFont:
+def _font(size_mm: float) -> ImageFont.FreeTypeFont | ImageFont.ImageFont:
     return ImageFont.load_default(size=max(8, int(size_mm * PX_PER_MM)))
 
 

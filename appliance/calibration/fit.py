@@ -226,7 +226,8 @@ def fit_views(views: list[View], K0: np.ndarray, dist0: np.ndarray, final_gate_p
         measured = [v.image_points.copy() for v in views]
         for _ in range(2):
             for v, T, uv in zip(views, poses, measured):
-                v.image_points = uv - centroid_offsets(K, dist, T, v.object_points, v.radii_mm)
+                if v.radii_mm is not None:      # every view has them (checked above)
+                    v.image_points = uv - centroid_offsets(K, dist, T, v.object_points, v.radii_mm)
             x, _, _ = _solve(views, K, dist, poses, fixed)
             K, dist, poses = _unpack(x, len(views))
 

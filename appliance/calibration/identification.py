@@ -28,6 +28,15 @@ import numpy as np
 
 from ..config.calibration_phantom import CalibrationPhantomProfile
 from ..errors import FluorosimError
+from .ball_matching import (
+    ball_spacing,
+    find_lines,
+    match_nearest,
+    plate_poses,
+    project,
+    refine_pose,
+    split_by_size,
+)
 from .blobs import Blobs
 from .field_of_view import FieldOfView
 
@@ -45,109 +54,6 @@ class Identification:
     blob_index: np.ndarray    # (m,) index into the detected blobs
     T_xray_from_phantom: np.ndarray  # pose from the nominal intrinsics, the fit's start
     unmatched_blobs: int
-
-
-def split_by_size(diameters: np.ndarray) -> tuple[np.ndarray, float]:
-    """k-means with k = 2 on log diameter, solved exactly in 1-D: (large mask, ratio of class means)."""
-    d = np.log(np.asarray(diameters, dtype=np.float64))
-    if len(d) < 2:
-        return np.zeros(len(d), bool), 1.0
-    order = np.argsort(d)
-    s = d[order]
-    best, split = np.inf, 1
-    for i in range(1, len(s)):
-        cost = s[:i].var() * i + s[i:].var() * (len(s) - i)
-        if cost < best:
-            best, split = cost, i
-    threshold = 0.5 * (s[split - 1] + s[split])
-    large = d > threshold
-    return large, float(np.exp(s[split:].mean() - s[:split].mean()))
-
-
-def _line_through(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Total-least-squares line: (point on it, unit direction)."""
-    c = points.mean(axis=0)
-    _, _, vt = np.linalg.svd(points - c)
-    return c, vt[0]
-
-
-def find_lines(points: np.ndarray, tolerance_px: float, iterations: int, min_points: int = 3,
-               max_lines: int = 6, rng: np.random.Generator | None = None) -> list[np.ndarray]:
-    """Greedy RANSAC: index arrays of collinear points, longest line first."""
-    rng = rng or np.random.default_rng(0)
-    remaining = np.arange(len(points))
-    lines: list[np.ndarray] = []
-    while len(remaining) >= min_points and len(lines) < max_lines:
-        pts = points[remaining]
-        pairs = list(itertools.combinations(range(len(pts)), 2))
-        if len(pairs) > iterations:
-            pairs = [tuple(rng.choice(len(pts), 2, replace=False)) for _ in range(iterations)]
-        best, best_key = None, (0, 0.0)
-        for i, j in pairs:
-            d = pts[j] - pts[i]
-            n = np.linalg.norm(d)
-            if n == 0:
-                continue
-            normal = np.array([-d[1], d[0]]) / n
-            dist = np.abs((pts - pts[i]) @ normal)
-            inl = dist < tolerance_px
-            key = (int(inl.sum()), -float(dist[inl].sum()))
-            if key > best_key:
-                best, best_key = inl, key
-        if best is None or best_key[0] < min_points:
-            break
-        # Refit on the inliers and take the final inlier set from the refined line.
-        c, direction = _line_through(pts[best])
-        normal = np.array([-direction[1], direction[0]])
-        inl = np.abs((pts - c) @ normal) < tolerance_px
-        if inl.sum() < min_points:
-            inl = best
-        members = remaining[inl]
-        along = (points[members] - c) @ direction
-        lines.append(members[np.argsort(along)])
-        remaining = remaining[~inl]
-    return lines
-
-
-def _match(predicted: np.ndarray, observed: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray]:
-    """Mutual nearest neighbours within `gate`: (predicted index, observed index) arrays."""
-    if len(predicted) == 0 or len(observed) == 0:
-        return np.zeros(0, int), np.zeros(0, int)
-    d = np.linalg.norm(predicted[:, None, :] - observed[None, :, :], axis=2)
-    nearest_obs = d.argmin(axis=1)
-    nearest_pred = d.argmin(axis=0)
-    p = np.arange(len(predicted))
-    ok = (nearest_pred[nearest_obs] == p) & (d[p, nearest_obs] < gate)
-    return p[ok], nearest_obs[ok]
-
-
-def _spacing(points: np.ndarray) -> float:
-    """Median nearest-neighbour distance of projected balls (pixels)."""
-    d = np.linalg.norm(points[:, None] - points[None], axis=2)
-    np.fill_diagonal(d, np.inf)
-    return float(np.median(d.min(axis=1)))
-
-
-def _project(T: np.ndarray, points: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    rvec, _ = cv2.Rodrigues(T[:3, :3])
-    uv, _ = cv2.projectPoints(points.reshape(-1, 1, 3), rvec, T[:3, 3], K, dist)
-    return uv.reshape(-1, 2)
-
-
-def _pose(object_points: np.ndarray, image_points: np.ndarray, K: np.ndarray, dist: np.ndarray,
-          guess: np.ndarray) -> np.ndarray | None:
-    """Pose refined from `guess` by iterative PnP, or None."""
-    obj = object_points.reshape(-1, 1, 3).astype(np.float64)
-    img = image_points.reshape(-1, 1, 2).astype(np.float64)
-    rvec0, _ = cv2.Rodrigues(guess[:3, :3])
-    ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, rvec0.copy(), guess[:3, 3].reshape(3, 1).copy(),
-                                  useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
-    if not ok:
-        return None
-    T = np.eye(4)
-    T[:3, :3] = cv2.Rodrigues(rvec)[0]
-    T[:3, 3] = tvec.reshape(3)
-    return T
 
 
 def identify(blobs: Blobs, phantom: CalibrationPhantomProfile, K0: np.ndarray, dist0: np.ndarray,
@@ -187,7 +93,7 @@ def identify(blobs: Blobs, phantom: CalibrationPhantomProfile, K0: np.ndarray, d
 
     # Step 3: homography hypotheses from two found lines and two model lines.
     size_ok_for = {i: (blob_large == large_model[i]) for i in in_plane}
-    scored: dict[tuple, int] = {}
+    scored: dict[tuple, tuple[int, np.ndarray]] = {}    # pairing -> (its best score, homography)
     best: tuple[int, tuple, np.ndarray] | None = None
     candidates = lines[:4]
     for (li, lj) in itertools.permutations(range(len(candidates)), 2):
@@ -209,7 +115,7 @@ def identify(blobs: Blobs, phantom: CalibrationPhantomProfile, K0: np.ndarray, d
                             continue
                         score, assignment, H = result
                         key = tuple(sorted(assignment.items()))
-                        if score > scored.get(key, (0, None))[0]:
+                        if key not in scored or score > scored[key][0]:
                             scored[key] = (score, H)
                         if best is None or score > best[0]:
                             best = (score, key, H)
@@ -219,24 +125,26 @@ def identify(blobs: Blobs, phantom: CalibrationPhantomProfile, K0: np.ndarray, d
     # A plate seen from below is a mirrored homography that can explain nearly as many balls of
     # the plate as the truth; only the other plate tells them apart. So the best few distinct
     # pairings each go through the 3-D step, and the winner must explain clearly more balls.
-    distinct: list[tuple[int, tuple]] = []
+    distinct: list[tuple[int, tuple, np.ndarray]] = []
     for key, (score, H) in sorted(scored.items(), key=lambda kv: -kv[1][0]):
         if score < best[0] - 4 or len(distinct) >= 6:
             break
         if not any(_same_within(key, k) for _, k, _ in distinct):
             distinct.append((score, key, H))
-    outcomes = []
+    outcomes: list[Identification] = []
+    last_error: IdentificationFailed | None = None
     for _, key, H in distinct:
         try:
             outcomes.extend(_complete(dict(key), H, blobs, undist, phantom, blob_large, K0, dist0, source))
         except IdentificationFailed as e:
             last_error = e
     if not outcomes:
-        raise last_error
+        raise last_error or IdentificationFailed(f"{source}: no pairing of the reference plate could be completed")
     scores = [_support(o, phantom, K0, dist0, fov) for o in outcomes]
     order = np.argsort([-s for s, _ in scores], kind="stable")
     # Different starts that end in the same pairing are one answer, not a rival.
-    kept, seen = [], []
+    kept: list[int] = []
+    seen: list[tuple] = []
     for i in order:
         mapping = tuple(zip(outcomes[i].sphere_index.tolist(), outcomes[i].blob_index.tolist()))
         if not any(_same_within(mapping, m) for m in seen):
@@ -244,7 +152,7 @@ def identify(blobs: Blobs, phantom: CalibrationPhantomProfile, K0: np.ndarray, d
             kept.append(i)
     # Only pairings some camera can produce compete; of those the best must lead clearly.
     viable: list[tuple[Identification, tuple[int, int]]] = []
-    refusal = None
+    refusal: IdentificationFailed | None = None
     for i in kept:
         if viable and scores[i][0] < viable[0][1][0] - 2:
             break
@@ -255,7 +163,7 @@ def identify(blobs: Blobs, phantom: CalibrationPhantomProfile, K0: np.ndarray, d
             continue
         viable.append((checked, scores[i]))
     if not viable:
-        raise refusal
+        raise refusal or IdentificationFailed(f"{source}: no camera explains any pairing of the balls")
     if len(viable) > 1:
         raise IdentificationFailed(f"{source}: the phantom's orientation is ambiguous (two different pairings explain "
                                    f"{len(viable[0][0].sphere_index)} and {len(viable[1][0].sphere_index)} balls); "
@@ -271,7 +179,7 @@ def _without_overlaps(found: Identification, phantom: CalibrationPhantomProfile,
     """Drop balls whose shadow touches another ball's: one blob then holds two balls and its
     centre belongs to neither. Detection cannot see it (it finds one blob); the pose can."""
     T = found.T_xray_from_phantom
-    predicted = _project(T, phantom.centres(), K0, dist0)
+    predicted = project(T, phantom.centres(), K0, dist0)
     depth = phantom.centres() @ T[2, :3] + T[2, 3]
     d = K0[0, 0] * phantom.diameters() / depth
     gap = np.linalg.norm(predicted[:, None] - predicted[None], axis=2)
@@ -314,7 +222,7 @@ def _support(found: Identification, phantom: CalibrationPhantomProfile, K0, dist
     """(balls found minus balls predicted clearly inside the field but not found, balls predicted there)."""
     if fov is None:
         return len(found.sphere_index), 0
-    predicted = _project(found.T_xray_from_phantom, phantom.centres(), K0, dist0)
+    predicted = project(found.T_xray_from_phantom, phantom.centres(), K0, dist0)
     radius_px = K0[0, 0] * phantom.diameters() / 2 / found.T_xray_from_phantom[2, 3]
     clearly_inside = fov.distance_inside(predicted) > 2 * radius_px + phantom.detection.fov_margin_px + 5
     missing = int(np.sum(clearly_inside & ~np.isin(np.arange(len(predicted)), found.sphere_index)))
@@ -339,7 +247,7 @@ def _complete(assignment: dict[int, int], H: np.ndarray, blobs: Blobs, undist: n
     large_model = phantom.large_mask()
     sph = np.array(list(assignment.keys()))
     blb = np.array([assignment[s] for s in sph])
-    starts = _plate_poses(centres[sph], blobs.uv[blb], K0, dist0)
+    starts = plate_poses(centres[sph], blobs.uv[blb], K0, dist0)
     if not starts:
         raise IdentificationFailed(f"{source}: no phantom pose fits the reference plate's balls")
     T0 = starts[0]
@@ -355,14 +263,14 @@ def _complete(assignment: dict[int, int], H: np.ndarray, blobs: Blobs, undist: n
         xy1 = np.concatenate([on_plane[:, :2], np.ones((len(other), 1))], axis=1) @ H.T
         base = c + (z_plane / z_ball)[:, None] * (xy1[:, :2] / xy1[:, 2:3] - c)
         free = np.setdiff1d(np.arange(len(blobs)), blb)
-        gate = det.match_gate_fraction * _spacing(base) if len(other) > 1 else 10.0
+        gate = det.match_gate_fraction * ball_spacing(base) if len(other) > 1 else 10.0
         votes: list[tuple[int, np.ndarray]] = []
         for i, ball in enumerate(other):
             for j in free:
                 if blob_large[j] != large_model[ball]:
                     continue
                 shift = undist[j] - base[i]
-                p, o = _match(base + shift, undist[free], gate)
+                p, o = match_nearest(base + shift, undist[free], gate)
                 ok = blob_large[free[o]] == large_model[other[p]]
                 votes.append((int(ok.sum()), shift))
         votes.sort(key=lambda v: -v[0])
@@ -375,25 +283,24 @@ def _complete(assignment: dict[int, int], H: np.ndarray, blobs: Blobs, undist: n
                     shifts.append(shift)
     results = []
     for shift in shifts:
-        p_all, o_all = list(sph), list(blb)
+        p_all, o_all = sph, blb
         if len(other):
-            p, o = _match(base + shift, undist[free], gate)
+            p, o = match_nearest(base + shift, undist[free], gate)
             ok = blob_large[free[o]] == large_model[other[p]]
-            p_all += list(other[p[ok]])
-            o_all += list(free[o[ok]])
-        p_all, o_all = np.array(p_all), np.array(o_all)
-        T = _pose(centres[p_all], blobs.uv[o_all], K0, dist0, guess=T0)
+            p_all = np.concatenate([sph, other[p[ok]]])
+            o_all = np.concatenate([blb, free[o[ok]]])
+        T = refine_pose(centres[p_all], blobs.uv[o_all], K0, dist0, guess=T0)
         if T is None or T[2, 3] <= 0:
             continue
         p, o = p_all, o_all
         for _ in range(2):
-            predicted = _project(T, centres, K0, dist0)
-            p, o = _match(predicted, blobs.uv, det.match_gate_fraction * _spacing(predicted))
+            predicted = project(T, centres, K0, dist0)
+            p, o = match_nearest(predicted, blobs.uv, det.match_gate_fraction * ball_spacing(predicted))
             ok = blob_large[o] == large_model[p]
             p, o = p[ok], o[ok]
             if len(p) < 6:
                 break
-            T_new = _pose(centres[p], blobs.uv[o], K0, dist0, guess=T)
+            T_new = refine_pose(centres[p], blobs.uv[o], K0, dist0, guess=T)
             if T_new is None:
                 break
             T = T_new
@@ -404,21 +311,6 @@ def _complete(assignment: dict[int, int], H: np.ndarray, blobs: Blobs, undist: n
     if not results:
         raise IdentificationFailed(f"{source}: too few balls match the layout predicted from the reference plate")
     return results
-
-
-def _plate_poses(object_points: np.ndarray, image_points: np.ndarray, K: np.ndarray, dist: np.ndarray) -> list[np.ndarray]:
-    """Both IPPE poses of a planar set of balls that put it in front of the source."""
-    n, rvecs, tvecs, _ = cv2.solvePnPGeneric(object_points.reshape(-1, 1, 3).astype(np.float64),
-                                             image_points.reshape(-1, 1, 2).astype(np.float64), K, dist,
-                                             flags=cv2.SOLVEPNP_IPPE)
-    poses = []
-    for r, t in zip(rvecs[:n], tvecs[:n]):
-        T = np.eye(4)
-        T[:3, :3] = cv2.Rodrigues(r)[0]
-        T[:3, 3] = np.asarray(t).reshape(3)
-        if T[2, 3] > 0:
-            poses.append(T)
-    return poses
 
 
 def _end_choices(n_found: int, n_model: int):
@@ -445,8 +337,8 @@ def _score_homography(src, dst, centres, in_plane, undist, size_ok_for, gate_fra
         if np.any(pts[:, 2] <= 0):
             return None
         predicted = pts[:, :2] / pts[:, 2:3]
-        gate = gate_fraction * _spacing(predicted)
-        p, o = _match(predicted, undist, gate)
+        gate = gate_fraction * ball_spacing(predicted)
+        p, o = match_nearest(predicted, undist, gate)
         good = np.array([size_ok_for[in_plane[pi]][oi] for pi, oi in zip(p, o)], bool)
         p, o = p[good], o[good]
         assignment = {int(in_plane[pi]): int(oi) for pi, oi in zip(p, o)}

@@ -78,11 +78,15 @@ class AlarmSound:
             self.stop()
 
     def _start(self) -> None:
+        if self.player is None:     # `available` is false then; update() never gets here
+            return
         try:
-            self._process = subprocess.Popen([self.player, "-q", "-t", "wav", "-"], stdin=subprocess.PIPE,
-                                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-            self._process.stdin.write(self._wav)
-            self._process.stdin.close()
+            process = subprocess.Popen([self.player, "-q", "-t", "wav", "-"], stdin=subprocess.PIPE,
+                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            self._process = process
+            if process.stdin is not None:   # always set with stdin=PIPE
+                process.stdin.write(self._wav)
+                process.stdin.close()
         except OSError as e:
             self.available = False
             self.reason = f"cannot play the alarm ({e.strerror or e}); the alarm is visual only"

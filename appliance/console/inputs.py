@@ -31,6 +31,8 @@ def open_keypad(config: ApplianceConfig, now: float):
     if source == "none":
         return NoInput()
     if source == "scripted":
+        if keypad.script is None:   # the profile's loader refuses this; a hand-built config may not
+            raise FluorosimError("devices.keypad.script is required when devices.keypad.source is 'scripted'")
         try:
             return ScriptedInput(config.resolve(keypad.script), t0=now, known=known_keys(config))
         except ScriptProblem as e:

@@ -22,7 +22,6 @@ so each run has one set of exposure settings.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 
 from drivers.input_event import InputEvent
 
@@ -30,99 +29,14 @@ from ..config.fluoroscope import FluoroscopeProfile
 from ..config.keymap import KeymapProfile
 from . import dose
 from .keys import action_for
+from .readout import ConsoleEvent, ConsoleState, minutes_and_tenths
+from .run import Run
 
 #: While continuous fluoroscopy runs, an `exposure` event is recorded this often (s), so a
 #: power cut loses at most this much of the record. Pulsed modes record every pulse.
 PROGRESS_PERIOD_S = 1.0
-#: The fluoroscopy time display counts tenths of a minute (s).
-SECONDS_PER_TENTH_MINUTE = 6.0
 #: Summed time steps may miss an alarm threshold by rounding; this much counts as reached (s).
 ALARM_SLACK_S = 1e-9
-
-
-@dataclass(frozen=True)
-class ConsoleEvent:
-    """Something the ledger records. Totals are cumulative after the event; d_* are the
-    increments since the previous event (s, mGy, Gy cm^2)."""
-
-    t_monotonic: float
-    kind: str
-    detail: dict = field(default_factory=dict)
-    fluoro_time_s: float = 0.0
-    air_kerma_mgy: float = 0.0
-    dap_gy_cm2: float = 0.0
-    d_fluoro_time_s: float = 0.0
-    d_air_kerma_mgy: float = 0.0
-    d_dap_gy_cm2: float = 0.0
-
-
-#: Kinds of ConsoleEvent, for readers of the ledger.
-EVENT_KINDS = ("fluoro_on", "fluoro_off", "pulse", "exposure", "zoom", "collimation", "mode", "invert", "save",
-               "hold_breath", "resume_breath", "alarm", "alarm_reset", "profile", "breath_rate", "breath_depth")
-
-
-@dataclass(frozen=True)
-class ConsoleState:
-    """What the display shows and the renderer needs, at time `t` (s)."""
-
-    t: float
-    fluoro_on: bool
-    image: str                      # "live", "held" (last-image-hold) or "none" (nothing exposed yet)
-    mode: str
-    pulse_rate_per_s: float | None  # None: continuous
-    zoom: int                       # 1 (widest) .. 4
-    fov_mm: float
-    collimation_mm: tuple[float, float]  # (horizontal, vertical) blade openings at the detector plane
-    invert: bool
-    breath_hold: bool
-    fluoro_time_s: float
-    fluoro_time_display: str        # minutes and tenths, e.g. "5.3"
-    air_kerma_mgy: float
-    dap_gy_cm2: float
-    air_kerma_rate_mgy_per_min: float  # now (0 when not exposing)
-    alarm_sounding: bool
-    alarm_count: int
-    save_count: int
-    runs: int
-    new_image: bool                 # render a new image this frame (a pulse, or continuous exposure)
-    pulses_this_frame: int
-    kvp: float
-    ma: float
-    pulses: int = 0                 # pulses so far this session (counts images in the pulsed modes)
-    window_scale: float = 1.0       # the radiographer's window: the automatic width times this
-    level_shift: float = 0.0        # the radiographer's level: the centre moved by this fraction of the width
-    breath_rate_steps: int = 0      # faster minus slower presses so far (the breathing model applies each step)
-    breath_depth_steps: int = 0     # deeper minus shallower presses so far
-
-    @property
-    def held(self) -> bool:
-        return self.image == "held"
-
-    @property
-    def collimated_mm(self) -> tuple[float, float] | None:
-        """The blade opening (horizontal, vertical mm at the detector plane) when the blades cut
-        into the field of view; None when they are fully open."""
-        c, fov = self.collimation_mm, self.fov_mm
-        return None if c[0] >= fov and c[1] >= fov else (c[0], c[1])
-
-    def image_due(self, drawn: ConsoleState | None) -> bool:
-        """Whether a new image is due, `drawn` being the state the image on screen was rendered at.
-
-        Continuous fluoroscopy shows a new image whenever one can be made; a pulsed mode only
-        one per pulse, as on the real unit. Unlike `new_image` (this tick only), this holds
-        across states a slower reader never saw: a pulse since `drawn` is a pulse not drawn.
-        """
-        if not self.fluoro_on:
-            return False
-        if self.pulse_rate_per_s is None:
-            return True
-        return drawn is None or self.pulses > drawn.pulses
-
-
-def minutes_and_tenths(seconds: float) -> str:
-    """Fluoroscopy time as a clinical display shows it: whole tenths of a minute, never rounded up."""
-    tenths = int(math.floor(max(seconds, 0.0) / SECONDS_PER_TENTH_MINUTE + 1e-9))
-    return f"{tenths // 10}.{tenths % 10}"
 
 
 class Console:
@@ -135,7 +49,7 @@ class Console:
         self.zoom = 1
         self.mode_index = 0
         fov = fluoroscope.zoom_levels[0].fov_mm
-        self.collimation = (fov, fov)
+        self.collimation: tuple[float, float] = (fov, fov)
         self.invert = fluoroscope.display.invert
         self.window_scale, self.level_shift = 1.0, 0.0
         self.breath_hold = False
@@ -162,11 +76,7 @@ class Console:
         self.save_count = 0
         self.runs = 0
         self._pulse_count = 0
-        self._pulses_at_last_tick = 0
-        self._frame_pulses = 0
-        self._exposed_since_tick = False
-        self._frame_exposed = False
-        self._run: dict | None = None
+        self._run: Run | None = None
 
     # --- settings -----------------------------------------------------------------
     @property
@@ -192,9 +102,9 @@ class Console:
         dt = t - self._t
         if dt <= 0:
             return
-        if self.fluoro_on:
+        if self._run is not None:
             self.fluoro_time_s += dt
-            self._run["duration_s"] += dt
+            self._run.duration_s += dt
             if self.mode.pulse_rate_per_s is None:
                 kerma = self._rate() / 60.0 * dt
                 self._add_kerma(kerma)
@@ -204,34 +114,33 @@ class Console:
         dap = dose.dap_gy_cm2(kerma, self._area_cm2())
         self.air_kerma_mgy += kerma
         self.dap_gy_cm2 += dap
-        self._run["air_kerma_mgy"] += kerma
-        self._run["dap_gy_cm2"] += dap
+        if self._run is not None:
+            self._run.air_kerma_mgy += kerma
+            self._run.dap_gy_cm2 += dap
 
-    def _pulse(self, out: list, t: float) -> None:
-        run = self._run
-        rate = self.mode.pulse_rate_per_s
+    def _pulse(self, out: list, t: float, run: Run, rate: float) -> None:
         self._add_kerma(dose.kerma_per_pulse_mgy(self._rate(), rate))
-        run["pulses"] += 1
+        run.pulses += 1
         self._pulse_count += 1
         self.has_image = True
-        self._emit(out, t, "pulse", run=run["run"], n=run["pulses"])
-        run["pulses_since_origin"] += 1
-        run["next_pulse_t"] = run["pulse_origin_t"] + run["pulses_since_origin"] / rate
+        self._emit(out, t, "pulse", run=run.run, n=run.pulses)
+        run.schedule_next_pulse(rate)
 
     def _advance(self, t: float, out: list) -> None:
         """Advance to `t`, emitting every pulse, progress record and alarm due on the way."""
         if t <= self._t:
             return
-        while self.fluoro_on:
+        while self._run is not None:
             run = self._run
+            rate = self.mode.pulse_rate_per_s
             # A pulse or progress record due exactly at `t` waits for the next advance (a release
             # at `t` comes first: pulses fall in [start, end)); the alarm is due at `t` itself,
             # with a nanosecond's slack for the rounding of summed time steps.
             due = []
-            if self.mode.pulse_rate_per_s is not None:
-                due.append((run["next_pulse_t"], 0, run["next_pulse_t"] < t))
+            if rate is not None:
+                due.append((run.next_pulse_t, 0, run.next_pulse_t < t))
             else:
-                due.append((run["next_progress_t"], 1, run["next_progress_t"] < t))
+                due.append((run.next_progress_t, 1, run.next_progress_t < t))
             alarm_t = self._t + (self._next_alarm_s - self.fluoro_time_s)
             due.append((alarm_t, 2, alarm_t <= t + ALARM_SLACK_S))
             due = [d for d in due if d[2]]
@@ -239,11 +148,11 @@ class Console:
                 break
             tn, what, _ = min(due)
             self._accrue(min(max(tn, self._t), t))
-            if what == 0:
-                self._pulse(out, tn)
+            if what == 0 and rate is not None:
+                self._pulse(out, tn, run, rate)
             elif what == 1:
-                self._emit(out, tn, "exposure", run=run["run"])
-                run["next_progress_t"] += self.progress_period_s
+                self._emit(out, tn, "exposure", run=run.run)
+                run.next_progress_t += self.progress_period_s
             else:
                 # Land exactly on the threshold: 21 CFR counts the alarm at 5:00, not a float near it.
                 self.fluoro_time_s = self._next_alarm_s
@@ -252,30 +161,26 @@ class Console:
                 self._emit(out, tn, "alarm", n=self.alarm_count, at_fluoro_time_s=self._next_alarm_s)
                 self._next_alarm_s += self.fl.dose.alarm_period_s
         self._accrue(t)
-        if self.fluoro_on:
-            self._exposed_since_tick = True
 
     # --- runs ---------------------------------------------------------------------
     def _start_run(self, out: list, t: float, reason: str) -> None:
         self.runs += 1
         self.fluoro_on = True
-        mode = self.mode
-        self._run = {"run": self.runs, "reason_on": reason, "start_t": t, "duration_s": 0.0, "air_kerma_mgy": 0.0,
-                     "dap_gy_cm2": 0.0, "pulses": 0, "pulse_origin_t": t, "pulses_since_origin": 0,
-                     "next_pulse_t": t, "next_progress_t": t + self.progress_period_s}
+        rate = self.mode.pulse_rate_per_s
+        run = Run(self.runs, reason, start_t=t, next_pulse_t=t, next_progress_t=t + self.progress_period_s)
+        self._run = run
         self._emit(out, t, "fluoro_on", run=self.runs, reason=reason, **self._settings())
-        self._exposed_since_tick = True
-        if mode.pulse_rate_per_s is None:
+        if rate is None:
             self.has_image = True
         else:
-            self._pulse(out, t)
+            self._pulse(out, t, run, rate)
 
     def _end_run(self, out: list, t: float, reason: str) -> None:
         run = self._run
         self.fluoro_on = False
-        self._emit(out, t, "fluoro_off", run=run["run"], reason=reason, start_t=run["start_t"],
-                   duration_s=run["duration_s"], air_kerma_mgy=run["air_kerma_mgy"], dap_gy_cm2=run["dap_gy_cm2"],
-                   pulses=run["pulses"], **self._settings())
+        if run is None:     # callers end a run only while exposing
+            return
+        self._emit(out, t, "fluoro_off", run=run.run, reason=reason, **run.summary(), **self._settings())
         self._run = None
 
     def _settings(self) -> dict:
@@ -337,8 +242,8 @@ class Console:
             fov = fl.zoom_levels[self.zoom - 1].fov_mm
             new = min(max(self.collimation[axis] + step, fl.collimator.min_opening_mm), fov)
             if new != self.collimation[axis]:
-                target = (new, self.collimation[1]) if axis == 0 else (self.collimation[0], new)
-                self._change_settings(out, t, lambda: setattr(self, "collimation", target), "collimation",
+                opening = (new, self.collimation[1]) if axis == 0 else (self.collimation[0], new)
+                self._change_settings(out, t, lambda: setattr(self, "collimation", opening), "collimation",
                                       lambda: {"collimation_h_mm": self.collimation[0],
                                                "collimation_v_mm": self.collimation[1]})
         elif action == "mode_next":
@@ -400,17 +305,14 @@ class Console:
         old_fov = self.fl.zoom_levels[self.zoom - 1].fov_mm
         new_fov = self.fl.zoom_levels[target - 1].fov_mm
         # Blades fully open stay fully open at the new field; narrower ones are clipped to it.
-        self.collimation = tuple(new_fov if c >= old_fov else min(c, new_fov) for c in self.collimation)
+        h, v = (new_fov if c >= old_fov else min(c, new_fov) for c in self.collimation)
+        self.collimation = (h, v)
         self.zoom = target
 
     def tick(self, now: float) -> list[ConsoleEvent]:
         """Advance timers, pulses and the alarm to `now`; call once per displayed frame."""
         out: list[ConsoleEvent] = []
         self._advance(now, out)
-        self._frame_pulses = self._pulse_count - self._pulses_at_last_tick
-        self._pulses_at_last_tick = self._pulse_count
-        self._frame_exposed = self._exposed_since_tick
-        self._exposed_since_tick = self.fluoro_on
         return out
 
     def set_exposure_factor(self, factor: float, now: float, kvp: float | None = None,
@@ -458,7 +360,8 @@ class Console:
         self.mode_index = names.index(old_mode) if old_mode in names else 0
         fov = fluoroscope.zoom_levels[self.zoom - 1].fov_mm
         lo = fluoroscope.collimator.min_opening_mm
-        self.collimation = tuple(fov if c >= zoom_fov else min(max(c, lo), fov) for c in self.collimation)
+        h, v = (fov if c >= zoom_fov else min(max(c, lo), fov) for c in self.collimation)
+        self.collimation = (h, v)
         self._schedule_alarm()
         self._emit(out, t, "profile", fluoroscope=fluoroscope.name, mode=self.mode.name)
         if exposing:
@@ -488,13 +391,11 @@ class Console:
             t=self._t, fluoro_on=self.fluoro_on,
             image="live" if self.fluoro_on else ("held" if self.has_image else "none"),
             mode=mode.name, pulse_rate_per_s=mode.pulse_rate_per_s, zoom=self.zoom,
-            fov_mm=fl.zoom_levels[self.zoom - 1].fov_mm, collimation_mm=tuple(self.collimation),
+            fov_mm=fl.zoom_levels[self.zoom - 1].fov_mm, collimation_mm=self.collimation,
             invert=self.invert, breath_hold=self.breath_hold, fluoro_time_s=timer,
             fluoro_time_display=minutes_and_tenths(timer), air_kerma_mgy=self.air_kerma_mgy,
             dap_gy_cm2=self.dap_gy_cm2, air_kerma_rate_mgy_per_min=self._rate() if self.fluoro_on else 0.0,
             alarm_sounding=self.alarm_sounding, alarm_count=self.alarm_count, save_count=self.save_count,
-            runs=self.runs,
-            new_image=self._frame_pulses > 0 if mode.pulse_rate_per_s else self._frame_exposed,
-            pulses_this_frame=self._frame_pulses, kvp=self.kvp, ma=self.ma, pulses=self._pulse_count,
+            runs=self.runs, kvp=self.kvp, ma=self.ma, pulses=self._pulse_count,
             window_scale=self.window_scale, level_shift=self.level_shift,
             breath_rate_steps=self.breath_rate_steps, breath_depth_steps=self.breath_depth_steps)

@@ -20,25 +20,30 @@ changes only with the session (case, operator, fluoroscope) is drawn into a cach
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
-from ..console.state import minutes_and_tenths
-
-FONT = cv2.FONT_HERSHEY_SIMPLEX
-FONT_BOLD = cv2.FONT_HERSHEY_DUPLEX
-
-WHITE = (255, 255, 255)
-GREY = (170, 170, 170)
-BLACK = (0, 0, 0)
-YELLOW = (255, 214, 0)
-AMBER = (255, 170, 0)
-RED = (220, 0, 0)
-GREEN = (0, 200, 80)
+from .text import (
+    AMBER,
+    BLACK,
+    FONT,
+    FONT_BOLD,
+    GREEN,
+    GREY,
+    RED,
+    WHITE,
+    YELLOW,
+    TextLine,
+    dose_number,
+    draw_text,
+    fluoro_time_clock,
+    fluoro_time_minutes,
+    text_size,
+    wrap_text,
+)
 
 #: Brightness kept outside the collimator opening (fraction of the image value).
 COLLIMATED_BRIGHTNESS = 0.3
@@ -91,65 +96,6 @@ class Overlay:
     cue: str = ""
 
 
-def fluoro_time_clock(seconds: float) -> str:
-    """Fluoroscopy time as mm:ss, whole seconds counted (minutes go past 59: 100:00)."""
-    whole = int(math.floor(max(seconds, 0.0) + 1e-9))
-    return f"{whole // 60:02d}:{whole % 60:02d}"
-
-
-def fluoro_time_minutes(seconds: float) -> str:
-    """Fluoroscopy time in minutes and completed tenths, as clinical units display it: 2.6 min
-    (the console's count of tenths, with the unit)."""
-    return f"{minutes_and_tenths(seconds)} min"
-
-
-def dose_number(value: float) -> str:
-    """A dose figure with three significant digits up to 1000, whole numbers beyond."""
-    value = max(value, 0.0)
-    if value < 1:
-        return f"{value:.3f}"
-    if value < 10:
-        return f"{value:.2f}"
-    if value < 1000:
-        return f"{value:.1f}" if value < 100 else f"{value:.0f}"
-    return f"{value:.0f}"
-
-
-@dataclass
-class _Text:
-    """One line of text laid out: baseline origin, size and the box it covers (x0, y0, x1, y1)."""
-
-    text: str
-    org: tuple[int, int]
-    scale: float
-    color: tuple[int, int, int]
-    font: int
-    thickness: int
-    sup: str = ""      # a superscript after the text (the 2 of cm2)
-
-    def size(self) -> tuple[int, int, int]:
-        """Width, height above the baseline and depth below it (pixels), superscript included."""
-        return text_size(self.text, self.font, self.scale, self.thickness, self.sup)
-
-    @property
-    def box(self) -> tuple[int, int, int, int]:
-        w, h, base = self.size()
-        pad = self.thickness + 1
-        return (self.org[0] - pad, self.org[1] - h - pad, self.org[0] + w + pad, self.org[1] + base + pad)
-
-
-SUP_SCALE = 0.6
-
-
-def text_size(text: str, font: int, scale: float, thickness: int, sup: str = "") -> tuple[int, int, int]:
-    (w, h), base = cv2.getTextSize(text, font, scale, thickness)
-    if sup:
-        (sw, sh), _ = cv2.getTextSize(sup, font, scale * SUP_SCALE, thickness)
-        w += sw + thickness
-        h = max(h, round(h * 0.5) + sh)
-    return w, h, base
-
-
 class Compositor:
     """Builds the screen from the rendered image and the overlay; one instance per screen size."""
 
@@ -181,15 +127,15 @@ class Compositor:
     # ------------------------------------------------------------------ layout
 
     def _corner_lines(self, texts: list[tuple], corner: str, scale: float | None = None, font: int = FONT,
-                      thickness: int | None = None, inset: int = 0) -> list[_Text]:
+                      thickness: int | None = None, inset: int = 0) -> list[TextLine]:
         """Lay out lines, (text, colour[, superscript]), in a screen corner ('tl', 'tr', 'bl', 'br'),
         the first line nearest the corner, `inset` pixels further in than the margin."""
         scale = scale or self.scale
         thickness = thickness or self.thickness
         laid = []
         edge = self.margin + inset
-        for i, (text, color, *sup) in enumerate(texts):
-            sup = sup[0] if sup else ""
+        for i, (text, color, *superscript) in enumerate(texts):
+            sup = superscript[0] if superscript else ""
             w, h, base = text_size(text, font, scale, thickness, sup)
             pitch = max(self.line, round(h * 1.5))
             x = edge if corner[1] == "l" else self.width - edge - w
@@ -197,26 +143,10 @@ class Compositor:
                 y = edge + h + i * pitch
             else:
                 y = self.height - edge - base - i * pitch
-            laid.append(_Text(text, (x, y), scale, color, font, thickness, sup))
+            laid.append(TextLine(text, (x, y), scale, color, font, thickness, sup))
         return laid
 
-    def _draw(self, frame: np.ndarray, t: _Text, outline_color=BLACK) -> None:
-        # A dark outline keeps text legible where it crosses the image.
-        cv2.putText(frame, t.text, t.org, t.font, t.scale, outline_color, t.thickness + 2 * max(1, t.thickness // 2 + 1), cv2.LINE_AA)
-        cv2.putText(frame, t.text, t.org, t.font, t.scale, t.color, t.thickness, cv2.LINE_AA)
-        self._draw_sup(frame, t, outline_color)
-
-    def _draw_sup(self, frame: np.ndarray, t: _Text, outline_color=None) -> None:
-        if not t.sup:
-            return
-        (w, h), _ = cv2.getTextSize(t.text, t.font, t.scale, t.thickness)
-        org = (t.org[0] + w, t.org[1] - round(h * 0.4))
-        scale = t.scale * SUP_SCALE
-        if outline_color is not None:
-            cv2.putText(frame, t.sup, org, t.font, scale, outline_color, t.thickness + 2 * max(1, t.thickness // 2 + 1), cv2.LINE_AA)
-        cv2.putText(frame, t.sup, org, t.font, scale, t.color, t.thickness, cv2.LINE_AA)
-
-    def _static_texts(self, overlay: Overlay) -> list[_Text]:
+    def _static_texts(self, overlay: Overlay) -> list[TextLine]:
         lines = [(f"CASE  {overlay.case}", WHITE), (f"OPERATOR  {overlay.operator}", WHITE),
                  (overlay.fluoroscope, GREY)]
         return self._corner_lines([(s, c) for s, c in lines if s.strip()], "tl")
@@ -229,18 +159,18 @@ class Compositor:
         self._static_mask[...] = 0
         self._static_boxes = []
         for t in self._static_texts(overlay):
-            self._draw(self._static_layer, t)
-            self._draw(self._static_mask, _Text(t.text, t.org, t.scale, 255, t.font, t.thickness, t.sup), outline_color=255)
+            draw_text(self._static_layer, t)
+            draw_text(self._static_mask, TextLine(t.text, t.org, t.scale, 255, t.font, t.thickness, t.sup), outline_color=255)
             x0, y0, x1, y1 = t.box
             self._static_boxes.append((max(x0, 0), max(y0, 0), min(x1, self.width), min(y1, self.height)))
         self._static_key = key
 
-    def text_layout(self, overlay: Overlay, now: float | None = None) -> list[_Text]:
+    def text_layout(self, overlay: Overlay, now: float | None = None) -> list[TextLine]:
         """Every line of text compose() would draw, with its position (for checks of legibility and overlap)."""
         return self._static_texts(overlay) + self._dynamic_texts(overlay, now)
 
-    def _dynamic_texts(self, overlay: Overlay, now: float | None) -> list[_Text]:
-        texts: list[_Text] = []
+    def _dynamic_texts(self, overlay: Overlay, now: float | None) -> list[TextLine]:
+        texts: list[TextLine] = []
         right = []
         if overlay.mode:
             right.append((overlay.mode.upper(), WHITE))
@@ -278,7 +208,7 @@ class Compositor:
         if extra:
             above = self.height - texts[-1].box[1] + self.margin // 2
             for t in self._corner_lines(extra, "br"):
-                texts.append(_Text(t.text, (t.org[0], t.org[1] - above + self.margin), t.scale, t.color, t.font, t.thickness))
+                texts.append(TextLine(t.text, (t.org[0], t.org[1] - above + self.margin), t.scale, t.color, t.font, t.thickness))
         return texts
 
     # ------------------------------------------------------------------ pieces of the frame
@@ -292,7 +222,7 @@ class Compositor:
         if image.ndim != 2:
             raise ValueError(f"image must be (rows, cols), got shape {image.shape}")
         img = np.asarray(image, dtype=np.float32)
-        img = cv2.max(img, 0.0)
+        img = np.maximum(img, np.float32(0.0))   # convertScaleAbs would fold negatives up
         img8 = cv2.convertScaleAbs(img, alpha=255.0)           # rounds and saturates at 255
         # No inverting here: the renderer's display LUT owns polarity (overlay.invert is the label).
         rows, cols = img8.shape
@@ -346,29 +276,11 @@ class Compositor:
             square[max(top - 1, 0):top + 1, left:right] = edge
             square[bottom - 1:min(bottom + 1, self.side), left:right] = edge
 
-    def _wrap(self, text: str, max_w: int) -> list[str]:
-        """Break `text` at spaces into lines no wider than `max_w` pixels (a single long word is cut)."""
-        lines: list[str] = []
-        current = ""
-        for word in text.split():
-            candidate = f"{current} {word}" if current else word
-            if current and cv2.getTextSize(candidate, FONT, self.scale, self.thickness)[0][0] > max_w:
-                lines.append(current)
-                candidate = word
-            while cv2.getTextSize(candidate, FONT, self.scale, self.thickness)[0][0] > max_w and len(candidate) > 8:
-                cut = max(8, len(candidate) * max_w // cv2.getTextSize(candidate, FONT, self.scale, self.thickness)[0][0])
-                lines.append(candidate[:cut])
-                candidate = candidate[cut:]
-            current = candidate
-        if current:
-            lines.append(current)
-        return lines or [""]
-
     def _banner(self, frame: np.ndarray, text: str, y_top: int, fill: tuple[int, int, int], color: tuple[int, int, int],
                 from_bottom: bool = False) -> int:
         """A centred filled box holding `text`, wrapped to the image width; returns the y below it
         (or, `from_bottom`, draws it with its bottom at `y_top` and returns the y above it)."""
-        lines = self._wrap(text, round(self.side * 0.9) - 2 * self.margin)
+        lines = wrap_text(text, round(self.side * 0.9) - 2 * self.margin, self.scale, self.thickness)
         (_, h), base = cv2.getTextSize("Xg", FONT, self.scale, self.thickness)
         pitch = h + base + self.margin // 2
         box_w = max(cv2.getTextSize(line, FONT, self.scale, self.thickness)[0][0] for line in lines) + 2 * self.margin
@@ -408,7 +320,7 @@ class Compositor:
                               YELLOW if overlay.live else (60, 60, 60), thickness=-1)
                 cv2.putText(frame, t.text, t.org, t.font, t.scale, t.color, t.thickness, cv2.LINE_AA)
             else:
-                self._draw(frame, t)
+                draw_text(frame, t)
         y = self.margin + 3 * self.line     # below the corner text, which is never covered
         if image is None:
             label = "STARTING"
@@ -418,8 +330,9 @@ class Compositor:
         warnings = list(overlay.warnings)
         if len(warnings) > MAX_WARNINGS:
             warnings = warnings[:MAX_WARNINGS - 1] + [f"... and {len(warnings) - MAX_WARNINGS + 1} more warnings"]
-        for w in warnings:
-            y = self._banner(frame, w.upper() if len(w) < SHORT_WARNING_CHARS else w, y, AMBER, BLACK)
+        for warning in warnings:
+            text = warning.upper() if len(warning) < SHORT_WARNING_CHARS else warning
+            y = self._banner(frame, text, y, AMBER, BLACK)
         if overlay.saved_flash:
             y = self._banner(frame, "IMAGE SAVED", max(y, round(self.height * 0.2)), GREEN, BLACK)
         if overlay.cue:

@@ -8,6 +8,8 @@ with a cortical shell and costal cartilage, sternum, clavicles, scapulae, the sp
 (cortex, cancellous bone, discs, posterior elements, canal), lungs with branching
 pulmonary vessels and bronchi, heart with pericardial fat, aorta, trachea, diaphragm domes
 (the right higher), liver, spleen, stomach with its gas bubble, kidneys and colon with gas.
+The body's tissue values and surfaces are in `adult_body.py`, the bones in `adult_skeleton.py`;
+this module draws the organs and writes the CT and its case profile.
 
 The grid may be anisotropic, as a clinical CT is (2.5 mm slices, 0.8 mm pixels); any
 shape and spacing cover the same body, centred in the grid, so a small grid is the same
@@ -28,233 +30,36 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FluorosimError
-from .shapes import (
-    Layer,
-    bounds,
-    ellipsoid,
-    elliptic_prism,
-    grid_axis,
-    grid_box,
-    intersect,
-    paint_bone,
-    paint_tube,
-    rotation,
+from .adult_body import (
+    HU_AIR,
+    HU_BLOOD,
+    HU_BOWEL,
+    HU_FAT,
+    HU_FLUID,
+    HU_KIDNEY,
+    HU_LIVER,
+    HU_LUNG,
+    HU_LUNG_DEPENDENT_RISE,
+    HU_MEDIASTINUM,
+    HU_MUSCLE,
+    HU_MYOCARDIUM,
+    HU_NOISE,
+    HU_SKIN,
+    HU_SPLEEN,
+    SKIN_MM,
+    SUBCUT_FAT_MM,
+    AnisotropicGrid,
+    cavity,
+    diaphragm_z,
+    lung,
+    skin,
 )
+from .adult_skeleton import paint_ribs_and_sternum, paint_spine
+from .shapes import Layer, bounds, ellipsoid, elliptic_prism, intersect, paint_tube, rotation
 
-# --- Hounsfield units (typical unenhanced adult CT values) ---
-HU_AIR = -1000.0
-HU_LUNG = -860.0                # aerated lung; the dependent (posterior) lung is denser
-HU_LUNG_DEPENDENT_RISE = 60.0   # HU more at the back of the lung than at the front, supine
-HU_FAT = -100.0
-HU_MEDIASTINUM = -60.0          # mediastinal fat with lymph nodes and small vessels
-HU_SKIN = 40.0
-HU_MUSCLE = 45.0
-HU_BLOOD = 40.0                 # unenhanced blood pool
-HU_MYOCARDIUM = 45.0
-HU_LIVER = 60.0
-HU_SPLEEN = 50.0
-HU_KIDNEY = 35.0
-HU_BOWEL = 30.0
-HU_FLUID = 10.0
-HU_DISC = 80.0
-HU_CSF = 10.0
-HU_CARTILAGE = 180.0            # an adult's costal cartilage is partly calcified
-HU_CORTICAL = 1300.0
-HU_TRABECULAR = 220.0           # cancellous bone of a middle-aged adult
-HU_NOISE = 6.0                  # standard deviation of the CT's own noise (HU)
-
-# --- sizes (mm) ---
-#: Trunk cross-section by height z: semi-axes a (left-right) and b (antero-posterior) and
-#: the y of its centre: 330 x 220 mm across the chest, broader over the shoulders (arms up).
-_BODY_Z = np.array([-200, -150, -100, -50, 0, 50, 100, 150, 200], np.float32)
-_BODY_A = np.array([158, 160, 162, 165, 168, 170, 172, 168, 150], np.float32)
-_BODY_B = np.array([112, 110, 108, 106, 108, 112, 114, 110, 100], np.float32)
-_BODY_YC = np.array([-4, -4, -3, -2, 0, 2, 4, 6, 8], np.float32)
-BODY_POWER = 2.4                # superellipse: an adult's back and flanks are flatter than an ellipse
-SKIN_MM = 2.0
-SUBCUT_FAT_MM = 16.0
-WALL_MM = 14.0                  # intercostal and abdominal wall muscle
-PECTORAL_MM = 18.0              # the pectoral muscles over the upper anterior chest
-LUNG_APEX_Z = 165.0
-#: Diaphragm domes at end-expiration: apex (x, y, z) mm; the surface falls by DOME_DROP_MM
-#: over DOME_RADIUS_MM from the apex, into the costophrenic recesses.
-RIGHT_DOME = (-75.0, 5.0, -5.0)
-LEFT_DOME = (80.0, 5.0, -22.0)
-DOME_DROP_MM = 70.0
-DOME_RADIUS_MM = 95.0
-DIAPHRAGM_MM = 4.0
-SPINE_Y = 62.0                  # y of the vertebral body centres at mid-thorax (mm)
-T1_TOP_Z = 190.0
 #: Pulmonary vessels: a branch splits while its radius is above this (mm); Murray's law
 #: gives children of 2^(-1/3) of the parent's radius.
 VESSEL_MIN_RADIUS_MM = 0.7
-
-
-class AnisotropicGrid:
-    """The voxel grid of a CT with its own spacing along z, y and x, for `shapes.Layer`.
-
-    `spacing_mm`, the one number `Layer` blends partial-volume edges over, is the geometric
-    mean of the three spacings: the width of a voxel on average over directions.
-    """
-
-    def __init__(self, shape_zyx, spacing_zyx):
-        self.shape = tuple(int(n) for n in shape_zyx)
-        self.spacing_zyx = tuple(float(s) for s in spacing_zyx)
-        sz, sy, sx = self.spacing_zyx
-        self.spacing_xyz = (sx, sy, sz)
-        self.spacing_mm = float(np.prod(self.spacing_xyz) ** (1.0 / 3.0))
-        nz, ny, nx = self.shape
-        self.origin_mm = tuple(-(n - 1) / 2 * s for n, s in zip((nx, ny, nz), self.spacing_xyz))
-
-    # The same voxel geometry as `shapes.Grid`, with a spacing of its own along each axis.
-    axis = grid_axis
-    box = grid_box
-
-
-def _at(Z, values):
-    return np.interp(Z, _BODY_Z, values).astype(np.float32)
-
-
-def _superellipse(X, Y, a, b, yc):
-    """Approximate distance (mm) to the superellipse of semi-axes a, b centred at (0, yc)."""
-    u, w = np.abs(X) / a, np.abs(Y - yc) / b
-    rho = (u ** BODY_POWER + w ** BODY_POWER) ** (1.0 / BODY_POWER)
-    return (rho - 1.0) * np.sqrt((a * u) ** 2 + (b * w) ** 2) / (rho + 1e-6)
-
-
-def skin(X, Y, Z, inset=0.0):
-    """The skin of the trunk moved inward by `inset` mm (the whole grid is trunk along z)."""
-    return _superellipse(X, Y, _at(Z, _BODY_A) - inset, _at(Z, _BODY_B) - inset, _at(Z, _BODY_YC))
-
-
-def cavity(X, Y, Z):
-    """Thorax and abdomen inside the wall; the pectorals thicken the wall in front above z = 40."""
-    wall = SKIN_MM + SUBCUT_FAT_MM + WALL_MM
-    front = PECTORAL_MM * np.clip((Z - 40.0) / 60.0, 0, 1) * np.clip((60.0 - Y) / 120.0, 0, 1)
-    top = LUNG_APEX_Z + 15.0 - 60.0 * (X / 130.0) ** 2
-    return intersect(skin(X, Y, Z, wall) + front, Z - top)
-
-
-def dome_z(X, Y, apex):
-    """Height (mm) of a diaphragm dome above (x, y)."""
-    r2 = ((X - apex[0]) ** 2 + (Y - apex[1]) ** 2) / DOME_RADIUS_MM ** 2
-    return apex[2] - DOME_DROP_MM * r2
-
-
-def diaphragm_z(X, Y):
-    """The diaphragm: the higher of the two domes, with a saddle under the heart."""
-    return np.maximum(dome_z(X, Y, RIGHT_DOME), dome_z(X, Y, LEFT_DOME))
-
-
-def lung(X, Y, Z, side: int):
-    """Right (side -1) or left (+1) lung: the cavity above the diaphragm lateral to the mediastinum."""
-    medial = 18.0 + 12.0 * np.clip((Y - 30.0) / 40.0, 0, 1)     # the spine widens the mediastinum at the back
-    return intersect(cavity(X, Y, Z) + 3.0, medial - side * X, diaphragm_z(X, Y) + DIAPHRAGM_MM - Z)
-
-
-# --- the spine ---
-
-def _vertebrae():
-    """(name, centre z, height, disc below, half-width, half-depth) of T1-L3, from T1_TOP_Z down."""
-    out, top = [], T1_TOP_Z
-    for i in range(15):
-        thoracic = i < 12
-        h = float(np.interp(i, [0, 11, 12, 14], [17, 24, 26, 28]))
-        disc = 4.5 if thoracic else 9.0
-        a = float(np.interp(i, [0, 11, 14], [15, 22, 25]))
-        b = float(np.interp(i, [0, 11, 14], [12, 17, 18]))
-        name = f"T{i + 1}" if thoracic else f"L{i - 11}"
-        out.append((name, top - h / 2, h, disc, a, b))
-        top -= h + disc
-    return out
-
-
-def spine_y(z):
-    """y of the vertebral body centres (mm): thoracic kyphosis, lumbar lordosis."""
-    return SPINE_Y + 10.0 * np.sin(np.pi * np.clip((z + 60.0) / 250.0, 0, 1)) - 8.0
-
-
-def _paint_spine(layer: Layer) -> None:
-    for name, zc, h, disc, a, b in _vertebrae():
-        y = float(spine_y(zc))
-        back = y + b
-        for s in (-1, 1):
-            ped = (s * 0.6 * a, back + 9, zc + 1)
-            lamina = (0.0, back + 20, zc - 3)
-            tp = (s * (a + (30 if name.startswith("L") else 22)), back + (5 if name.startswith("L") else 16), zc + 2)
-            for path, radius in (([(s * 0.5 * a, y + 0.6 * b, zc + 1), ped], 4.0), ([ped, lamina], 3.5), ([ped, tp], 4.0)):
-                paint_tube(layer, path, radius, HU_CORTICAL * 0.7)
-        paint_tube(layer, [(0.0, back + 20, zc - 3), (0.0, back + 42, zc - 22)], (5.0, 3.0), HU_CORTICAL * 0.7)
-        c = (0.0, y, zc)
-        paint_bone(layer, lambda X, Y, Z, c=c, a=a, b=b, h=h: elliptic_prism(X, Y, Z, c, a, b, h / 2, power=2.2),
-                   *bounds([c], max(a, b, h) + 3), 1.2, HU_CORTICAL, HU_TRABECULAR)
-        dc = (0.0, y, zc - h / 2 - disc / 2)
-        layer.paint(lambda X, Y, Z, dc=dc, a=a, b=b, disc=disc: elliptic_prism(X, Y, Z, dc, a - 0.5, b - 0.5, disc / 2 + 0.3, power=2.2),
-                    HU_DISC, *bounds([dc], max(a, b) + 3))
-        canal = (0.0, back + 9, zc)
-        layer.paint(lambda X, Y, Z, c=canal, h=h + disc: elliptic_prism(X, Y, Z, c, 9.0, 7.5, h / 2 + 0.5),
-                    HU_CSF, *bounds([canal], 12 + h))
-
-
-# --- ribs, sternum, shoulder girdle ---
-
-def _rib_path(level: int, zc: float, y_spine: float):
-    """Points (mm) of rib `level` (0 = first) of the right side: from the head at the spine
-    round the chest wall to its anterior end, falling toward the front as ribs do."""
-    zr = zc + 4.0
-    a = float(_at(zr, _BODY_A)) - SKIN_MM - SUBCUT_FAT_MM - 8.0
-    b = float(_at(zr, _BODY_B)) - SKIN_MM - SUBCUT_FAT_MM - 8.0
-    yc = float(_at(zr, _BODY_YC))
-    if level == 0:
-        a, b = a - 45.0, b - 25.0            # the first rib is short and tight
-    elif level == 1:
-        a, b = a - 18.0, b - 10.0
-    end = (0.80 if level < 7 else 0.70 if level < 10 else 0.52 if level == 10 else 0.40) * np.pi
-    drop = 45.0 + 6.0 * min(level, 7)
-    theta = np.linspace(0.12 * np.pi, end, 14)
-    points = [(-12.0 - 14.0, y_spine + 4.0, zc + 2.0)]        # the head, beside the vertebral body
-    for th in theta:
-        n = (np.sin(th) ** BODY_POWER + abs(np.cos(th)) ** BODY_POWER) ** (1.0 / BODY_POWER)
-        f = (1.0 - np.cos(th)) / 2.0
-        points.append((-a * np.sin(th) / n, yc + b * np.cos(th) / n, zr - drop * f ** 1.3))
-    return np.array(points), end
-
-
-def _paint_ribs_and_sternum(layer: Layer) -> None:
-    verts = _vertebrae()
-    sternum_y = float(_at(80.0, _BODY_YC) - _at(80.0, _BODY_B)) + SKIN_MM + SUBCUT_FAT_MM + 12.0
-    sternum_top, sternum_bottom = 120.0, -15.0
-    for level in range(12):
-        _, zc, h, _, _, _ = verts[level]
-        pts, _ = _rib_path(level, zc, float(spine_y(zc)))
-        r_out = 4.0 if level in (0, 10, 11) else 5.0
-        for s in (-1, 1):
-            side = pts * [-s, 1, 1]
-            paint_tube(layer, side, r_out, HU_CORTICAL)
-            paint_tube(layer, side, r_out - 1.4, HU_TRABECULAR)
-            if level < 10:
-                # Costal cartilage from the rib's end to the sternum (ribs 1-7) or to the
-                # cartilage above (8-10), rising toward the front.
-                z_st = sternum_top - 8 - (sternum_top - sternum_bottom - 16) * min(level, 6) / 6.0
-                if level < 7:
-                    target = (s * 14.0, sternum_y, z_st)
-                else:
-                    target = (s * (50.0 + 12 * (level - 7)), sternum_y + 12.0, z_st - 10 * (level - 6))
-                mid = 0.5 * (side[-1] + np.array(target)) + [0, -6.0, 0]
-                paint_tube(layer, [side[-1], mid, target], (r_out - 0.5, r_out - 1.0, r_out - 1.5), HU_CARTILAGE)
-    for zc, half_w, half_h in ((108.0, 26.0, 14.0), (80.0, 16.0, 14.0), (50.0, 15.0, 15.0), (20.0, 14.0, 14.0), (-8.0, 10.0, 8.0)):
-        c = (0.0, sternum_y, zc)
-        paint_bone(layer, lambda X, Y, Z, c=c, w=half_w, h=half_h: elliptic_prism(X, Y, Z, c, w, 6.0, h),
-                   *bounds([c], 30), 1.2, HU_CORTICAL, HU_TRABECULAR)
-    for s in (-1, 1):
-        clav = [(s * 20, sternum_y - 4, 128), (s * 70, sternum_y + 2, 140), (s * 120, sternum_y + 25, 150), (s * 150, sternum_y + 60, 155)]
-        paint_tube(layer, clav, 7.0, HU_CORTICAL)
-        paint_tube(layer, clav, 5.0, HU_TRABECULAR)
-        c = (s * 100.0, 92.0, 95.0)
-        R = rotation("y", -s * 10) @ rotation("z", -s * 28)
-        paint_bone(layer, lambda X, Y, Z, c=c, R=R: ellipsoid(X, Y, Z, c, (45.0, 4.0, 70.0), R),
-                   *bounds([c], 75), 1.2, HU_CORTICAL, HU_TRABECULAR)
-        paint_tube(layer, [(s * 60, 108, 140), (s * 135, 88, 150)], 5.0, HU_CORTICAL)
 
 
 # --- airways and pulmonary vessels ---
@@ -409,8 +214,8 @@ def build_adult_chest(shape_zyx=(136, 512, 512), spacing_mm=(2.5, 0.8, 0.8), see
     _paint_abdomen(layer, rng)
     _paint_lungs(layer, rng)
     _paint_mediastinum(layer)
-    _paint_ribs_and_sternum(layer)
-    _paint_spine(layer)
+    paint_ribs_and_sternum(layer)
+    paint_spine(layer)
     hu = layer.value
     hu += rng.normal(0.0, HU_NOISE, hu.shape).astype(np.float32)
     out = np.clip(np.rint(hu), -1024, 3071).astype(np.int16)

@@ -114,7 +114,7 @@ class BreathingAnatomy:
             sizes[0] = 0
             sizes[sides] = 0
             biggest = sizes.max()
-            keep = np.flatnonzero(sizes >= 0.3 * biggest) if biggest > 0 else []
+            keep = np.flatnonzero(sizes >= 0.3 * biggest) if biggest > 0 else np.zeros(0, np.intp)
             lungs = np.isin(air, keep) if len(keep) else np.zeros_like(body)
         if not lungs.any():
             raise FluorosimError(f"{volume.source or 'the CT'}: no lungs found for the breathing motion (no air inside "
@@ -148,7 +148,7 @@ class BreathingAnatomy:
         if blur > 0:
             lateral = ndimage.gaussian_filter(lateral, (blur / sp[1], blur / sp[0]))
             lateral = np.clip(lateral / 0.5, 0.0, 1.0)      # 1 inside, half way at the footprint's edge
-        self.lateral = lateral.astype(np.float32)
+        self.lateral = np.asarray(lateral, np.float32)
 
         # --- the spine and the ribs
         spine = _label_mask(labels, role.get("spine"))

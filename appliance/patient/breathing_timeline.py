@@ -15,6 +15,9 @@ import logging
 import math
 import threading
 from collections.abc import Callable
+from functools import partial
+
+import numpy as np
 
 from ..config.case import Materials, Respiration
 from ..errors import FluorosimError
@@ -35,7 +38,7 @@ class BreathingTimeline:
     """
 
     def __init__(self, source, params: Respiration, materials: Materials, renderer,
-                 load_labels: Callable[[Volume], object] | None = None, control: BreathingControl | None = None,
+                 load_labels: Callable[[Volume], np.ndarray | None] | None = None, control: BreathingControl | None = None,
                  cycle_s: float | None = None):
         self.params = params
         self.control = control or BreathingControl(params)
@@ -171,8 +174,10 @@ def breathing_timeline(case_path, case, renderer, cache_dir=None) -> BreathingTi
     if case.phases is not None and len(case.phases) > 1:
         from .breathing_4d import FourDBreathing
         from .timeline import PhaseTimeline
-        phases = [(ph.time_s, (lambda p=resolve(case_path, ph.volume): load_volume(p))) for ph in case.phases]
-        return FourDBreathing(PhaseTimeline(phases, renderer, at_end="loop"), params,  # type: ignore[return-value]
+        ct_phases = [(ph.time_s, partial(load_volume, resolve(case_path, ph.volume))) for ph in case.phases]
+        # FourDBreathing offers BreathingTimeline's at/wait_ready/ready_count without sharing a
+        # base class, hence the ignore.
+        return FourDBreathing(PhaseTimeline(ct_phases, renderer, at_end="loop"), params,  # type: ignore[return-value]
                               params.ct_end_expiration_s)
     if case.builtin is not None:
         from .builtin import SEQUENCE_S, builtin_phases, timeline

@@ -42,12 +42,13 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import FluorosimError
-from . import anatomy, shapes
+from . import anatomy, child_skeleton, shapes
 from .anatomy import BREATH_AMPLITUDE_MM, RIB_LIFT_MM
 from .volume import Volume
 
@@ -144,7 +145,7 @@ def cache_key() -> str:
                   numpy=np.__version__.split(".")[0])
     h.update(json.dumps(params, sort_keys=True).encode())
     here = Path(__file__).parent
-    for module in ("builtin.py", "anatomy.py", "shapes.py"):
+    for module in ("builtin.py", "anatomy.py", "child_skeleton.py", "shapes.py"):
         h.update((here / module).read_bytes())
     return h.hexdigest()[:16]
 
@@ -157,7 +158,7 @@ class Builder:
         self.grid = grid()
         self.progress("drawing the body and skeleton")
         self.static = anatomy.static_soft(self.grid, np.random.default_rng(anatomy.SEED))
-        self.skeleton = anatomy.skeleton(self.grid)
+        self.skeleton = child_skeleton.skeleton(self.grid)
         self._breaths: dict[float, tuple[shapes.Layer, shapes.Layer, np.ndarray]] = {}
 
     def breathing_state(self, breath: float) -> tuple[shapes.Layer, shapes.Layer, np.ndarray]:
@@ -166,7 +167,7 @@ class Builder:
             self.progress(f"drawing the breathing organs and ribs at breath {breath:.2f}")
             soft = self.static.copy()
             anatomy.paint_breathing(soft, breath)
-            ribs = anatomy.rib_cage(self.grid, breath)
+            ribs = child_skeleton.rib_cage(self.grid, breath)
             self._breaths[breath] = soft, ribs, ribs.over(self.skeleton.over(soft.value))
         return self._breaths[breath]
 
@@ -224,7 +225,7 @@ def build(target: Path, progress: Callable[[str], None] | None = None) -> None:
     try:
         builder = Builder(progress)
         specs = timeline()
-        written = set()
+        written: set[str] = set()
         distinct = len({s.file_name for s in specs})
         T = builder.grid.T_ct_from_voxel
         # Compressing and writing one phase overlaps drawing the next (the second core);
@@ -295,4 +296,4 @@ def builtin_phases(name: str, cache_dir: Path,
         if not path.is_file():
             raise FluorosimError(f"{path}: missing from the cache of the built-in patient; delete the folder "
                                  f"{target} and it is rebuilt on next use")
-    return [(t, (lambda path=path: load_mha(path))) for t, path in phases]
+    return [(t, partial(load_mha, path)) for t, path in phases]

@@ -3,6 +3,7 @@ that puts a chosen point of it at the X-ray isocentre."""
 
 from __future__ import annotations
 
+import argparse
 import os
 from pathlib import Path
 
@@ -10,6 +11,7 @@ import numpy as np
 
 from ..atomic_file import write_atomic
 from ..cli import command_group
+from ..command_options import add_command
 from ..config.commands import default_config_dir
 from ..config.loading import load_appliance
 from ..errors import FluorosimError
@@ -131,21 +133,21 @@ def run_place(args) -> int:
 
 def register(commands, benches) -> None:
     case = command_group(commands, "case", "inspect your own CT and place it in the box phantom")
-    i = case.add_parser("inspect", help="extent, spacing, orientation, centre (LPS mm) and HU of a CT",
-                        description="Print a CT's grid, spacing and orientation; the LPS bounds (mm) of its first and last "
-                                    "voxel centres along each axis and its centre; its HU range, histogram peaks and "
-                                    "whether it looks like a CT in HU; and with --at the value at a point. LPS: +x toward "
-                                    "the patient's left, +y posterior, +z superior, as ITK reads every format.")
-    i.add_argument("ct", metavar="CT", help="DICOM series folder, .nii/.nii.gz, .mha/.mhd or .nrrd")
+    def ct_argument(p: argparse.ArgumentParser) -> None:
+        p.add_argument("ct", metavar="CT", help="DICOM series folder, .nii/.nii.gz, .mha/.mhd or .nrrd")
+
+    i = add_command(case, "inspect", run_inspect, "extent, spacing, orientation, centre (LPS mm) and HU of a CT",
+                    "Print a CT's grid, spacing and orientation; the LPS bounds (mm) of its first and last voxel "
+                    "centres along each axis and its centre; its HU range, histogram peaks and whether it looks like "
+                    "a CT in HU; and with --at the value at a point. LPS: +x toward the patient's left, +y posterior, "
+                    "+z superior, as ITK reads every format.", ct_argument)
     i.add_argument("--at", metavar="X,Y,Z",
                    help="also print the HU at this point (LPS mm; write --at=-12,5,30 when it starts with a minus)")
-    i.set_defaults(run=run_inspect)
-    p = case.add_parser("place", help="write a case profile that puts a point of a CT at the X-ray isocentre",
-                        description="Compute T_phantom_from_ct so that TARGET (LPS mm, see `case inspect`) lies at the "
-                                    "X-ray isocentre of the appliance's fluoroscope at its demo path's home pose, with the "
-                                    "patient's head along the box and the beam entering PA (supine), AP (prone) or LAT "
-                                    "(left side toward the detector). Writes the case profile and a preview PNG.")
-    p.add_argument("ct", metavar="CT", help="DICOM series folder, .nii/.nii.gz, .mha/.mhd or .nrrd")
+    p = add_command(case, "place", run_place, "write a case profile that puts a point of a CT at the X-ray isocentre",
+                    "Compute T_phantom_from_ct so that TARGET (LPS mm, see `case inspect`) lies at the X-ray isocentre "
+                    "of the appliance's fluoroscope at its demo path's home pose, with the patient's head along the "
+                    "box and the beam entering PA (supine), AP (prone) or LAT (left side toward the detector). Writes "
+                    "the case profile and a preview PNG.", ct_argument)
     p.add_argument("--target", required=True, metavar="X,Y,Z",
                    help="the point to centre, in the CT's LPS mm (write --target=-12,5,30 when it starts with a minus)")
     p.add_argument("--beam", default="PA", choices=("PA", "AP", "LAT"), help="how the beam sees the patient (default PA)")
@@ -155,4 +157,3 @@ def register(commands, benches) -> None:
     p.add_argument("--appliance", metavar="PROFILE.yaml",
                    help=f"appliance profile whose fluoroscope, phantom and demo path set the isocentre "
                         f"(default: configs/{DEFAULT_APPLIANCE})")
-    p.set_defaults(run=run_place)

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..command_options import add_command
 from ..config.appliance import ApplianceProfile
 from ..config.commands import default_config_dir
 from ..config.loading import load_profile, resolve
@@ -140,36 +141,33 @@ def register(commands, benches) -> None:
     from ..cli import command_group
 
     case = command_group(commands, "case", "make and inspect training cases")
-    a = case.add_parser("adult-chest", help="write a synthetic adult chest CT and its case profile",
-                        description="Draw a synthetic adult chest and upper abdomen CT (ribs with a cortical shell, "
-                                    "spine, lungs with branching vessels, heart, diaphragm domes, liver, bowel gas) "
-                                    "and write it with a case profile into --out.")
+    a = add_command(case, "adult-chest", run_adult_chest, "write a synthetic adult chest CT and its case profile",
+                    "Draw a synthetic adult chest and upper abdomen CT (ribs with a cortical shell, spine, lungs with "
+                    "branching vessels, heart, diaphragm domes, liver, bowel gas) and write it with a case profile "
+                    "into --out.")
     a.add_argument("--out", required=True, metavar="DIR", help="folder for adult-chest.mha and adult-chest.yaml")
     a.add_argument("--size", choices=("full", "small"), default="full",
                    help="full: 136x512x512 voxels of 2.5x0.8x0.8 mm (about 30 s); small: 68x128x128 for quick tests")
     a.add_argument("--seed", type=int, default=0, help="vessel branching, bowel gas and CT noise (default 0)")
     a.add_argument("--format", choices=(".mha", ".nii.gz", ".nii"), default=".mha", help="volume file format")
-    a.set_defaults(run=run_adult_chest)
-    b = case.add_parser("bar-pattern", help="write the bar-pattern resolution test object and its case profile",
-                        description="Write a TOR 18FG-like bar pattern (0.5-5 lp/mm, 1 mm plate) as bar-pattern.mha "
-                                    "with its case profile bar-pattern.yaml into --out (configs/cases ships one).")
+    b = add_command(case, "bar-pattern", run_bar_pattern,
+                    "write the bar-pattern resolution test object and its case profile",
+                    "Write a TOR 18FG-like bar pattern (0.5-5 lp/mm, 1 mm plate) as bar-pattern.mha with its case "
+                    "profile bar-pattern.yaml into --out (configs/cases ships one).")
     b.add_argument("--out", required=True, metavar="DIR")
-    b.set_defaults(run=run_bar_pattern)
 
-    p = commands.add_parser("build-patient", help="build (or reuse) the built-in 4D patient and show it",
-                            description="Build the phases of a built-in patient into the cache (once per machine), "
-                                        "report the time, and optionally write PNG previews of each stage.")
+    p = add_command(commands, "build-patient", run_build, "build (or reuse) the built-in 4D patient and show it",
+                    "Build the phases of a built-in patient into the cache (once per machine), report the time, and "
+                    "optionally write PNG previews of each stage.")
     p.add_argument("--name", default=NAMES[0], choices=NAMES, help=f"built-in patient (default {NAMES[0]})")
     p.add_argument("--cache", metavar="DIR", help="cache folder (default: <data_dir>/cache of configs/appliance.yaml)")
     p.add_argument("--previews", metavar="DIR", help="write axial/coronal/sagittal PNGs and an AP projection per stage here")
-    p.set_defaults(run=run_build)
 
-    b = benches.add_parser("builtin-patient", help="time building every phase of the built-in patient",
-                           description="Build the built-in patient from scratch into a temporary folder REPEAT times; "
-                                       "print the median build time, the cache-hit time and the load time of a phase.")
+    b = add_command(benches, "builtin-patient", run_bench, "time building every phase of the built-in patient",
+                    "Build the built-in patient from scratch into a temporary folder REPEAT times; print the median "
+                    "build time, the cache-hit time and the load time of a phase.")
     b.add_argument("--name", default=NAMES[0], choices=NAMES)
     b.add_argument("--repeat", type=int, default=3, help="builds to take the median of (default 3)")
-    b.set_defaults(run=run_bench)
 
     from .breathing_bench import register as register_breathing_bench
     register_breathing_bench(benches)

@@ -71,7 +71,7 @@ def obliquity_deg(volume: Volume) -> float:
 class HuSummary:
     minimum: float
     maximum: float
-    percentiles: dict[float, float]     # percentile -> HU
+    percentiles: dict[int, float]       # percentile -> HU
     peaks: dict[str, float]             # tissue -> HU of its histogram peak (only the tissues found)
     bone_fraction: float                # of voxels at or above BONE_MIN_HU
     metal_fraction: float
@@ -108,7 +108,7 @@ def hu_summary(volume: Volume, max_samples: int = 4_000_000) -> HuSummary:
     return HuSummary(float(values.min()), float(values.max()), pct, peaks, bone, metal, verdict, ok)
 
 
-def _verdict(lo: float, hi: float, pct: dict[float, float], peaks: dict[str, float], bone: float) -> tuple[bool, str]:
+def _verdict(lo: float, hi: float, pct: dict[int, float], peaks: dict[str, float], bone: float) -> tuple[bool, str]:
     if lo >= 0 and hi >= 900:
         # Air is -1000 HU: a CT in HU without a single negative voxel has lost its rescale intercept.
         return False, (f"no: every value is >= 0 (min {lo:.0f}, max {hi:.0f}); this looks like stored scanner "

@@ -49,10 +49,10 @@ def _projection(points: np.ndarray, weights: np.ndarray, horizontal: np.ndarray,
     w, h = 2 * half_h, 2 * half_v
     ok = (col >= 0) & (col < w) & (row >= 0) & (row < h)
     image = np.bincount(row[ok] * w + col[ok], weights=weights[ok], minlength=w * h).reshape(h, w)
-    image = cv2.GaussianBlur(image.astype(np.float32), (0, 0), max(sample_mm, 0.5))
-    body = image[image > 0]
+    blurred = cv2.GaussianBlur(image.astype(np.float32), (0, 0), max(sample_mm, 0.5))
+    body = blurred[blurred > 0]
     top = np.percentile(body, 99.5) if body.size else 1.0
-    grey = (255 * np.clip(image / (top + 1e-9), 0, 1)).astype(np.uint8)
+    grey = (255 * np.clip(blurred / (top + 1e-9), 0, 1)).astype(np.uint8)
     return cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
 
 

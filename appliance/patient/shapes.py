@@ -30,8 +30,8 @@ class Grid:
     @classmethod
     def centred(cls, shape_xyz: tuple[int, int, int], spacing_mm: float) -> Grid:
         """The grid of `shape_xyz` voxels whose middle lies at the origin (a voxel centre when the count is odd)."""
-        origin = tuple(-(n - 1) / 2 * spacing_mm for n in shape_xyz)
-        return cls((shape_xyz[2], shape_xyz[1], shape_xyz[0]), spacing_mm, origin)
+        ox, oy, oz = (-(n - 1) / 2 * spacing_mm for n in shape_xyz)
+        return cls((shape_xyz[2], shape_xyz[1], shape_xyz[0]), spacing_mm, (ox, oy, oz))
 
     @property
     def spacing_xyz(self) -> tuple[float, float, float]:
@@ -115,6 +115,8 @@ class Layer:
 
     def over(self, below: np.ndarray, sl=(slice(None),) * 3) -> np.ndarray:
         """This (transparent) layer laid over the opaque HU `below` inside slices `sl`."""
+        if self.alpha is None:      # an opaque layer hides what is below it
+            return self.value[sl].copy()
         return self.value[sl] + (1.0 - self.alpha[sl]) * below
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import bisect
 import logging
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 from ..errors import FluorosimError
 from ..patient.volume import Volume
@@ -27,7 +27,7 @@ class PhaseTimeline:
     stamp plus the mean phase interval) or holds the last phase (`"hold"`).
     """
 
-    def __init__(self, phases: list[tuple[float, Callable[[], Volume]]], renderer, at_end: str = "loop"):
+    def __init__(self, phases: Sequence[tuple[float, Callable[[], Volume]]], renderer, at_end: str = "loop"):
         if not phases:
             raise FluorosimError("a case timeline needs at least one phase")
         times = [float(t) for t, _ in phases]
@@ -61,11 +61,12 @@ class PhaseTimeline:
     def _load_loop(self) -> None:
         while True:
             with self._cond:
-                while not self._stop and self._next_to_load() is None:
-                    self._cond.wait()
-                if self._stop:
-                    return
                 i = self._next_to_load()
+                while not self._stop and i is None:
+                    self._cond.wait()
+                    i = self._next_to_load()
+                if self._stop or i is None:
+                    return
             try:
                 prepared = self.renderer.prepare(self.loaders[i]())
                 prepared.time_s = self.times[i]

@@ -8,13 +8,12 @@ import sqlite3
 import sys
 from pathlib import Path
 
+from ..command_options import add_command, date_range_options, ledger_options
 from ..config import ApplianceProfile, load_profile, resolve
 from ..errors import FluorosimError
 from . import export as export_module
 from . import integrity
 from .ledger import open_readonly
-
-DEFAULT_CONFIG = "configs/appliance.yaml"
 
 
 def ledger_path(args: argparse.Namespace) -> Path:
@@ -120,12 +119,6 @@ def trainees_of(conn: sqlite3.Connection) -> dict[int, str]:
     return out
 
 
-def _ledger_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", default=DEFAULT_CONFIG, metavar="PATH",
-                   help=f"appliance profile whose data_dir holds ledger.sqlite (default {DEFAULT_CONFIG})")
-    p.add_argument("--ledger", metavar="PATH", help="the ledger file itself, instead of --config")
-
-
 def register(commands: argparse._SubParsersAction[argparse.ArgumentParser],
              benches: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     from ..cli import command_group
@@ -134,36 +127,29 @@ def register(commands: argparse._SubParsersAction[argparse.ArgumentParser],
     from .seal_commands import register_seal
 
     logs = command_group(commands, "logs", "read, verify and export the dose and session ledger")
-    ls = logs.add_parser("list", help="list sessions with their fluoroscopy time and dose",
-                         description="One line per session that started in [--since, --until]: the operator, the "
-                                     "trainee entered at its start ('-' if none), fluoroscopy time (minutes), reference "
-                                     "air kerma (mGy), dose-area product (Gy cm2), runs, alarms.")
-    _ledger_options(ls)
-    ls.add_argument("--since", metavar="DATE", help="first day (or date-time) to include")
-    ls.add_argument("--until", metavar="DATE", help="last day (or date-time, exclusive) to include")
-    ls.set_defaults(run=run_list)
-    v = logs.add_parser("verify", help="check the ledger's hash chain",
-                        description="Walk the ledger's hash chain and the sessions' totals, and check the ledger "
-                                    "against the anchor each given dose report (RDSR) carries: the entry that ended "
-                                    "its session, which the ledger must still hold unchanged. Exit 0 when intact; "
-                                    "1 with the first broken link when an event was changed or removed.")
-    _ledger_options(v)
+    ls = add_command(logs, "list", run_list, "list sessions with their fluoroscopy time and dose",
+                     "One line per session that started in [--since, --until]: the operator, the trainee entered at "
+                     "its start ('-' if none), fluoroscopy time (minutes), reference air kerma (mGy), dose-area product "
+                     "(Gy cm2), runs, alarms.", ledger_options)
+    date_range_options(ls)
+    v = add_command(logs, "verify", run_verify, "check the ledger's hash chain",
+                    "Walk the ledger's hash chain and the sessions' totals, and check the ledger against the anchor "
+                    "each given dose report (RDSR) carries: the entry that ended its session, which the ledger must "
+                    "still hold unchanged. Exit 0 when intact; 1 with the first broken link when an event was changed "
+                    "or removed.", ledger_options)
     v.add_argument("--rdsr", nargs="+", metavar="FILE",
                    help="dose reports (as sent to the PACS or exported) whose ledger anchors to check")
-    v.set_defaults(run=run_verify)
-    e = logs.add_parser("export", help="export sessions and events as CSV, JSON or DICOM dose reports",
-                        description="Export the sessions that started in [--since, --until] (dates as YYYY-MM-DD, local "
-                                    "time; a date as --until includes that whole day) as CSV (sessions.csv, events.csv), "
-                                    "JSON (ledger.json) or one DICOM X-Ray Radiation Dose SR per ended session. "
-                                    "Never overwrites: an --out folder that already holds those files is refused.")
-    _ledger_options(e)
+    e = add_command(logs, "export", run_export, "export sessions and events as CSV, JSON or DICOM dose reports",
+                    "Export the sessions that started in [--since, --until] (dates as YYYY-MM-DD, local time; a date "
+                    "as --until includes that whole day) as CSV (sessions.csv, events.csv), JSON (ledger.json) or one "
+                    "DICOM X-Ray Radiation Dose SR per ended session. Never overwrites: an --out folder that already "
+                    "holds those files is refused.", ledger_options)
     e.add_argument("--since", metavar="DATE", help="first day (or date-time) to include; default: the beginning")
     e.add_argument("--until", metavar="DATE", help="last day to include (a date-time is exclusive); default: no limit")
     e.add_argument("--format", choices=export_module.FORMATS, required=True)
     e.add_argument("--out", required=True, metavar="DIR", help="folder to write into (created if missing)")
     e.add_argument("--allow-broken", action="store_true",
                    help="export a ledger that fails verification anyway; every file written is stamped as such")
-    e.set_defaults(run=run_export)
     register_bench(benches)
     register_dicom(commands)
     register_seal(commands)

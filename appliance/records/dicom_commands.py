@@ -8,6 +8,7 @@ import sys
 import time
 from pathlib import Path
 
+from ..command_options import add_command, config_option
 from ..config import ApplianceProfile, load_profile, resolve
 from ..errors import FluorosimError
 from . import dicom, dicom_network, rdsr
@@ -16,8 +17,6 @@ from .export import events_of
 from .identity import device_uid, identity_path
 from .ledger import SESSION_COLUMNS, open_readonly
 from .outbox import Outbox, pending_in
-
-DEFAULT_CONFIG = "configs/appliance.yaml"
 
 
 def _profile(args: argparse.Namespace) -> tuple[Path, ApplianceProfile, Path]:
@@ -151,30 +150,25 @@ def register(commands: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
 
     group = command_group(commands, "dicom", "send images and dose reports to the PACS and the dose registry")
 
-    def options(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--config", default=DEFAULT_CONFIG, metavar="PATH",
-                       help=f"appliance profile with the dicom: section (default {DEFAULT_CONFIG})")
+    def session_option(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--session", type=int, metavar="N", help="queue session N's objects first (see 'fluorosim logs list')")
 
-    p = group.add_parser("identity", help="make (once) and show this appliance's Device Observer UID",
-                         description="Generate the appliance's Device Observer UID into dicom.identity_file if it has "
-                                     "none yet (provisioning runs this), and print it. An existing UID is never changed.")
-    options(p)
-    p.set_defaults(run=run_identity)
-    p = group.add_parser("echo", help="C-ECHO every destination",
-                         description="Check the link to every destination of the dicom: section with a C-ECHO. "
-                                     "Exit 0 only if all answer; one line per destination that does not.")
-    options(p)
-    p.set_defaults(run=run_echo)
-    p = group.add_parser("send", help="send what is queued now (or a session's objects)",
-                         description="Send every queued object now, without waiting for the retry delay. With "
-                                     "--session N, first queue that session's saved images and dose report again "
-                                     "(a destination that already confirmed an object does not get it twice). "
-                                     "Exit 0 when nothing is left queued.")
-    options(p)
-    p.add_argument("--session", type=int, metavar="N", help="queue session N's objects first (see 'fluorosim logs list')")
-    p.set_defaults(run=run_send)
-    p = group.add_parser("queue", help="what is waiting to be sent, and why",
-                         description="One line per object and destination not yet delivered: tries so far, when it "
-                                     "is tried next, and the last error.")
-    options(p)
-    p.set_defaults(run=run_queue)
+    commands_of_dicom = (
+        ("identity", run_identity, (), "make (once) and show this appliance's Device Observer UID",
+         "Generate the appliance's Device Observer UID into dicom.identity_file if it has none yet (provisioning "
+         "runs this), and print it. An existing UID is never changed."),
+        ("echo", run_echo, (), "C-ECHO every destination",
+         "Check the link to every destination of the dicom: section with a C-ECHO. Exit 0 only if all answer; one "
+         "line per destination that does not."),
+        ("send", run_send, (session_option,), "send what is queued now (or a session's objects)",
+         "Send every queued object now, without waiting for the retry delay. With --session N, first queue that "
+         "session's saved images and dose report again (a destination that already confirmed an object does not get "
+         "it twice). Exit 0 when nothing is left queued."),
+        ("queue", run_queue, (), "what is waiting to be sent, and why",
+         "One line per object and destination not yet delivered: tries so far, when it is tried next, and the last "
+         "error."),
+    )
+    for name, run, own_options, help, description in commands_of_dicom:
+        p = add_command(group, name, run, help, description, config_option("the dicom: section"))
+        for option in own_options:
+            option(p)

@@ -3,13 +3,15 @@
 Durability: WAL journal with synchronous=FULL, so a committed event survives a power cut;
 each `record()` call is one transaction, so a kill leaves whole batches or nothing.
 Tamper evidence: each event row carries `hash = sha256(prev_hash + canonical row)`, the
-first event chaining to 64 zeros; `verify()` reports the first row whose link is broken.
+first event chaining to 64 zeros; `verify()` reports the first row whose link is broken
+(ledger_chain.py).
 Where a seal is configured (records/seal.py) each row also carries an HMAC with a key the
 service cannot read, and the newest entry is anchored outside the file; the sessions rows
 are checked against the chained session_start and session_end events.
 Recovery: opening the ledger finds sessions that never ended (power loss, kill -9), closes
 an exposure left open, and ends the session with totals equal to the sum of its events'
-increments. Schema changes are numbered migrations run at open (PRAGMA user_version).
+increments. Schema changes are numbered migrations run at open (PRAGMA user_version;
+ledger_schema.py, with the connections).
 
 Times: `t_wall` is Unix time (s); `t_monotonic` is the console's clock (s), mapped to wall
 time through the anchor given at `start_session`.
@@ -18,275 +20,39 @@ time through the anchor given at `start_session`.
 from __future__ import annotations
 
 import fcntl
-import hashlib
 import json
 import logging
-import math
 import os
 import sqlite3
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
 from ..console.state import ConsoleEvent
 from ..errors import FluorosimError
+from .ledger_chain import GENESIS, ChainReport, canonical_detail, event_hash, session_rows_problem, verify
+from .ledger_schema import (
+    EVENT_COLUMNS,
+    FULL_DISK_BYTES,
+    MIGRATIONS,
+    SESSION_COLUMNS,
+    connect,
+    migrate,
+    open_readonly,
+    open_writer,
+)
 from .seal import Seal, seal_from_environment
+
+# The ledger's schema, connections and chain live in ledger_schema.py and ledger_chain.py;
+# every command and test that reads the ledger imports them from here, with the writer.
+__all__ = ["EVENT_COLUMNS", "FULL_DISK_BYTES", "GENESIS", "MIGRATIONS", "SESSION_COLUMNS", "ChainReport", "Ledger",
+           "LedgerBusy", "event_hash", "open_readonly", "open_writer", "session_rows_problem", "verify"]
 
 log = logging.getLogger(__name__)
 
-GENESIS = "0" * 64
-
-
 class LedgerBusy(FluorosimError):
     """Another fluorosim process holds the ledger: nothing else may be opened."""
-
-
-#: Below this much free space an error opening or writing the ledger is the disk being full (bytes).
-FULL_DISK_BYTES = 1 << 20
-
-
-def _why(path: Path, e: Exception) -> str:
-    """What a failed open or write of the ledger means for a person: a full disk, else the error."""
-    import shutil
-
-    try:
-        free = shutil.disk_usage(path.parent if path.parent.exists() else Path(".")).free
-    except OSError:
-        free = None
-    if free is not None and free < FULL_DISK_BYTES:
-        return f"the disk is full ({free // 1024} KiB free); free space in {path.parent}"
-    return f"{e}; check the file and its folder's permissions"
-
-MIGRATIONS = (
-    # 1: sessions, chained events, running totals.
-    """
-    CREATE TABLE sessions (
-        id INTEGER PRIMARY KEY,
-        operator TEXT NOT NULL,
-        case_title TEXT NOT NULL,
-        fluoroscope TEXT NOT NULL,
-        started_wall REAL NOT NULL,
-        ended_wall REAL,
-        end_reason TEXT,
-        fluoro_time_s REAL NOT NULL DEFAULT 0,
-        air_kerma_mgy REAL NOT NULL DEFAULT 0,
-        dap_gy_cm2 REAL NOT NULL DEFAULT 0,
-        runs INTEGER NOT NULL DEFAULT 0,
-        alarms INTEGER NOT NULL DEFAULT 0,
-        saves INTEGER NOT NULL DEFAULT 0
-    );
-    CREATE TABLE events (
-        id INTEGER PRIMARY KEY,
-        session_id INTEGER NOT NULL REFERENCES sessions(id),
-        t_wall REAL NOT NULL,
-        t_monotonic REAL,
-        kind TEXT NOT NULL,
-        fluoro_time_s REAL NOT NULL,
-        air_kerma_mgy REAL NOT NULL,
-        dap_gy_cm2 REAL NOT NULL,
-        d_fluoro_time_s REAL NOT NULL,
-        d_air_kerma_mgy REAL NOT NULL,
-        d_dap_gy_cm2 REAL NOT NULL,
-        detail TEXT NOT NULL,
-        prev_hash TEXT NOT NULL,
-        hash TEXT NOT NULL
-    );
-    CREATE INDEX events_by_session ON events(session_id, id);
-    CREATE INDEX sessions_by_start ON sessions(started_wall);
-    """,
-    # 2 Outbox (DICOM network sending, reused for xAPI): objects to deliver and one delivery row
-    # per destination, kept in the ledger's file so a queued object survives kill -9 and power
-    # loss together with the session it belongs to. See records.outbox.
-    """
-    CREATE TABLE outbox_items (
-        id INTEGER PRIMARY KEY,
-        kind TEXT NOT NULL,
-        item_key TEXT NOT NULL,
-        session_id INTEGER,
-        label TEXT NOT NULL,
-        payload BLOB NOT NULL,
-        created_wall REAL NOT NULL,
-        UNIQUE (kind, item_key)
-    );
-    CREATE TABLE outbox_deliveries (
-        item_id INTEGER NOT NULL REFERENCES outbox_items(id),
-        destination TEXT NOT NULL,
-        sent_wall REAL,
-        attempts INTEGER NOT NULL DEFAULT 0,
-        next_try_wall REAL NOT NULL,
-        last_try_wall REAL,
-        last_error TEXT,
-        lease_until REAL,
-        lease_owner INTEGER,
-        PRIMARY KEY (item_id, destination)
-    );
-    CREATE INDEX outbox_due ON outbox_deliveries(sent_wall, next_try_wall);
-    """,
-    # 3 (tamper-evident ledger): each event's HMAC with the seal's key (records/seal.py); NULL
-    # in rows written before sealing, which the first sealed row's MAC covers through its hash.
-    """
-    ALTER TABLE events ADD COLUMN mac TEXT;
-    """,
-)
-
-EVENT_COLUMNS = ("id", "session_id", "t_wall", "t_monotonic", "kind", "fluoro_time_s", "air_kerma_mgy", "dap_gy_cm2",
-                 "d_fluoro_time_s", "d_air_kerma_mgy", "d_dap_gy_cm2", "detail", "prev_hash", "hash", "mac")
-SESSION_COLUMNS = ("id", "operator", "case_title", "fluoroscope", "started_wall", "ended_wall", "end_reason",
-                   "fluoro_time_s", "air_kerma_mgy", "dap_gy_cm2", "runs", "alarms", "saves")
-
-
-def _canonical_detail(detail: dict) -> str:
-    return json.dumps(detail, sort_keys=True, separators=(",", ":"), allow_nan=False)
-
-
-def event_hash(prev_hash: str, row: dict) -> str:
-    """The chain link of one event row (every column but `hash`)."""
-    body = [row["id"], row["session_id"], row["t_wall"], row["t_monotonic"], row["kind"], row["fluoro_time_s"],
-            row["air_kerma_mgy"], row["dap_gy_cm2"], row["d_fluoro_time_s"], row["d_air_kerma_mgy"],
-            row["d_dap_gy_cm2"], row["detail"], prev_hash]
-    text = json.dumps(body, separators=(",", ":"), allow_nan=False)
-    return hashlib.sha256(text.encode("utf-8")).hexdigest()
-
-
-def _migrate(conn: sqlite3.Connection, path: Path) -> None:
-    version = conn.execute("PRAGMA user_version").fetchone()[0]
-    if version > len(MIGRATIONS):
-        raise FluorosimError(f"{path}: ledger schema {version} is newer than this fluorosim knows "
-                             f"({len(MIGRATIONS)}); update fluorosim before opening it")
-    for number in range(version, len(MIGRATIONS)):
-        with conn:
-            conn.executescript("BEGIN IMMEDIATE;" + MIGRATIONS[number] + f"; PRAGMA user_version = {number + 1};")
-
-
-def _connect(path: Path, readonly: bool) -> sqlite3.Connection:
-    try:
-        if readonly:
-            if not path.is_file():
-                raise FluorosimError(f"{path}: no ledger there; give --ledger PATH or check data_dir in the appliance profile")
-            conn = sqlite3.connect(f"file:{path}?mode=ro", uri=True, isolation_level=None, check_same_thread=False)
-        else:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            conn = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
-        conn.row_factory = sqlite3.Row
-        conn.execute("PRAGMA busy_timeout = 5000")
-        if not readonly:
-            conn.execute("PRAGMA journal_mode = WAL")
-            conn.execute("PRAGMA synchronous = FULL")
-        conn.execute("SELECT count(*) FROM sqlite_master").fetchone()
-        return conn
-    except sqlite3.DatabaseError as e:
-        raise FluorosimError(f"{path}: cannot open the ledger ({_why(path, e)})") from None
-    except OSError as e:
-        raise FluorosimError(f"{path}: cannot create the ledger's folder ({e.strerror or e})") from None
-
-
-def open_writer(path: str | Path) -> sqlite3.Connection:
-    """A writing connection with the schema brought up to date, for tables outside the event
-    chain (the outbox) that another process may write beside the one Ledger."""
-    path = Path(path)
-    conn = _connect(path, readonly=False)
-    try:
-        _migrate(conn, path)
-    except BaseException:
-        conn.close()
-        raise
-    return conn
-
-
-def open_readonly(path: str | Path) -> sqlite3.Connection:
-    """A read-only connection for `logs verify` and `logs export`, safe while the daemon writes."""
-    path = Path(path)
-    conn = _connect(path, readonly=True)
-    version = conn.execute("PRAGMA user_version").fetchone()[0]
-    if version == 0:
-        tables = conn.execute("SELECT count(*) FROM sqlite_master").fetchone()[0]
-        conn.close()
-        if tables == 0:
-            raise FluorosimError(f"{path}: holds no ledger yet (the appliance was stopped while creating it?); "
-                                 "start the appliance once to create it, or give the right --ledger")
-        raise FluorosimError(f"{path}: not a fluorosim ledger (no schema)")
-    if version > len(MIGRATIONS):
-        raise FluorosimError(f"{path}: ledger schema {version} is newer than this fluorosim knows; update fluorosim")
-    return conn
-
-
-@dataclass(frozen=True)
-class ChainReport:
-    ok: bool
-    events: int
-    first_bad_id: int | None
-    message: str
-    last: tuple[int, str] | None = None   # (id, hash) of the last event checked, to resume from
-
-
-def verify(conn: sqlite3.Connection, resume: tuple[int, str] | None = None) -> ChainReport:
-    """Walk the chain from the first event (or on from `resume`, an earlier report's `last`);
-    report the first broken link, and any session whose recorded totals differ from its events."""
-    prev = GENESIS if resume is None else resume[1]
-    count = 0
-    expected_id = None if resume is None else resume[0] + 1
-    last = resume
-    for r in conn.execute(f"SELECT {', '.join(EVENT_COLUMNS)} FROM events WHERE id > ? ORDER BY id",
-                          (0 if resume is None else resume[0],)):
-        row = dict(r)
-        count += 1
-        if expected_id is not None and row["id"] != expected_id:
-            return ChainReport(False, count, row["id"], f"event {row['id']}: events {expected_id}..{row['id'] - 1} are missing")
-        if row["prev_hash"] != prev:
-            return ChainReport(False, count, row["id"], f"event {row['id']}: does not link to the event before it "
-                                                         "(an event was removed or changed)")
-        if event_hash(prev, row) != row["hash"]:
-            return ChainReport(False, count, row["id"], f"event {row['id']}: its contents do not match its hash (it was changed)")
-        prev = row["hash"]
-        expected_id = row["id"] + 1
-        last = (row["id"], row["hash"])
-    # Sessions whose end was checked by an earlier report (before `resume`) are not checked again.
-    for s in conn.execute("SELECT * FROM sessions WHERE ended_wall IS NOT NULL AND id NOT IN "
-                          "(SELECT session_id FROM events WHERE kind = 'session_end' AND id <= ?) ORDER BY id",
-                          (0 if resume is None else resume[0],)):
-        end = conn.execute("SELECT detail FROM events WHERE session_id = ? AND kind = 'session_end' ORDER BY id DESC LIMIT 1",
-                           (s["id"],)).fetchone()
-        if end is None:
-            return ChainReport(False, count, None, f"session {s['id']}: marked ended but has no session_end event")
-        d = json.loads(end["detail"])
-        for name in ("fluoro_time_s", "air_kerma_mgy", "dap_gy_cm2"):
-            if not math.isclose(d[name], s[name], rel_tol=1e-9, abs_tol=1e-12):
-                return ChainReport(False, count, None, f"session {s['id']}: {name} {s[name]!r} differs from its "
-                                                       f"chained session_end record {d[name]!r} (the sessions table was changed)")
-    problem = session_rows_problem(conn, 0 if resume is None else resume[0])
-    if problem:
-        return ChainReport(False, count, None, problem)
-    return ChainReport(True, count, None, f"{count} events, chain intact", last)
-
-
-def session_rows_problem(conn: sqlite3.Connection, after: int = 0) -> str | None:
-    """Why a sessions row disagrees with its chained events (operator, case, fluoroscope and start
-    against session_start; end, totals, runs, alarms and saves against session_end), or None."""
-    starts = {r["session_id"]: r for r in conn.execute(
-        "SELECT session_id, t_wall, detail FROM events WHERE kind = 'session_start' AND id > ?", (after,))}
-    for sid, start in starts.items():
-        s = conn.execute("SELECT * FROM sessions WHERE id = ?", (sid,)).fetchone()
-        if s is None:
-            return f"session {sid}: its row was deleted from the sessions table (its events remain)"
-        d = json.loads(start["detail"])
-        for column, value in (("operator", d.get("operator")), ("case_title", d.get("case")),
-                              ("fluoroscope", d.get("fluoroscope")), ("started_wall", start["t_wall"])):
-            if s[column] != value:
-                return (f"session {sid}: {column} {s[column]!r} differs from its chained session_start record "
-                        f"{value!r} (the sessions table was changed)")
-    ends = conn.execute("SELECT e.session_id, e.t_wall, e.detail, s.ended_wall, s.end_reason, s.runs, s.alarms, s.saves "
-                        "FROM events e JOIN sessions s ON s.id = e.session_id "
-                        "WHERE e.kind = 'session_end' AND e.id > ?", (after,))
-    for e in ends:
-        d = json.loads(e["detail"])
-        for column, value in (("ended_wall", e["t_wall"]), ("end_reason", d.get("reason")), ("runs", d.get("runs")),
-                              ("alarms", d.get("alarms")), ("saves", d.get("saves"))):
-            if value is not None and e[column] != value:
-                return (f"session {e['session_id']}: {column} {e[column]!r} differs from its chained session_end "
-                        f"record {value!r} (the sessions table was changed)")
-    return None
 
 
 class _FromEnvironment:
@@ -303,7 +69,7 @@ class Ledger:
     def __init__(self, path: str | Path, seal: Seal | None | _FromEnvironment = _FROM_ENVIRONMENT):
         self.path = Path(path)
         self.seal = seal_from_environment() if isinstance(seal, _FromEnvironment) else seal
-        self._conn = _connect(self.path, readonly=False)
+        self._conn = connect(self.path, readonly=False)
         # One writer: a second process would otherwise "recover" a session that is still live.
         self._lock_fd = os.open(self.path, os.O_RDONLY)
         try:
@@ -315,7 +81,7 @@ class Ledger:
         self.session_id: int | None = None
         self._anchor = (0.0, 0.0)
         try:
-            _migrate(self._conn, self.path)
+            migrate(self._conn, self.path)
             last = self._conn.execute("SELECT hash, mac FROM events ORDER BY id DESC LIMIT 1").fetchone()
             self._head = last["hash"] if last else GENESIS
             self._mac_head = (last["mac"] if last else None) or ""
@@ -333,7 +99,7 @@ class Ledger:
                "t_monotonic": None if t_mono is None else float(t_mono), "kind": kind,
                "fluoro_time_s": float(totals[0]), "air_kerma_mgy": float(totals[1]), "dap_gy_cm2": float(totals[2]),
                "d_fluoro_time_s": float(deltas[0]), "d_air_kerma_mgy": float(deltas[1]), "d_dap_gy_cm2": float(deltas[2]),
-               "detail": _canonical_detail(detail), "prev_hash": self._head}
+               "detail": canonical_detail(detail), "prev_hash": self._head}
         row_hash = event_hash(self._head, row)
         row["hash"] = row_hash
         row["mac"] = None if self.seal is None else self.seal.mac(next_id, self._mac_head, row_hash)

@@ -12,6 +12,7 @@ import os
 import socket
 from pathlib import Path
 
+from ..command_options import add_command
 from ..errors import FluorosimError
 
 #: systemd passes socket-activated listeners from this descriptor on (sd_listen_fds).
@@ -63,16 +64,15 @@ def register_seal(commands: argparse._SubParsersAction) -> None:
     from ..cli import command_group
 
     group = command_group(commands, "seal", "the ledger's seal: the key only root reads, and the anchor")
-    i = group.add_parser("init", help="write a new ledger key (root, once)",
-                         description="Write a random 32-byte key, mode 0400, for the seal helper; an existing key is kept.")
-    i.add_argument("--key", default="/etc/fluorosim-seal/ledger.key", metavar="PATH")
-    i.set_defaults(run=run_init)
-    s = group.add_parser("serve", help="answer the service's seal requests (root, from fluorosim-seal.socket)",
-                         description="MAC each new ledger event, move the anchor once the ledger holds it, and verify "
-                                     "the ledger for `logs verify`; refuses to sign anything at or below the anchor.")
-    s.add_argument("--key", default="/etc/fluorosim-seal/ledger.key", metavar="PATH")
+    def key_option(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--key", default="/etc/fluorosim-seal/ledger.key", metavar="PATH")
+
+    add_command(group, "init", run_init, "write a new ledger key (root, once)",
+                "Write a random 32-byte key, mode 0400, for the seal helper; an existing key is kept.", key_option)
+    s = add_command(group, "serve", run_serve, "answer the service's seal requests (root, from fluorosim-seal.socket)",
+                    "MAC each new ledger event, move the anchor once the ledger holds it, and verify the ledger for "
+                    "`logs verify`; refuses to sign anything at or below the anchor.", key_option)
     s.add_argument("--anchor", default="/var/lib/fluorosim-seal/anchor.json", metavar="PATH")
     s.add_argument("--ledger", default="/var/lib/fluorosim/ledger.sqlite", metavar="PATH",
                    help="the one ledger this helper reads (never one a client names)")
     s.add_argument("--socket", metavar="PATH", help="listen here instead of on systemd's socket")
-    s.set_defaults(run=run_serve)

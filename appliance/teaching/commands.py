@@ -5,8 +5,9 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from ..command_options import add_command, config_option, date_range_options, ledger_options
 from ..errors import FluorosimError
-from ..records.commands import _ledger_options, ledger_path
+from ..records.commands import ledger_path
 from ..records.export import parse_when
 from ..records.ledger import open_readonly
 
@@ -91,38 +92,27 @@ def register(commands, benches) -> None:
     from ..cli import command_group
 
     report = command_group(commands, "report", "instructor reports: one session, or one trainee across sessions")
-    s = report.add_parser("session", help="HTML report of one session with plots, verdicts and CSV/JSON figures",
-                          description="Metrics of session N (exposures, blank exposures, fluoroscopy time, K_a,r, DAP, "
-                                      "collimation, zoom, pulsed share, last-image-hold, tasks met) against the exercise's "
-                                      "references, a dose plot and the saved images with their verdicts; written to "
-                                      "--out (default: reports/ beside the ledger) as session-NNNNNN/index.html and CSV/JSON.")
-    _ledger_options(s)
+    s = add_command(report, "session", run_session, "HTML report of one session with plots, verdicts and CSV/JSON figures",
+                    "Metrics of session N (exposures, blank exposures, fluoroscopy time, K_a,r, DAP, collimation, zoom, "
+                    "pulsed share, last-image-hold, tasks met) against the exercise's references, a dose plot and the "
+                    "saved images with their verdicts; written to --out (default: reports/ beside the ledger) as "
+                    "session-NNNNNN/index.html and CSV/JSON.", ledger_options)
     s.add_argument("session", type=int, metavar="N", help="session id (`fluorosim logs list` shows them)")
     s.add_argument("--out", metavar="DIR", help="folder to write into (default: reports/ beside the ledger)")
-    s.set_defaults(run=run_session)
-    t = report.add_parser("trainee", help="one trainee's sessions and their trends",
-                          description="One row per session of trainee NAME (the name entered at the session's start) "
-                                      "that started in [--since, --until], with trend plots; written to --out as "
-                                      "trainee-NAME/index.html, sessions.csv and report.json.")
-    _ledger_options(t)
+    t = add_command(report, "trainee", run_trainee, "one trainee's sessions and their trends",
+                    "One row per session of trainee NAME (the name entered at the session's start) that started in "
+                    "[--since, --until], with trend plots; written to --out as trainee-NAME/index.html, sessions.csv "
+                    "and report.json.", ledger_options)
     t.add_argument("name", metavar="NAME", help="the trainee's name as entered (case does not matter)")
-    t.add_argument("--since", metavar="DATE", help="first day (or date-time) to include")
-    t.add_argument("--until", metavar="DATE", help="last day (or date-time, exclusive) to include")
+    date_range_options(t)
     t.add_argument("--out", metavar="DIR", help="folder to write into (default: reports/ beside the ledger)")
-    t.set_defaults(run=run_trainee)
     lrs = command_group(commands, "lrs", "send trainees' results to the Learning Record Store (xAPI)")
-    send = lrs.add_parser("send", help="queue every ended session's xAPI statements and send what is queued",
-                          description="Queues the xAPI statements of each ended session not queued before (in "
-                                      "the ledger's send queue, which the running appliance sends from too) and sends "
-                                      "what is waiting to teaching.lrs now, ignoring the retry wait. A "
-                                      "refusal or an unreachable LRS is one line, exit 2, and nothing is lost: the "
-                                      "statements stay queued for the next run; none is ever stored twice.")
-    send.add_argument("--config", default="configs/appliance.yaml", metavar="PATH",
-                      help="appliance profile with the teaching.lrs section (default configs/appliance.yaml)")
-    send.set_defaults(run=run_lrs_send)
-    q = lrs.add_parser("queue", help="the statements not yet taken by the LRS, and why",
-                       description="One line per statement in the send queue that the LRS has not confirmed: its "
-                                   "session, tries, when it is tried next and the last error.")
-    q.add_argument("--config", default="configs/appliance.yaml", metavar="PATH",
-                   help="appliance profile whose data_dir holds the ledger (default configs/appliance.yaml)")
-    q.set_defaults(run=run_lrs_queue)
+    add_command(lrs, "send", run_lrs_send, "queue every ended session's xAPI statements and send what is queued",
+                "Queues the xAPI statements of each ended session not queued before (in the ledger's send queue, "
+                "which the running appliance sends from too) and sends what is waiting to teaching.lrs now, ignoring "
+                "the retry wait. A refusal or an unreachable LRS is one line, exit 2, and nothing is lost: the "
+                "statements stay queued for the next run; none is ever stored twice.",
+                config_option("the teaching.lrs section"))
+    add_command(lrs, "queue", run_lrs_queue, "the statements not yet taken by the LRS, and why",
+                "One line per statement in the send queue that the LRS has not confirmed: its session, tries, when it "
+                "is tried next and the last error.", config_option("the teaching.lrs section (its data_dir holds the ledger)"))

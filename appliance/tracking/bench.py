@@ -55,7 +55,7 @@ def bench_accuracy(phantom, webcam, rng, frames: int, settings: RenderSettings |
     settings = settings or RenderSettings()
     # Unrelated frames: nothing to gain from searching where the markers were in the last one.
     trackers = {m: Tracker(phantom, webcam, m, smoothing=False, window=False) for m in ("joint", "marker")}
-    errs = {m: [] for m in trackers}
+    errs: dict[str, list[tuple[float, float]]] = {m: [] for m in trackers}
     found = {m: 0 for m in trackers}
     for T in random_poses(rng, frames):
         cam = synthetic_camera(phantom, webcam, _moving(rng, T, rng.uniform(0, 150), rng.uniform(0, 45)),
@@ -127,14 +127,15 @@ def bench_jitter(phantom, webcam, rng, frames: int) -> None:
     for z, roll, settings in ((550.0, 0.0, None), (700.0, 0.0, None), (700.0, 90.0, None), (700.0, 90.0, HARSH)):
         T = pose_from_angles([15.0, -10.0, z], roll, 8.0, 12.0)
         cam = synthetic_camera(phantom, webcam, Trajectory.still(T), seed=int(rng.integers(2**31)), settings=settings)
-        raw_t, smooth_t = [], []
+        raw_t: list[np.ndarray] = []
+        smooth_t: list[np.ndarray] = []
         trackers = {"raw": Tracker(phantom, webcam, "joint", smoothing=False),
                     "smoothed": Tracker(phantom, webcam, "joint", smoothing=True)}
         for k in range(frames):
             image, _ = cam.render_at(k / 30.0)
             for name, tr in trackers.items():
                 pose = tr.track(image, k / 30.0)
-                if pose.ok:
+                if pose.ok and pose.T_webcam_from_phantom is not None:
                     (raw_t if name == "raw" else smooth_t).append(pose.T_webcam_from_phantom[:3, 3])
         # The smoother starts from the first frame; judge it after a second of settling.
         raw, smooth = np.array(raw_t), np.array(smooth_t[30:])
@@ -159,7 +160,7 @@ def bench_lag(phantom, webcam, rng) -> None:
             t = k / 30.0
             image, truth = cam.render_at(t)
             pose = tracker.track(image, t)
-            if pose.ok and t >= 0.5:
+            if pose.ok and pose.T_webcam_from_phantom is not None and t >= 0.5:
                 along = -(pose.T_webcam_from_phantom[:3, 3] - truth[:3, 3]) @ v / vn
                 behind.append(along)
                 lags.append(along / vn)

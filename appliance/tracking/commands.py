@@ -14,6 +14,7 @@ from drivers.camera import FileCamera, V4L2Camera, list_images
 
 from ..atomic_file import write_atomic
 from ..cli import command_group
+from ..command_options import add_command
 from ..config.loading import load_profile
 from ..config.phantom import PhantomProfile
 from ..config.webcam import WebcamProfile
@@ -55,7 +56,7 @@ def run_track(args) -> int:
             print(json.dumps({"image": path, "ok": pose.ok,
                               "T_webcam_from_phantom": None if T is None else np.round(T, 6).tolist(),
                               "markers": pose.markers}), flush=True)
-        elif pose.ok:
+        elif pose.ok and T is not None:
             print(f"{path}: phantom at {np.round(T[:3, 3], 2).tolist()} mm ({pose.method}, markers {pose.markers}, "
                   f"RMS {pose.rms_px:.2f} px)")
         else:
@@ -106,7 +107,8 @@ def _board(args) -> BoardSpec:
 def run_calibrate_webcam(args) -> int:
     load_profile(args.webcam, WebcamProfile)        # refuse to start on a profile we could not write back
     detector = BoardDetector(_board(args))
-    views, size, n, last_kept = [], None, 0, 0.0
+    views: list[tuple[np.ndarray, np.ndarray]] = []
+    size, n, last_kept = None, 0, 0.0
     for name, image in _frames(args):
         n += 1
         if image is None:
@@ -272,26 +274,23 @@ def register(commands, benches) -> None:
     p.set_defaults(run=run_track)
 
     calibrate = command_group(commands, "calibrate", "calibrate the webcam, the phantom or the X-ray machine")
-    w = calibrate.add_parser("webcam", help="webcam intrinsics from a ChArUco board",
-                             description="Measure the webcam's intrinsics and distortion from views of a printed "
-                                         "ChArUco board (fluorosim print-markers) and write them into WEBCAM.yaml "
-                                         "atomically, keeping the previous version as .bak.")
+    w = add_command(calibrate, "webcam", run_calibrate_webcam, "webcam intrinsics from a ChArUco board",
+                    "Measure the webcam's intrinsics and distortion from views of a printed ChArUco board (fluorosim "
+                    "print-markers) and write them into WEBCAM.yaml atomically, keeping the previous version as .bak.")
     w.add_argument("--webcam", required=True, metavar="WEBCAM.yaml", help="webcam profile to update")
     _add_source_options(w)
     _add_board_options(w)
     w.add_argument("--max-views", type=int, default=40, help="stop after this many board views (default %(default)s)")
-    w.set_defaults(run=run_calibrate_webcam)
 
-    ph = calibrate.add_parser("phantom", help="where each marker sits on the box (composite marker)",
-                              description="Turn the box in front of the webcam until every marker has been seen beside "
-                                          "a neighbour; the marker layout relative to the root marker is written into "
-                                          "PHANTOM.yaml atomically, keeping the previous version as .bak.")
+    ph = add_command(calibrate, "phantom", run_calibrate_phantom, "where each marker sits on the box (composite marker)",
+                     "Turn the box in front of the webcam until every marker has been seen beside a neighbour; the "
+                     "marker layout relative to the root marker is written into PHANTOM.yaml atomically, keeping the "
+                     "previous version as .bak.")
     ph.add_argument("--phantom", required=True, metavar="PHANTOM.yaml")
     ph.add_argument("--webcam", required=True, metavar="WEBCAM.yaml")
     ph.add_argument("--min-frames", type=int, default=100,
                     help="live: keep collecting until this many frames with two or more markers (default %(default)s)")
     _add_source_options(ph)
-    ph.set_defaults(run=run_calibrate_phantom)
 
     pm = commands.add_parser("print-markers", help="write the phantom's markers and the ChArUco board to print",
                              description="Write each marker of PHANTOM.yaml and the ChArUco board as PNG (with the "

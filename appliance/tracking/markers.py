@@ -81,8 +81,8 @@ class MarkerDetector:
         if ids is None:
             return out
         repeated = set()
-        for c, i in zip(corners, ids.ravel()):
-            i = int(i)
+        for c, raw_id in zip(corners, ids.ravel()):
+            i = int(raw_id)
             if i in out:
                 repeated.add(i)
             out[i] = c.reshape(4, 2).astype(np.float64)
@@ -93,8 +93,8 @@ class MarkerDetector:
             K = self.K.copy()
             K[0, 2] -= x0
             K[1, 2] -= y0
-            ids = list(out)
-            for i, c in zip(ids, refine_markers_by_edges(gray, [out[i] for i in ids], self.cells, K, self.dist)):
+            seen = list(out)
+            for i, c in zip(seen, refine_markers_by_edges(gray, [out[i] for i in seen], self.cells, K, self.dist)):
                 out[i] = c
         if x0 or y0:
             out = {i: c + [x0, y0] for i, c in out.items()}
@@ -230,7 +230,8 @@ def marker_pose(marker_id: int, corners_px: np.ndarray, size_mm: float, K: np.nd
     the normal turned away from the camera is impossible and dropped.
     """
     obj, img = marker_corners(size_mm), corners_px.reshape(4, 1, 2).astype(np.float64)
-    seeds = []                  # (rvec, tvec, RMS error in pixels or None when unknown)
+    # (rvec, tvec, RMS error in pixels or None when unknown)
+    seeds: list[tuple[np.ndarray, np.ndarray, float | None]] = []
     try:
         n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
         # OpenCV reports the RMS per coordinate; per corner (as everywhere here) it is sqrt(2) larger.
@@ -239,7 +240,7 @@ def marker_pose(marker_id: int, corners_px: np.ndarray, size_mm: float, K: np.nd
         if n == 0 or not np.any(errs <= IPPE_SUSPECT_PX):      # (NaN counts as bad)
             ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_SQPNP)
             if ok:
-                seeds.append((rvec, tvec, None))
+                seeds.append((np.asarray(rvec), np.asarray(tvec), None))
     except cv2.error:
         return None
     found = []

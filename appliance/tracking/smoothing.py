@@ -50,14 +50,14 @@ class PoseFilter:
 
     def reset(self) -> None:
         self._t: float | None = None
-        self._p = None
-        self._R = None
+        self._p: np.ndarray | None = None
+        self._R: Rotation | None = None
         self._v = 0.0      # filtered translation speed (mm/s)
         self._w = 0.0      # filtered rotation speed (deg/s)
 
     def __call__(self, T: np.ndarray, t: float) -> np.ndarray:
         p, R = T[:3, 3].copy(), Rotation.from_matrix(T[:3, :3])
-        if self._t is None or t - self._t > self.s.reset_after_s or t <= self._t:
+        if self._t is None or self._p is None or self._R is None or t - self._t > self.s.reset_after_s or t <= self._t:
             self._t, self._p, self._R, self._v, self._w = t, p, R, 0.0, 0.0
             return T.copy()
         dt = t - self._t

@@ -103,7 +103,7 @@ class Tracker:
         if pose is None or not pose.ok:
             self.full_searches += 1
             pose = self._detect_and_solve(image, t, None)
-        if pose.ok:
+        if pose.ok and pose.T_webcam_from_phantom is not None:    # ok: a pose was solved
             self._last = (t, pose.T_webcam_from_phantom.copy())
             if self.filter is not None:
                 pose.T_webcam_from_phantom = self.filter(pose.T_webcam_from_phantom, t)

@@ -100,7 +100,8 @@ def load_trajectory(path: str | Path) -> Trajectory:
         lines = raw.decode("utf-8").splitlines()
     except UnicodeError:
         raise FluorosimError(f"{path}: is not UTF-8 text; a trajectory is JSONL, one keyframe object per line") from None
-    times, poses = [], []
+    times: list[float] = []
+    poses: list[np.ndarray] = []
     for n, line in enumerate(lines, start=1):
         if not line.strip() or line.lstrip().startswith("#"):
             continue

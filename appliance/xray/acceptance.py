@@ -19,13 +19,18 @@ import statistics
 import sys
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..config.fluoroscope import FluoroscopeProfile
+from ..errors import FluorosimError
 from ..geometry import make_transform
 from ..patient.materials import mass_attenuation
 from ..patient.volume import Volume
+
+if TYPE_CHECKING:
+    from .renderer import Frame
 
 #: Clipped: the 8-bit grey the monitor shows is 0 or 255.
 CLIP_LOW, CLIP_HIGH = 0, 255
@@ -75,7 +80,7 @@ def detail_correlation(display: np.ndarray, truth: np.ndarray, inside: np.ndarra
     shrunk by 18 px (three of the wide Gaussian's sigmas), so the field edge does not count."""
     import cv2
 
-    d = display.astype(np.float32)
+    d: np.ndarray = display.astype(np.float32)
     if pre_blur_px > 0:
         d = cv2.GaussianBlur(d, (0, 0), pre_blur_px)
     core = cv2.erode(inside.astype(np.uint8), np.ones((37, 37), np.uint8)).astype(bool)
@@ -281,13 +286,13 @@ def run(args) -> int:
         # The noise is the signal over its noise-free self (vignetting and the slab's own
         # obliquity divide out), on the detector signal the display LUT is given. The slab's
         # transmission is read from that signal: at the kV the exposure control set.
-        clean_frame = renderer.render(prepared, T, View(zoom=zoom, noise=False))
-        transmission = float(np.median(clean_frame.signal[_disc(renderer.shape, 0.1)]))
-        clean = clean_frame.signal[roi]
+        clean_frame = _signal(renderer.render(prepared, T, View(zoom=zoom, noise=False)))
+        transmission = float(np.median(clean_frame[_disc(renderer.shape, 0.1)]))
+        clean = clean_frame[roi]
         measured = []
         for seed in range(3):
             frame = renderer.render(prepared, T, View(zoom=zoom, noise=True, seed=100 + seed))
-            measured.append(1.0 / float(np.std(frame.signal[roi] / clean)))
+            measured.append(1.0 / float(np.std(_signal(frame)[roi] / clean)))
         vig = renderer.detector.gain(zoom)
         transmission_at_detector = transmission / (1.0 if vig is None else float(np.median(vig[_disc(renderer.shape, 0.1)])))
         expected = expected_slab_snr(renderer.fluoroscope, zoom, transmission_at_detector, frame.exposure_factor,
@@ -313,12 +318,12 @@ def run(args) -> int:
     steps = [renderer.render(air_prepared, T, View(noise=False, temporal="live")) for _ in range(6)]
     # The filter runs on the detector signal: read it back through the frames' log windows.
     roi = _disc(renderer.shape, 0.1)
-    s_before = before.signal[roi].mean()
+    s_before = _signal(before)[roi].mean()
     s_after = float(np.median(renderer.render(air_prepared, T, View(quantity="intensity", noise=False)).image[roi]))
     print(f"\nLag: step from the slab to air, recursive weight {w}: fraction of the step still to come after k frames")
     print(f"{'k':>3} {'measured':>9} {'w^k':>7}")
     for k, frame in enumerate(steps, start=1):
-        remaining = (s_after - frame.signal[roi].mean()) / (s_after - s_before)
+        remaining = (s_after - _signal(frame)[roi].mean()) / (s_after - s_before)
         print(f"{k:>3} {remaining:9.4f} {w ** k:7.4f}")
         if abs(remaining - w ** k) > 0.02:
             fails.append(f"lag after {k} frames: {remaining:.3f} of the step left, w^k = {w ** k:.3f}")
@@ -326,13 +331,13 @@ def run(args) -> int:
           f"{fl_full.detector.columns}x{fl_full.detector.rows} native matrix, where the bars' modulation falls to 4 %:")
     print(f"{'zoom':>4} {'measured lp/mm':>15} {'profile lp/mm':>14} {'ratio':>6}")
     last = 0.0
-    for zoom, measured, stated in resolution_per_zoom(fl_full, args.device):
-        print(f"{zoom:>4} {measured:15.2f} {stated:14.2f} {measured / stated:6.3f}")
-        if abs(measured / stated - 1) > 0.2:
-            fails.append(f"resolution at zoom {zoom}: {measured:.2f} lp/mm vs the profile's {stated:.2f} (within 20 %)")
-        if not measured > last:
-            fails.append(f"resolution at zoom {zoom} ({measured:.2f} lp/mm) does not rise with zoom")
-        last = measured
+    for zoom, lp_mm, stated in resolution_per_zoom(fl_full, args.device):
+        print(f"{zoom:>4} {lp_mm:15.2f} {stated:14.2f} {lp_mm / stated:6.3f}")
+        if abs(lp_mm / stated - 1) > 0.2:
+            fails.append(f"resolution at zoom {zoom}: {lp_mm:.2f} lp/mm vs the profile's {stated:.2f} (within 20 %)")
+        if not lp_mm > last:
+            fails.append(f"resolution at zoom {zoom} ({lp_mm:.2f} lp/mm) does not rise with zoom")
+        last = lp_mm
     print(f"\n{len(fails)} figure(s) outside the acceptance limits" + (":" if fails else ""))
     for f in fails:
         print(f"  {f}", file=sys.stderr)
@@ -353,6 +358,13 @@ def _timing(renderer, prepared, T) -> tuple[float, float]:
             times.append(time.perf_counter() - t0)
         out.append(1000.0 * statistics.median(times))
     return out[0], out[1]
+
+
+def _signal(frame: Frame) -> np.ndarray:
+    """The detector signal a display frame carries (only display frames are asked for it)."""
+    if frame.signal is None:
+        raise FluorosimError("the renderer returned a display frame without its detector signal")
+    return frame.signal
 
 
 def _disc(shape, fraction: float) -> np.ndarray:

@@ -175,7 +175,7 @@ def run(args) -> int:
     from .frame_cost import bench_ct, cached_frames, centred, next_phase, plastimatch_side_by_side
 
     ct = centred(bench_ct(args.ct)) if not {"speed", "cache", "plastimatch", "memory"} <= skip else None
-    if "speed" not in skip:
+    if "speed" not in skip and ct is not None:
         torso = ct
         sp = np.linalg.norm(np.asarray(ct.T_ct_from_voxel)[:3, :3], axis=0)
         print(f"\nSpeed: {torso.source} ({sp[0]:.2f} x {sp[1]:.2f} x {sp[2]:.2f} mm), "
@@ -204,7 +204,7 @@ def run(args) -> int:
             del prepared, renderer
         print(f"OpenCL device: {_device_name(args.device)}")
 
-    if "cache" not in skip:
+    if "cache" not in skip and ct is not None:
         print(f"\nProjection cache: {ct.source} and a second phase 10 mm caudal, PA, display quantity with noise; "
               f"{args.frames} frames at new poses, {3 * args.frames} at one pose, medians:")
         for size in [int(s) for s in args.sizes.split(",") if s.strip()]:
@@ -213,7 +213,7 @@ def run(args) -> int:
                 print(line)
             del renderer
 
-    if "plastimatch" not in skip:
+    if "plastimatch" not in skip and ct is not None:
         print(f"\nSide by side with plastimatch's drr on {ct.source}, alternating in one run:")
         renderer = Renderer(at_resolution(ii, 512, 512), materials, contrast, device=args.device)
         for line in plastimatch_side_by_side(renderer, ct, args.rounds, 3):
@@ -229,7 +229,7 @@ def run(args) -> int:
             print(f"{name:<28} {method:<27} {100 * mx:8.4f}% {100 * mean:8.4f}% {n:7d}")
         print("(box and ellipsoid paths > 10 mm and > 20 mm; kernel vs reference over paths > 1 mm, on every 3rd pixel)")
 
-    if "memory" not in skip:
+    if "memory" not in skip and ct is not None:
         proc = psutil.Process()
         base = proc.memory_info().rss
         renderer = Renderer(at_resolution(ii, 512, 512), materials, contrast, device=args.device)

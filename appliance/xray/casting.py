@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -35,6 +36,9 @@ from ..patient.materials import (
 )
 from ..patient.volume import Volume
 from .device import ClDevice
+
+if TYPE_CHECKING:
+    import pyopencl as cl
 
 #: Voxels of air added on every side of a prepared volume, so bilinear samples never leave it.
 PAD = 2
@@ -76,8 +80,8 @@ class DetectorTables:
     spectrum: Spectrum
     weights: np.ndarray          # (n_e,) float32, sum 1
     mu: np.ndarray               # (n_e, 4) float32
-    weights_buf: object
-    mu_buf: object
+    weights_buf: cl.Buffer
+    mu_buf: cl.Buffer
 
     def transmission(self, lines: np.ndarray) -> np.ndarray:
         """I/I0 of (n, 4) material integrals (g/cm^3 * mm), as the polychromatic kernel computes it."""
@@ -92,7 +96,7 @@ class PreparedVolume:
     inclusive padded-index bounds (lo, hi) of the voxels denser than EMPTY_MAX_HU.
     """
 
-    buffer: object
+    buffer: cl.Buffer
     shape_xyz: tuple[int, int, int]
     T_index_from_ct: np.ndarray
     box: tuple[tuple[int, int, int], tuple[int, int, int]] | None
@@ -210,10 +214,10 @@ class Beam:
     `central` the exposure control's measuring field; with their device buffers."""
 
     mask: np.ndarray
-    mask_buf: object
+    mask_buf: cl.Buffer
     central: np.ndarray
     exposed: np.ndarray
-    exposed_buf: object
+    exposed_buf: cl.Buffer
 
 
 def measuring_field(beam: np.ndarray) -> np.ndarray:
@@ -310,7 +314,7 @@ class Caster:
         ks, js, is_ = (np.flatnonzero((mask.sum(axis=ax) > EMPTY_PLANE_MAX_VOXELS) | sure.any(axis=ax))
                        for ax in ((1, 2), (0, 2), (0, 1)))
         del mask, sure
-        box = None
+        box: tuple[tuple[int, int, int], tuple[int, int, int]] | None = None
         start = np.zeros(3, dtype=int)            # (i, j, k) of the first voxel kept
         if len(ks) and len(js) and len(is_):
             lo, hi = np.array([is_[0], js[0], ks[0]]), np.array([is_[-1], js[-1], ks[-1]])
@@ -322,7 +326,9 @@ class Caster:
             start = lo // CROP_BLOCK * CROP_BLOCK
             stop = np.minimum(-(-(hi + 1) // CROP_BLOCK) * CROP_BLOCK, n)
             hu = hu[start[2]:stop[2], start[1]:stop[1], start[0]:stop[0]]
-            box = (tuple(int(x) for x in lo - start + PAD), tuple(int(x) for x in hi - start + PAD))
+            l0, l1, l2 = (int(x) for x in lo - start + PAD)
+            h0, h1, h2 = (int(x) for x in hi - start + PAD)
+            box = ((l0, l1, l2), (h0, h1, h2))
         else:
             hu = hu[:1, :1, :1]
         padded = np.pad(hu, PAD, mode="constant", constant_values=-1000)

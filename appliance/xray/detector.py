@@ -247,7 +247,7 @@ class Detector:
         """
         import cv2
 
-        out = np.where(mask, image, np.float32(0)).astype(np.float32)
+        out: np.ndarray = np.where(mask, image, np.float32(0)).astype(np.float32)
         sigma = self.psf_sigma_px(zoom)
         if sigma > 0.3:
             # Normalised by the blurred field, so the blur mixes no darkness into the field's

@@ -60,7 +60,7 @@ class ClDevice:
         self.source = resources.files("appliance.xray").joinpath("drr.cl").read_text()
         self.options = ["-DUNALIGNED_PAIRS"] if self.is_cpu else []
         self.program = cl.Program(self.ctx, self.source).build(options=self.options)
-        self._blend_program = None
+        self._blend_program: cl.Program | None = None
         self.lock = threading.Lock()
 
     def kernel(self, name: str, blend: bool = False):

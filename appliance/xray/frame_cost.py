@@ -67,7 +67,9 @@ def cached_frames(renderer, volume: Volume, frames: int, pose) -> list[str]:
     view = View()
     renderer.render(a, pose(0.0), view, blend=(b, 0.5))
     cache.render(a, pose(0.3), view, blend=(b, 0.5))      # builds the two-phase kernel
-    direct, miss, hit = [], [], []
+    direct: list[float] = []
+    miss: list[float] = []
+    hit: list[float] = []
 
     def timed(out, render, *args, **kwargs):
         t0, c0 = time.perf_counter(), time.process_time()

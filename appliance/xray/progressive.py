@@ -66,10 +66,6 @@ class ProgressiveRenderer:
         return getattr(self.__dict__["full"], name)
 
     @property
-    def exposure_factor(self) -> float:
-        return self._last_used.exposure_factor
-
-    @property
     def matrix(self) -> int:
         """Columns of the matrix the last frame was cast at."""
         return self._last_used.shape[1]

@@ -15,10 +15,14 @@ patient's content box moves by more than `cache_pose_tolerance_px` on the detect
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .renderer import PACKET, Frame, PreparedVolume, Renderer, View, zoomed_K
+
+if TYPE_CHECKING:
+    import pyopencl as cl
 
 
 @dataclass
@@ -68,8 +72,8 @@ class ProjectionCache:
         self._pose: np.ndarray | None = None
         self._key: tuple | None = None
         self._lines: dict[PreparedVolume, object] = {}     # phase -> device buffer of its integrals
-        self._split = None            # the two-phase cast kernel, built on first use
-        self._blend = None
+        self._split: cl.Kernel | None = None    # the two-phase cast kernel, built on first use
+        self._blend: cl.Kernel | None = None
 
     # -- what is cached ------------------------------------------------------------------
     def _geometry_key(self, zoom: int, collimation_mm, distorted: bool, circle) -> tuple:

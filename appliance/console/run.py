@@ -1,0 +1,31 @@
+"""One run (an irradiation event): pedal-down to release, or to a change of exposure settings,
+with its own time, dose and pulse count as the ledger records it in `fluoro_off`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class Run:
+    """The running account of one irradiation event (s, mGy, Gy cm^2)."""
+
+    run: int                # 1, 2, ... this session
+    reason_on: str
+    start_t: float          # s, monotonic
+    next_pulse_t: float     # s; pulsed modes only
+    next_progress_t: float  # s; continuous modes only
+    duration_s: float = 0.0
+    air_kerma_mgy: float = 0.0
+    dap_gy_cm2: float = 0.0
+    pulses: int = 0
+
+    def schedule_next_pulse(self, rate_per_s: float) -> None:
+        """The next pulse after `pulses` of them, counted from the run's start rather than the
+        last pulse, so summed periods do not drift."""
+        self.next_pulse_t = self.start_t + self.pulses / rate_per_s
+
+    def summary(self) -> dict:
+        """What `fluoro_off` records of the run (s, mGy, Gy cm^2)."""
+        return {"start_t": self.start_t, "duration_s": self.duration_s, "air_kerma_mgy": self.air_kerma_mgy,
+                "dap_gy_cm2": self.dap_gy_cm2, "pulses": self.pulses}
