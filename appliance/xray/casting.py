@@ -211,13 +211,16 @@ def field_edge(mask: np.ndarray, half_px: float) -> np.ndarray:
 class Beam:
     """One field's masks: `mask` the geometric field (inside the blades and the intensifier's
     circle), `exposed` that and the edge's penumbra outside it (the pixels rays are cast for),
-    `central` the exposure control's measuring field; with their device buffers."""
+    `central` the exposure control's measuring field, `sample` the pixels of it (flat indices)
+    the control reads; with their device buffers."""
 
     mask: np.ndarray
     mask_buf: cl.Buffer
     central: np.ndarray
     exposed: np.ndarray
     exposed_buf: cl.Buffer
+    sample: np.ndarray
+    sample_buf: cl.Buffer
 
 
 def measuring_field(beam: np.ndarray) -> np.ndarray:
@@ -248,6 +251,7 @@ class Caster:
         self._joseph_blend = None
         self._poly_kernel = dev.kernel("polychromatic_packet" if self.packet else "polychromatic")
         self._siddon = dev.kernel("siddon_water")
+        self._gather = dev.kernel("gather_lines")
         self.materials = materials
         self.contrast = contrast
         dm = density_model(materials)
@@ -354,8 +358,12 @@ class Caster:
                 self._masks.clear()
             m = field_mask(self.fluoroscope, zoom, collimation_mm, circle)
             exposed = field_edge(m, penumbra_px(self.fluoroscope, zoom)) > 0
-            self._masks[key] = Beam(m, self.dev.upload(m.astype(np.uint8)), measuring_field(m), exposed,
-                                    self.dev.upload(exposed.astype(np.uint8)))
+            central = measuring_field(m)
+            inside = np.flatnonzero(central).astype(np.int32)
+            step = max(1, len(inside) // ABC_SAMPLE_PIXELS)
+            sample = np.ascontiguousarray(inside[::step]) if len(inside) else np.zeros(1, np.int32)
+            self._masks[key] = Beam(m, self.dev.upload(m.astype(np.uint8)), central, exposed,
+                                    self.dev.upload(exposed.astype(np.uint8)), sample, self.dev.upload(sample))
         return self._masks[key]
 
     # -- casting ---------------------------------------------------------------------
@@ -434,17 +442,13 @@ class Caster:
         lines, _ = self.cast(volume, T_xray_from_ct, zoom, collimation_mm, blend, distorted, circle)
         return self.dev.download(lines, np.empty(self.shape + (4,), dtype=np.float32))
 
-    def sample_lines(self, lines, where: np.ndarray, most: int = ABC_SAMPLE_PIXELS) -> np.ndarray:
-        """(n, 4) float32 material integrals of the cast `lines` at up to `most` pixels of `where`
-        (evenly spread): what the exposure control reads its measuring field from."""
-        host = self.dev.download(lines, np.empty(self.shape + (4,), dtype=np.float32))
-        picked = host[where]
-        return picked[:: max(1, len(picked) // most)]
-
-    def sample_pick(self, image: np.ndarray, where: np.ndarray, most: int = ABC_SAMPLE_PIXELS) -> np.ndarray:
-        """`image` at the pixels `sample_lines` picks from `where`, in the same order."""
-        picked = image[where]
-        return picked[:: max(1, len(picked) // most)]
+    def sample_lines(self, lines: cl.Buffer, beam: Beam) -> np.ndarray:
+        """(n, 4) float32 material integrals of the cast `lines` at the beam's sample of its
+        measuring field: what the exposure control reads (gathered on the device)."""
+        n = len(beam.sample)
+        out = self.dev.scratch(n * 16)
+        self._gather(self.dev.queue, (n,), None, lines, beam.sample_buf, out)
+        return self.dev.download(out, np.empty((n, 4), dtype=np.float32))
 
     def intensity(self, lines, tables: DetectorTables, zoom, collimation_mm, circle) -> np.ndarray:
         """(rows, cols) float32 detector signal relative to the open beam, before any blur, of the

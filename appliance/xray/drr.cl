@@ -403,3 +403,11 @@ kernel void blend_lines(global const float4 *a, global const float4 *b, const fl
     const int p = get_global_id(0);
     out[p] = mix(a[p], b[p], w);
 }
+
+// The exposure control's sample of a frame's material integrals: the pixels `index` names
+// (a thousand of the measuring field's), so the host reads kilobytes, not the whole frame.
+kernel void gather_lines(global const float4 *lines, global const int *index, global float4 *out)
+{
+    const int i = get_global_id(0);
+    out[i] = lines[index[i]];
+}

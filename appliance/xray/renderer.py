@@ -255,7 +255,7 @@ class Renderer:
                 # The control sets kV and mA from the rays of its measuring field, before the frame.
                 gain = detector.gain(view.zoom)
                 exposure = detector.exposure_on_curve(
-                    self.caster.sample_lines(lines, central), None if gain is None else self.caster.sample_pick(gain, central),
+                    self.caster.sample_lines(lines, beam), None if gain is None else gain.ravel()[beam.sample],
                     view.zoom, view.mode, lambda kv: self.caster.tables(kv, None, True))
             tables = self.caster.tables(None if exposure is None else exposure.kvp, concentration_factor, view.polychromatic)
             image = self.caster.intensity(lines, tables, view.zoom, view.collimation_mm, circle)
