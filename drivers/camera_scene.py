@@ -81,6 +81,8 @@ class SceneRenderer:
         # A soft gradient so the background is not a flat field a detector could key on.
         self.backdrop = (self.s.background * (0.8 + 0.4 * xx / self.width) * (0.9 + 0.2 * yy / self.height)).astype(np.float32)
         self._maps = None
+        self._last_key: bytes | None = None         # the pose of the last frame drawn, and its image
+        self._last_clean = self.backdrop
         if np.any(self.dist != 0):
             # For each output (distorted) pixel, the ideal pinhole pixel it sees.
             pts = np.stack([xx.ravel(), yy.ravel()], axis=1).reshape(-1, 1, 2).astype(np.float64)
@@ -101,8 +103,17 @@ class SceneRenderer:
         """A uint8 grey image of the scene at `T_cam_from_box` (mm).
 
         `exposure` = (T at shutter open, T at shutter close) smears the image along the motion.
+        A frame at the pose (and motion) of the one before reuses its drawing and lens, with new
+        sensor noise: the still C-arm of a demo's holds then costs the appliance what a real
+        webcam does (its frames cost nothing to make), not a scene render each time.
         """
-        img = self.backdrop.copy()
+        key = T_cam_from_box.tobytes() + (b"" if exposure is None else exposure[0].tobytes() + exposure[1].tobytes())
+        if key != self._last_key:
+            self._last_key, self._last_clean = key, self._lens(self._draw(T_cam_from_box), exposure)
+        return self._sensor(self._last_clean)
+
+    def _draw(self, T_cam_from_box: np.ndarray) -> np.ndarray:
+        img: np.ndarray = self.backdrop.copy()
         R, t = T_cam_from_box[:3, :3], T_cam_from_box[:3, 3]
         half: np.ndarray = np.zeros(3) if self.box_mm is None else np.array(self.box_mm) / 2
         for face in (_FACES if self.box_mm is not None else ()):
@@ -123,7 +134,7 @@ class SceneRenderer:
                                lineType=cv2.LINE_AA, shift=4)
         for q in self.quads:
             self._draw_quad(img, T_cam_from_box @ q.T_box_from_quad, q)
-        return self._optics(img, exposure)
+        return img
 
     def _draw_quad(self, img: np.ndarray, T_cam_from_quad: np.ndarray, q: TexturedQuad) -> None:
         R, t = T_cam_from_quad[:3, :3], T_cam_from_quad[:3, 3]
@@ -162,7 +173,8 @@ class SceneRenderer:
         cv2.warpPerspective(printed, H, (x1 - x0, y1 - y0), dst=region, flags=cv2.INTER_LINEAR,
                             borderMode=cv2.BORDER_TRANSPARENT)
 
-    def _optics(self, img: np.ndarray, exposure: tuple | None) -> np.ndarray:
+    def _lens(self, img: np.ndarray, exposure: tuple | None) -> np.ndarray:
+        """Motion blur over the exposure, the lens's blur and its distortion."""
         if exposure is not None:
             # Motion blur: a centred line kernel along the image motion of the box centre during the exposure.
             p = self._project(np.array([exposure[1][:3, 3], exposure[0][:3, 3]]))
@@ -179,6 +191,10 @@ class SceneRenderer:
             img = cv2.GaussianBlur(img, (0, 0), self.s.blur_sigma_px)
         if self._maps is not None:
             img = cv2.remap(img, self._maps[0], self._maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return img
+
+    def _sensor(self, img: np.ndarray) -> np.ndarray:
+        """The sensor's noise, 8-bit quantisation and the camera's JPEG compression."""
         if self.s.noise_sigma > 0:
             noise = np.empty(img.shape, np.float32)
             # OpenCV's generator is four times faster than numpy's here; seeding it from this
