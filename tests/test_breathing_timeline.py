@@ -97,30 +97,3 @@ def test_phase_worker_hands_the_presses_to_the_breathing_model(timeline):
     assert worker.step() and timeline.control.rate_per_min == p.rate_per_min + 2 * p.rate_step_per_min
     assert before.rate_per_min == p.rate_per_min
     timeline.control = type(timeline.control)(p)        # leave the shared timeline as the other tests found it
-
-
-def test_snapshot_pair_end_expiration_then_end_inspiration(tmp_path):
-    """The pair is the first live end-expiration and the next end-inspiration within BREATH_PAIR_S."""
-    from types import SimpleNamespace
-
-    from appliance.daemon.snapshots import BREATH_PAIR_S, Snapshotter, key_moments, read_png
-
-    snap = Snapshotter(tmp_path, key_moments())
-    state = SimpleNamespace(zoom=1, fov_mm=230.0, collimation_mm=(230.0, 230.0), invert=False, breath_hold=False,
-                            alarm_sounding=False, fluoro_on=True)
-
-    def frame(value, t, inspired):
-        rgb = np.full((8, 8, 3), value, np.uint8)
-        return SimpleNamespace(rgb_source=lambda: rgb, image=rgb, state=state, pose=None, live=True, t_wall=t,
-                               banners=[], saved_flash=False, inspired=inspired)
-    # One snapshot a frame: the first frames go to the first-live and zoom-1 moments.
-    warm_up = [frame(1, -3.0, 0.5), frame(2, -2.0, 0.5)]
-    for f in (*warm_up, frame(10, 0.0, 0.99), frame(20, 1.0, 0.01), frame(30, 2.0 + BREATH_PAIR_S, 0.99),
-              frame(40, 3.0, 0.5)):
-        snap(f)
-    assert (read_png(snap.taken["end-expiration"]) == 20).all()
-    assert "end-inspiration" not in snap.taken                  # too late after end-expiration
-    snap2 = Snapshotter(tmp_path / "b", key_moments())
-    for f in (*warm_up, frame(50, 0.0, 0.0), frame(60, 1.5, 1.0)):
-        snap2(f)
-    assert (read_png(snap2.taken["end-inspiration"]) == 60).all()

@@ -67,8 +67,9 @@ def test_each_moment_is_taken_once_from_the_first_frame_that_shows_it(tmp_path):
     frames = [
         _Frame(np.full((9, 8, 3), 10, np.uint8), _state()),
         _Frame(np.full((9, 8, 3), 10, np.uint8), _state()),     # the same pixels again: no second name for them
-        _Frame(np.full((9, 8, 3), 20, np.uint8), _state()),
+        _Frame(np.full((9, 8, 3), 15, np.uint8), _state()),     # zoom 1 still: not yet "back to zoom 1"
         _Frame(np.full((9, 8, 3), 30, np.uint8), _state(zoom=3, fov_mm=130.0, collimation_mm=(130.0, 130.0))),
+        _Frame(np.full((9, 8, 3), 20, np.uint8), _state()),
         _Frame(np.full((9, 8, 3), 40, np.uint8), _state(collimation_mm=(120.0, 230.0))),
         _Frame(np.full((9, 8, 3), 45, np.uint8), _state(alarm_sounding=True)),   # banner in its dark half
         _Frame(alarm_on, _state(alarm_sounding=True)),
@@ -102,3 +103,32 @@ def test_the_alarm_banner_is_read_from_the_composed_screen_in_both_flash_phases(
     image = np.random.default_rng(0).uniform(0, 1, (256, 256)).astype(np.float32)
     assert alarm_banner_shown(comp.compose(image, overlay, now=5.0 + 0.1 * ALARM_FLASH_PERIOD_S))
     assert not alarm_banner_shown(comp.compose(image, overlay, now=5.0 + 0.7 * ALARM_FLASH_PERIOD_S))
+
+
+def _posed(value: int, t: float, inspired: float, T: np.ndarray, **state) -> SimpleNamespace:
+    rgb = np.full((8, 8, 3), value, np.uint8)
+    return SimpleNamespace(rgb_source=lambda: rgb, image=rgb, state=_state(**state), live=True, t_wall=t, banners=[],
+                           saved_flash=False, inspired=inspired,
+                           pose=SimpleNamespace(pose=SimpleNamespace(ok=True, T_webcam_from_phantom=T)))
+
+
+def test_breathing_pair_is_taken_at_one_pose_once_each_extreme_has_settled(tmp_path):
+    """End-expiration, then end-inspiration at the same pose, each only after the breath (held)
+    and the C-arm have stood still for BREATH_SETTLE_S, so the recursive filter shows the still anatomy."""
+    from appliance.daemon.snapshots import BREATH_SETTLE_S
+
+    snap = Snapshotter(tmp_path, key_moments())
+    home, moved = _pose(0.0), _pose(0.0, yaw_deg=2.0)
+    step = BREATH_SETTLE_S / 2.5
+    frames = [_posed(1, 0.0, 0.5, home)]                                         # first live
+    frames += [_posed(10 + k, 1.0 + k * step, 0.01, home, breath_hold=True) for k in range(5)]
+    frames += [_posed(30 + k, 3.0 + k * step, 0.99, moved) for k in range(5)]     # another pose: not the pair
+    frames += [_posed(50, 5.0, 0.6, home)]                                        # breathing on
+    frames += [_posed(60 + k, 6.0 + k * step, 0.995, home) for k in range(5)]
+    for f in frames:
+        snap(f)
+    # The first held frame is the breath-hold snapshot; the stillness counts from the next one
+    # (t = 1 + step), so expiration is the first frame BREATH_SETTLE_S after that: 1 + 4 step.
+    assert (read_png(snap.taken["breath-hold"]) == 10).all()
+    assert (read_png(snap.taken["end-expiration"]) == 14).all()
+    assert (read_png(snap.taken["end-inspiration"]) == 63).all()

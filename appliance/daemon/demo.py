@@ -51,10 +51,17 @@ def build_patient(cfg, say=_say) -> int:
     t0 = time.monotonic()
     if cfg.case.builtin:
         say(f"[1/4] built-in patient '{cfg.case.builtin}' (cached under {shown(cfg.data_dir / 'cache')})")
+        from ..patient.builtin import distinct_volumes
+
         phases = patient_phases(cfg, progress=lambda message: say(f"      {message}"))
         volume = phases[0][1]()
         nx, ny, nz = volume.shape_xyz
-        say(f"      {len(phases)} phases of {nx}x{ny}x{nz} voxels ready in {time.monotonic() - t0:.1f} s")
+        say(f"      {len(phases)} phases ({distinct_volumes()} distinct volumes) of {nx}x{ny}x{nz} voxels "
+            f"ready in {time.monotonic() - t0:.1f} s")
+        r = cfg.case.respiration
+        if r is not None:
+            say(f"      breathing under the model at {r.rate_per_min:g}/min: each VCUG stage's end-expiration "
+                f"volume moved to {r.depth_states} depth states when the appliance starts")
         return len(phases)
     say(f"[1/4] case '{cfg.case.title}' ({shown(cfg.case_path)}): reading its CT")
     phases = patient_phases(cfg)

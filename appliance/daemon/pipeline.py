@@ -20,9 +20,11 @@ workers and hands them out. Only console events travel through a queue (each is 
 record and none may be lost); everything else is the newest value, so a slow renderer
 skips stale poses. The path of one frame reads top to bottom in `RenderWorker.step`.
 
-Clocks: the camera, the patient timeline and latency use the wall-clock monotonic time;
-the console and its scripted input use the appliance clock (`daemon.clock_rate`), which
-the demo runs faster so five minutes of fluoroscopy fit in a short session.
+Clocks: the console, its scripted input, the synthetic camera's path and the patient
+timeline all run on the appliance clock (`daemon.clock_rate`, 1 on a real appliance), which
+the demo runs faster so five minutes of fluoroscopy fit in a short session; one clock, so
+an exercise's phase window means the same second to the console, the camera and the case.
+Frame stamps and latency stay on the wall-clock monotonic time.
 """
 
 from __future__ import annotations
@@ -127,7 +129,7 @@ class Appliance:
         self.teaching = live_teaching_for(cfg)
 
         self.capture = CaptureWorker(parts.camera, parts.tracker, self.poses)
-        self.phase = PhaseWorker(parts, self.console_state, self.phases)
+        self.phase = PhaseWorker(parts, self.console_state, self.phases, self.clock)
         self.render = RenderWorker(parts, keeper, poses=self.poses, phases=self.phases,
                                    console_state=self.console_state, saves=saves, shown=self.shown,
                                    exposure_factor=exposure_factor, banners=lambda: self.supervisor.banners(),

@@ -66,32 +66,92 @@ def _collimated(f: ShownFrame) -> bool:
     return bool(np.min(np.atleast_1d(np.asarray(c, dtype=float))) < f.state.fov_mm - 1e-6)
 
 
-#: The end-inspiration snapshot comes within this of the end-expiration one (s), so the camera
-#: has barely moved between the two and the pair shows the breath, not the path.
+#: The end-inspiration snapshot comes within this of the end-expiration one (wall s).
 BREATH_PAIR_S = 10.0
+#: A pair image is taken once the breath has stood this long at its extreme (wall s), so the
+#: fluoroscope's recursive filter has settled on the still anatomy instead of blending the breath.
+BREATH_SETTLE_S = 0.6
+#: "The same pose": the C-arm moved less than this between the two images of the pair (mm of the
+#: box's origin, degrees), so the pair shows the breath and not the path.
+PAIR_POSE_MM, PAIR_POSE_DEG = 1.0, 0.5
+#: End-expiration is inspired below this, end-inspiration above 1 minus it.
+BREATH_EXTREME = 0.03
+
+
+def _pose_matrix(f: ShownFrame) -> np.ndarray | None:
+    if f.pose is None or not f.pose.pose.ok or f.pose.pose.T_webcam_from_phantom is None:
+        return None
+    return np.asarray(f.pose.pose.T_webcam_from_phantom, dtype=float)
+
+
+def same_pose(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two T_webcam_from_phantom are the same pose within PAIR_POSE_MM and PAIR_POSE_DEG."""
+    moved = float(np.linalg.norm(a[:3, 3] - b[:3, 3]))
+    cos = (float(np.trace(a[:3, :3].T @ b[:3, :3])) - 1.0) / 2.0
+    return moved <= PAIR_POSE_MM and math.degrees(math.acos(min(max(cos, -1.0), 1.0))) <= PAIR_POSE_DEG
+
+
+class _Settled:
+    """Whether the breath has stood at one value, the C-arm still, for BREATH_SETTLE_S."""
+
+    def __init__(self):
+        self.since: float | None = None
+        self.inspired: float | None = None
+        self.pose: np.ndarray | None = None
+
+    def __call__(self, f: ShownFrame) -> bool:
+        T = _pose_matrix(f)
+        if (not _live(f) or f.inspired is None or T is None or self.inspired is None or self.pose is None
+                or abs(f.inspired - self.inspired) > 1e-3 or not same_pose(T, self.pose)):
+            self.since, self.inspired, self.pose = f.t_wall, f.inspired, T
+            return False
+        return self.since is not None and f.t_wall - self.since >= BREATH_SETTLE_S
 
 
 def _breath_pair() -> list[Moment]:
-    """End-expiration, then the next end-inspiration within BREATH_PAIR_S: a case breathing under the model."""
-    taken: dict[str, float] = {}
+    """End-expiration, then end-inspiration within BREATH_PAIR_S at the same pose (the C-arm
+    still): a case breathing under the model, each image taken once the breath (held at its
+    extreme, as a radiographer asks for) and the recursive filter have settled."""
+    taken: list[tuple[float, np.ndarray]] = []       # (wall time, pose) of the end-expiration image
+    settled = _Settled()
 
     def expiration(f) -> bool:
-        hit = _live(f) and f.inspired is not None and f.inspired < 0.03
+        T = _pose_matrix(f)
+        hit = settled(f) and f.inspired is not None and f.inspired < BREATH_EXTREME and T is not None
         if hit:
-            taken["t"] = f.t_wall
+            taken.append((f.t_wall, T))
         return hit
 
     def inspiration(f) -> bool:
-        return ("t" in taken and f.t_wall - taken["t"] <= BREATH_PAIR_S and _live(f)
-                and f.inspired is not None and f.inspired > 0.97)
+        if not taken or not settled(f) or f.inspired is None or f.inspired <= 1.0 - BREATH_EXTREME:
+            return False
+        T = _pose_matrix(f)
+        t_expiration, pose = taken[-1]
+        return f.t_wall - t_expiration <= BREATH_PAIR_S and T is not None and same_pose(T, pose)
     return [Moment("end-expiration", "end-expiration", expiration),
             Moment("end-inspiration", "end-inspiration", inspiration)]
+
+
+def _back_to_zoom_1() -> Callable[[ShownFrame], bool]:
+    """Zoom 1 after another zoom: the first live image is at zoom 1 too, and a second snapshot
+    of that moment would show nothing new."""
+    other = [False]
+
+    def when(f) -> bool:
+        if not _live(f):
+            return False
+        if f.state.zoom != 1:
+            other[0] = True
+            return False
+        return other[0]
+    return when
 
 
 def key_moments() -> list[Moment]:
     """The moments the demo shows, in the order they appear on the contact sheet."""
     moments = [Moment("first-live", "first live image", _live)]
-    for z in (1, 2, 3, 4):
+    moments.append(Moment("zoom-1", "back to zoom 1", _back_to_zoom_1()))
+    for z in (2, 3, 4):
         moments.append(Moment(f"zoom-{z}", f"zoom {z}", lambda f, z=z: _live(f) and f.state.zoom == z))  # type: ignore[misc]
     moments += [
         Moment("collimated", "collimator closed in", lambda f: _live(f) and _collimated(f)),
