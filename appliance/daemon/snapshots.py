@@ -117,10 +117,10 @@ def _breath_pair() -> list[Moment]:
 
     def expiration(f) -> bool:
         T = _pose_matrix(f)
-        hit = settled(f) and f.inspired is not None and f.inspired < BREATH_EXTREME and T is not None
-        if hit:
-            taken.append((f.t_wall, T))
-        return hit
+        if T is None or not settled(f) or f.inspired is None or f.inspired >= BREATH_EXTREME:
+            return False
+        taken.append((f.t_wall, T))
+        return True
 
     def inspiration(f) -> bool:
         if not taken or not settled(f) or f.inspired is None or f.inspired <= 1.0 - BREATH_EXTREME:
