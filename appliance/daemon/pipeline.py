@@ -92,7 +92,7 @@ class Appliance:
         self.keeper = keeper
         cfg = keeper.current
         daemon = cfg.appliance.daemon
-        self.clock = SimClock(daemon.clock_rate)
+        self.clock = SimClock(daemon.clock_rate, pace_s=daemon.clock_pace_s)
         try:
             cfg.data_dir.mkdir(parents=True, exist_ok=True)
         except OSError as e:
@@ -133,7 +133,8 @@ class Appliance:
         self.render = RenderWorker(parts, keeper, poses=self.poses, phases=self.phases,
                                    console_state=self.console_state, saves=saves, shown=self.shown,
                                    exposure_factor=exposure_factor, banners=lambda: self.supervisor.banners(),
-                                   on_first_frame=lambda: self.supervisor.first_frame.set(), on_shown=on_shown,
+                                   on_first_frame=lambda: self.supervisor.first_frame.set(),
+                                   on_shown=lambda frame: self._shown(frame, on_shown),
                                    views=views, teaching=self.teaching_status)
         self.input = InputWorker(parts.console, [parts.keypad, parts.pedal], parts.alarm, self.clock,
                                  console_state=self.console_state, events=self.events,
@@ -162,6 +163,11 @@ class Appliance:
                 records_check(lambda: self.records.problem),
                 dicom_send_check(lambda: self.sender.problem),
             ])
+
+    def _shown(self, frame: ShownFrame, then: Callable[[ShownFrame], None] | None) -> None:
+        self.clock.shown()          # a paced clock runs on from each image on screen
+        if then is not None:
+            then(frame)
 
     # --- what the demo, the benchmarks and the tests read --------------------------------------
     @property

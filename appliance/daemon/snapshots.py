@@ -169,6 +169,20 @@ def key_moments() -> list[Moment]:
     return moments
 
 
+#: Moments whose rendered frame the snapshotter keeps beside the PNG.
+KEPT = ("end-expiration", "end-inspiration")
+
+
+@dataclass(frozen=True)
+class KeptFrame:
+    """A snapshot's frame as rendered: the image in [0, 1] (detector rows x columns), the pose and the breath."""
+
+    image: np.ndarray
+    T_webcam_from_phantom: np.ndarray
+    inspired: float | None
+    zoom: int
+
+
 class Snapshotter:
     """Called with each ShownFrame; writes `out_dir/NN-name.png` the first time each moment happens.
 
@@ -189,6 +203,8 @@ class Snapshotter:
         self._retry_at = 0.0
         self._alarm_seen = False
         self._digests: set[bytes] = set()
+        #: The breathing pair's frames as rendered (image, pose, breath), for checking the dome's motion.
+        self.kept: dict[str, KeptFrame] = {}
 
     def __call__(self, frame) -> None:
         try:
@@ -233,6 +249,10 @@ class Snapshotter:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         write_png(path, rgb)
         self.taken[moment.name] = path
+        T = _pose_matrix(frame) if moment.name in KEPT else None
+        if T is not None and frame.image is not None:
+            self.kept[moment.name] = KeptFrame(np.array(frame.image, dtype=np.float32), T, frame.inspired,
+                                               int(frame.state.zoom))
         self.problem = None
         self._digests.add(digest)
         log.info("snapshot %s: %s", moment.name, path)
