@@ -42,7 +42,7 @@ def test_demo_session_exercises_every_control_and_the_alarm(tmp_path):
         ledger.end_session(1_700_000_400.0)
     kinds = [e.kind for e in events]
     # Hand sum of the script's pedal and hand-switch holds:
-    # 9 + 3 + 3 + 7 + 7 + 6 + 2.5 + 7 + 7 + 100 + 20 + 138.5 s.
+    # 9 + 3 + 3 + 7 + 7 + 6 + 2.5 + 10 + 10 + 100 + 20 + 132.5 s.
     assert console.snapshot().fluoro_time_s == pytest.approx(310.0, abs=0.01)
     assert {s.zoom for s in states} == {1, 2, 3, 4}
     collimations = [tuple(e.detail[k] for k in ("collimation_h_mm", "collimation_v_mm")) for e in events if e.kind == "collimation"]
@@ -54,7 +54,7 @@ def test_demo_session_exercises_every_control_and_the_alarm(tmp_path):
     assert kinds.count("hold_breath") == 3 and kinds.count("resume_breath") == 3
     alarms = [e for e in events if e.kind == "alarm"]
     assert len(alarms) == 1 and alarms[0].fluoro_time_s == 300.0
-    assert alarms[0].t_monotonic == pytest.approx(266.0 + 128.5, abs=1e-6)
+    assert alarms[0].t_monotonic == pytest.approx(272.0 + 122.5, abs=1e-6)
     assert kinds.index("alarm_reset") > kinds.index("alarm") and not console.snapshot().alarm_sounding
     assert any(s.alarm_sounding for s in states)
     runs = [e for e in events if e.kind == "fluoro_off"]

@@ -18,7 +18,7 @@ from appliance_setup import REPO, make_appliance
 from appliance.config import FluoroscopeProfile, load_profile
 
 #: configs/scripts/demo-session.jsonl, summed by hand: fluoroscopy runs of
-#: 9 + 3 + 3 + 7 + 7 + 6 + 2.5 + 7 + 7 + 100 + 20 + 138.5 s; the alarm at 300 s (once, then
+#: 9 + 3 + 3 + 7 + 7 + 6 + 2.5 + 10 + 10 + 100 + 20 + 132.5 s; the alarm at 300 s (once, then
 #: reset); six saves.
 SCRIPT_FLUORO_S = 310.0
 SCRIPT_ALARMS = 1

@@ -77,7 +77,7 @@ def test_the_session_keeps_the_alarm_and_the_snapshots_states(played):
     _, console, _, events, rolls = played
     kinds = [e.kind for e in events]
     s = console.snapshot()
-    # The script's own sum: 9 + 3 + 3 + 7 + 7 + 6 + 2.5 + 7 + 7 + 100 + 20 + 138.5 s.
+    # The script's own sum: 9 + 3 + 3 + 7 + 7 + 6 + 2.5 + 10 + 10 + 100 + 20 + 132.5 s.
     assert s.fluoro_time_s == pytest.approx(310.0, abs=0.05)
     alarms = [e for e in events if e.kind == "alarm"]
     assert len(alarms) == 1 and alarms[0].t_monotonic == pytest.approx(394.5, abs=1e-6)

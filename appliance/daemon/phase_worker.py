@@ -33,8 +33,10 @@ class PhaseWorker(Worker):
     def __init__(self, parts: Parts, console_state: LatestValue[ConsoleState], phases: LatestValue[PhaseValue],
                  clock: Callable[[], float] = time.monotonic):
         super().__init__("phases")
-        self.parts, self.console_state, self.phases, self.clock = parts, console_state, phases, clock
-        self._case_t0 = parts.t0 if parts.t0 else clock()
+        self.parts, self.console_state, self.phases = parts, console_state, phases
+        self.case_clock = clock     # not `clock`: the worker's heartbeat keeps the wall clock
+        t0 = getattr(parts, "t0", 0.0)
+        self._case_t0 = t0 if t0 else clock()
         self._hold_t: float | None = None
         self._case_started: LatestValue[float] = LatestValue("case started")
         self._case_started_seq = 0
@@ -44,7 +46,7 @@ class PhaseWorker(Worker):
 
     def restart_case(self) -> None:
         """The case was replaced (from another thread): its time starts again now."""
-        self._case_started.put(self.clock())
+        self._case_started.put(self.case_clock())
 
     def step(self) -> bool:
         restarted = self._case_started.newer(self._case_started_seq)
@@ -52,7 +54,7 @@ class PhaseWorker(Worker):
             t0, self._case_started_seq = restarted
             self._case_t0 = t0 if t0 is not None else self._case_t0
         state, _ = self.console_state.get()
-        t = self.clock() - self._case_t0
+        t = self.case_clock() - self._case_t0
         control = getattr(self.parts.timeline, "control", None)     # a breathing model, when the case has one
         hold = state is not None and state.breath_hold
         if control is not None:

@@ -68,9 +68,12 @@ def _collimated(f: ShownFrame) -> bool:
 
 #: The end-inspiration snapshot comes within this of the end-expiration one (wall s).
 BREATH_PAIR_S = 10.0
-#: A pair image is taken once the breath has stood this long at its extreme (wall s), so the
-#: fluoroscope's recursive filter has settled on the still anatomy instead of blending the breath.
+#: A pair image is taken once the breath has stood at its extreme, the C-arm still, for this
+#: long (wall s) and this many live images, so the fluoroscope's recursive filter has settled on
+#: the still anatomy instead of blending in the image before (the shipped profiles' weight 0.5
+#: leaves 0.5^6 = 1.6 % of it after six images).
 BREATH_SETTLE_S = 0.6
+BREATH_SETTLE_FRAMES = 6
 #: "The same pose": the C-arm moved less than this between the two images of the pair (mm of the
 #: box's origin, degrees), so the pair shows the breath and not the path.
 PAIR_POSE_MM, PAIR_POSE_DEG = 1.0, 0.5
@@ -98,14 +101,19 @@ class _Settled:
         self.since: float | None = None
         self.inspired: float | None = None
         self.pose: np.ndarray | None = None
+        self.frames = 0
+        self._last: float | None = None       # the frame counted last (called once per moment per frame)
 
     def __call__(self, f: ShownFrame) -> bool:
         T = _pose_matrix(f)
         if (not _live(f) or f.inspired is None or T is None or self.inspired is None or self.pose is None
                 or abs(f.inspired - self.inspired) > 1e-3 or not same_pose(T, self.pose)):
-            self.since, self.inspired, self.pose = f.t_wall, f.inspired, T
+            self.since, self.inspired, self.pose, self.frames, self._last = f.t_wall, f.inspired, T, 1, f.t_wall
             return False
-        return self.since is not None and f.t_wall - self.since >= BREATH_SETTLE_S
+        if f.t_wall != self._last:
+            self.frames, self._last = self.frames + 1, f.t_wall
+        return (self.since is not None and f.t_wall - self.since >= BREATH_SETTLE_S
+                and self.frames > BREATH_SETTLE_FRAMES)
 
 
 def _breath_pair() -> list[Moment]:
