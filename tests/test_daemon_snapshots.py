@@ -114,25 +114,24 @@ def _posed(value: int, t: float, inspired: float, T: np.ndarray, **state) -> Sim
 
 def test_breathing_pair_is_taken_at_one_pose_once_each_extreme_has_settled(tmp_path):
     """End-expiration, then end-inspiration at the same pose, each only after the breath (held)
-    and the C-arm have stood still for BREATH_SETTLE_S and more than BREATH_SETTLE_FRAMES images,
-    so the recursive filter shows the still anatomy."""
-    from appliance.daemon.snapshots import BREATH_SETTLE_FRAMES, BREATH_SETTLE_S
+    and the C-arm have stood still for more than BREATH_SETTLE_FRAMES images, so the recursive
+    filter shows the still anatomy; the breath-hold snapshot comes from a hold elsewhere."""
+    from appliance.daemon.snapshots import BREATH_SETTLE_FRAMES
 
     snap = Snapshotter(tmp_path, key_moments())
-    home, moved = _pose(0.0), _pose(0.0, yaw_deg=2.0)
-    step = BREATH_SETTLE_S / 2.5
+    home, moved, other = _pose(0.0), _pose(0.0, yaw_deg=2.0), _pose(0.0, yaw_deg=20.0)
     n = BREATH_SETTLE_FRAMES + 3
-    frames = [_posed(1, 0.0, 0.5, home)]                                          # first live
-    frames += [_posed(10 + k, 1.0 + k * step, 0.01, home, breath_hold=True) for k in range(n)]
-    frames += [_posed(30 + k, 3.5 + k * step, 0.99, moved) for k in range(n)]      # another pose: not the pair
-    frames += [_posed(50, 6.0, 0.6, home)]                                         # breathing on
-    frames += [_posed(60 + k, 6.5 + k * step, 0.995, home) for k in range(n)]
+    frames = [_posed(1, 0.0, 0.5, home)]                                            # first live
+    frames += [_posed(10 + k, 1.0 + k, 0.01, home, breath_hold=True) for k in range(n)]
+    frames += [_posed(30 + k, 20.0 + k, 0.99, moved) for k in range(n)]              # another pose: not the pair
+    frames += [_posed(50, 30.0, 0.6, home)]                                           # breathing on
+    frames += [_posed(60 + k, 31.0 + k, 0.995, home, breath_hold=True) for k in range(n)]
+    frames += [_posed(80 + k, 40.0 + k, 0.2, other, breath_hold=True) for k in range(n)]
     for f in frames:
         snap(f)
-    # The first held frame is the breath-hold snapshot; the count starts at the next one (11), so
-    # expiration is the image BREATH_SETTLE_FRAMES after it; inspiration counts from its first (60).
-    assert (read_png(snap.taken["breath-hold"]) == 10).all()
-    assert (read_png(snap.taken["end-expiration"]) == 11 + BREATH_SETTLE_FRAMES).all()
+    # Each run's first image starts the count, so the image BREATH_SETTLE_FRAMES after it is taken.
+    assert (read_png(snap.taken["end-expiration"]) == 10 + BREATH_SETTLE_FRAMES).all()
     assert (read_png(snap.taken["end-inspiration"]) == 60 + BREATH_SETTLE_FRAMES).all()
+    assert (read_png(snap.taken["breath-hold"]) == 80 + BREATH_SETTLE_FRAMES).all()
     kept = snap.kept["end-inspiration"]
     assert kept.inspired == 0.995 and (kept.image == 60 + BREATH_SETTLE_FRAMES).all()

@@ -66,14 +66,15 @@ def _collimated(f: ShownFrame) -> bool:
     return bool(np.min(np.atleast_1d(np.asarray(c, dtype=float))) < f.state.fov_mm - 1e-6)
 
 
-#: The end-inspiration snapshot comes within this of the end-expiration one (wall s).
-BREATH_PAIR_S = 10.0
-#: A pair image is taken once the breath has stood at its extreme, the C-arm still, for this
-#: long (wall s) and this many live images, so the fluoroscope's recursive filter has settled on
-#: the still anatomy instead of blending in the image before (the shipped profiles' weight 0.5
-#: leaves 0.5^6 = 1.6 % of it after six images).
-BREATH_SETTLE_S = 0.6
-BREATH_SETTLE_FRAMES = 6
+#: The end-inspiration snapshot comes within this of the end-expiration one (wall s): the same
+#: breathing exercise, even when a busy machine's paced clock stretches it.
+BREATH_PAIR_S = 60.0
+#: A pair or breath-hold image is taken once the breath has stood at one point, the C-arm
+#: still, for more than this many live images, so the fluoroscope's recursive filter has settled
+#: on the still anatomy instead of blending in the image before (the shipped profiles' weight
+#: 0.5 leaves 0.5^5 = 3 % of it in the fifth image, a faint ghost beside a dome that moved 40 px).
+#: Counted in images, not seconds: the filter works per image, whatever the clock.
+BREATH_SETTLE_FRAMES = 4
 #: "The same pose": the C-arm moved less than this between the two images of the pair (mm of the
 #: box's origin, degrees), so the pair shows the breath and not the path.
 PAIR_POSE_MM, PAIR_POSE_DEG = 1.0, 0.5
@@ -95,33 +96,34 @@ def same_pose(a: np.ndarray, b: np.ndarray) -> bool:
 
 
 class _Settled:
-    """Whether the breath has stood at one value, the C-arm still, for BREATH_SETTLE_S."""
+    """Whether the live images have shown one breath (None: a case without the breathing model)
+    at one pose for more than BREATH_SETTLE_FRAMES images."""
 
     def __init__(self):
-        self.since: float | None = None
         self.inspired: float | None = None
         self.pose: np.ndarray | None = None
         self.frames = 0
-        self._last: float | None = None       # the frame counted last (called once per moment per frame)
+        self._last: float | None = None       # the image counted last (asked once per moment per image)
 
     def __call__(self, f: ShownFrame) -> bool:
         T = _pose_matrix(f)
-        if (not _live(f) or f.inspired is None or T is None or self.inspired is None or self.pose is None
-                or abs(f.inspired - self.inspired) > 1e-3 or not same_pose(T, self.pose)):
-            self.since, self.inspired, self.pose, self.frames, self._last = f.t_wall, f.inspired, T, 1, f.t_wall
+        same_breath = ((f.inspired is None) == (self.inspired is None)
+                       and (f.inspired is None or abs(f.inspired - self.inspired) <= 1e-3))  # type: ignore[operator]
+        if not _live(f) or T is None or self.pose is None or not same_breath or not same_pose(T, self.pose):
+            self.inspired, self.pose, self.frames, self._last = f.inspired, T, 1, f.t_wall
             return False
         if f.t_wall != self._last:
             self.frames, self._last = self.frames + 1, f.t_wall
-        return (self.since is not None and f.t_wall - self.since >= BREATH_SETTLE_S
-                and self.frames > BREATH_SETTLE_FRAMES)
+        return self.frames > BREATH_SETTLE_FRAMES
 
 
-def _breath_pair() -> list[Moment]:
+def _breath_moments() -> list[Moment]:
     """End-expiration, then end-inspiration within BREATH_PAIR_S at the same pose (the C-arm
-    still): a case breathing under the model, each image taken once the breath (held at its
-    extreme, as a radiographer asks for) and the recursive filter have settled."""
+    still), on a case breathing under the model; and a breath hold elsewhere. Each is taken once
+    the breath (held, as a radiographer asks for) and the recursive filter have settled; the
+    breath hold is not taken at the pair's pose, where it would show the pair's picture again."""
     taken: list[tuple[float, np.ndarray]] = []       # (wall time, pose) of the end-expiration image
-    settled = _Settled()
+    settled, held = _Settled(), _Settled()
 
     def expiration(f) -> bool:
         T = _pose_matrix(f)
@@ -136,8 +138,16 @@ def _breath_pair() -> list[Moment]:
         T = _pose_matrix(f)
         t_expiration, pose = taken[-1]
         return f.t_wall - t_expiration <= BREATH_PAIR_S and T is not None and same_pose(T, pose)
+
+    def breath_hold(f) -> bool:
+        if not (_live(f) and bool(f.state.breath_hold) and held(f)):
+            return False
+        T = _pose_matrix(f)
+        return T is not None and not (taken and same_pose(T, taken[-1][1]))
+    # The pair first: on the frame both could take, the pair takes it.
     return [Moment("end-expiration", "end-expiration", expiration),
-            Moment("end-inspiration", "end-inspiration", inspiration)]
+            Moment("end-inspiration", "end-inspiration", inspiration),
+            Moment("breath-hold", "breath hold", breath_hold)]
 
 
 def _back_to_zoom_1() -> Callable[[ShownFrame], bool]:
@@ -166,8 +176,7 @@ def key_moments() -> list[Moment]:
         Moment("inverted", "inverted", lambda f: _live(f) and bool(f.state.invert)),
         Moment("roll-plus-90", "roll +90 degrees", lambda f: _live(f) and (_pose_roll(f) or 0) > 75),
         Moment("roll-minus-90", "roll -90 degrees", lambda f: _live(f) and (_pose_roll(f) or 0) < -75),
-        Moment("breath-hold", "breath hold", lambda f: _live(f) and bool(f.state.breath_hold)),
-        *_breath_pair(),
+        *_breath_moments(),
         Moment("saved", "image saved", lambda f: bool(f.saved_flash)),
         Moment("alarm", "5-minute alarm", lambda f: bool(f.state.alarm_sounding) and alarm_banner_shown(f.rgb_source())),
         Moment("last-image-hold", "last-image hold", lambda f: not f.live and f.image is not None
