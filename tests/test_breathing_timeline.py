@@ -97,3 +97,44 @@ def test_phase_worker_hands_the_presses_to_the_breathing_model(timeline):
     assert worker.step() and timeline.control.rate_per_min == p.rate_per_min + 2 * p.rate_step_per_min
     assert before.rate_per_min == p.rate_per_min
     timeline.control = type(timeline.control)(p)        # leave the shared timeline as the other tests found it
+
+
+def test_phase_worker_runs_the_case_on_the_console_clock_and_holds_only_the_breath(timeline):
+    """One clock: the case time is the appliance clock since the session's start (parts.t0). A
+    breath hold on the breathing model freezes the breath at the press's console time while the
+    case time (the contrast's timeline) runs on; resume carries the breath on from there."""
+    from types import SimpleNamespace
+
+    from appliance.daemon.handoff import LatestValue
+    from appliance.daemon.phase_worker import PhaseWorker
+    from appliance.patient.respiration import state_at
+
+    fl = load_profile(ROOT / "configs" / "fluoroscopes" / "generic-ii-carm.yaml", FluoroscopeProfile)
+    keymap = load_profile(ROOT / "configs" / "keymaps" / "usb-numeric-keypad.yaml", KeymapProfile)
+    now = [110.0]
+    console = Console(fl, keymap, 100.0)
+    states, phases = LatestValue("console"), LatestValue("phases")
+    states.put(console.snapshot())
+    worker = PhaseWorker(SimpleNamespace(timeline=timeline, generation=0, t0=100.0), states, phases,
+                         clock=lambda: now[0])
+    p = timeline.params
+    try:
+        assert worker.step()
+        assert phases.get()[0].t_case_s == pytest.approx(10.0)
+        console.handle(InputEvent(110.5, "scripted", "KEY_KPSLASH", True))
+        console.tick(110.5)
+        states.put(console.snapshot())
+        now[0] = 113.0
+        assert worker.step()
+        held = phases.get()[0]
+        assert held.t_case_s == pytest.approx(13.0)                      # the case runs on
+        assert held.inspired == pytest.approx(state_at(p, 10.5).inspired)  # the breath stopped at the press
+        console.handle(InputEvent(115.0, "scripted", "KEY_KPDOT", True))
+        console.tick(115.0)
+        states.put(console.snapshot())
+        now[0] = 116.0
+        assert worker.step()
+        # Resumed at 15.0 from where it stood: one second of breath on from 10.5.
+        assert phases.get()[0].inspired == pytest.approx(state_at(p, 11.5).inspired)
+    finally:
+        timeline.control = type(timeline.control)(p)        # leave the shared timeline as the other tests found it

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from typing import Any
 
 from ..console.state import ConsoleState
 from ..errors import FluorosimError
@@ -42,7 +43,7 @@ class PhaseWorker(Worker):
         self._case_started_seq = 0
         # Console presses of the breathing keys already handed to the breathing model.
         self._breath_steps = (0, 0)
-        self._held_control = False
+        self._held_control: Any = None     # the breathing model this worker holds (BreathingControl)
 
     def restart_case(self) -> None:
         """The case was replaced (from another thread): its time starts again now."""
@@ -58,11 +59,15 @@ class PhaseWorker(Worker):
         control = getattr(self.parts.timeline, "control", None)     # a breathing model, when the case has one
         hold = state is not None and state.breath_hold
         if control is not None:
-            if hold != self._held_control:
-                # Stamped at the console's time of the press (the state's time), not when seen here.
-                at = min(t, state.t - self._case_t0) if state is not None else t
-                (control.hold if hold else control.resume)(at)
-                self._held_control = hold
+            # Stamped at the console's time of the press (the state's time), not when seen here.
+            at = min(t, state.t - self._case_t0) if state is not None else t
+            if hold and self._held_control is not control:       # a new timeline (reload) is held too
+                control.hold(at)
+                self._held_control = control
+            elif not hold and self._held_control is not None:
+                if self._held_control is control:
+                    control.resume(at)
+                self._held_control = None
         elif hold:
             if self._hold_t is None:
                 self._hold_t = t
