@@ -93,6 +93,7 @@ class ConsoleState:
     level_shift: float = 0.0        # the radiographer's level: the centre moved by this fraction of the width
     breath_rate_steps: int = 0      # faster minus slower presses so far (the breathing model applies each step)
     breath_depth_steps: int = 0     # deeper minus shallower presses so far
+    breath_changed_t: float = 0.0   # console time of the last breath hold or resume press (s): the breathing model stops there
 
     @property
     def held(self) -> bool:
@@ -139,6 +140,7 @@ class Console:
         self.invert = fluoroscope.display.invert
         self.window_scale, self.level_shift = 1.0, 0.0
         self.breath_hold = False
+        self.breath_changed_t = 0.0
         self.breath_rate_steps = self.breath_depth_steps = 0
         self._fluoro_holders: set[tuple[str, str]] = set()
         self.fluoro_on = False
@@ -367,11 +369,11 @@ class Console:
                            carried_alarms=carried[1])
         elif action == "hold_breath":
             if not self.breath_hold:
-                self.breath_hold = True
+                self.breath_hold, self.breath_changed_t = True, t
                 self._emit(out, t, "hold_breath")
         elif action == "resume_breath":
             if self.breath_hold:
-                self.breath_hold = False
+                self.breath_hold, self.breath_changed_t = False, t
                 self._emit(out, t, "resume_breath")
         elif action in ("breath_faster", "breath_slower"):
             self.breath_rate_steps += 1 if action == "breath_faster" else -1
@@ -490,4 +492,5 @@ class Console:
             new_image=self._frame_pulses > 0 if mode.pulse_rate_per_s else self._frame_exposed,
             pulses_this_frame=self._frame_pulses, kvp=fl.tube.kvp, ma=fl.tube.ma, pulses=self._pulse_count,
             window_scale=self.window_scale, level_shift=self.level_shift,
-            breath_rate_steps=self.breath_rate_steps, breath_depth_steps=self.breath_depth_steps)
+            breath_rate_steps=self.breath_rate_steps, breath_depth_steps=self.breath_depth_steps,
+            breath_changed_t=self.breath_changed_t)

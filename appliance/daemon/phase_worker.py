@@ -59,8 +59,9 @@ class PhaseWorker(Worker):
         control = getattr(self.parts.timeline, "control", None)     # a breathing model, when the case has one
         hold = state is not None and state.breath_hold
         if control is not None:
-            # Stamped at the console's time of the press (the state's time), not when seen here.
-            at = min(t, state.t - self._case_t0) if state is not None else t
+            # At the console's time of the press, not when this worker sees it (a busy machine may
+            # see it a breath later).
+            at = min(t, state.breath_changed_t - self._case_t0) if state is not None else t
             if hold and self._held_control is not control:       # a new timeline (reload) is held too
                 control.hold(at)
                 self._held_control = control
