@@ -26,7 +26,7 @@ SCRIPT_SAVES = 6
 
 
 def test_demo_runs_the_session_and_writes_everything_it_lists(tmp_path):
-    # Clock x66: the 410 s session passes in about 6 s of wall-clock time.
+    # Clock x66: the 422 s session passes in about 6 s of wall-clock time.
     config = make_appliance(tmp_path, base="appliance-demo.yaml", clock_rate=66, display=(640, 512), abc=True)
     # Paced at 10 s: the demo's 1.5 s at x66 would hold the clock to the last-image hold's five
     # redraws a second (x7.5); 10 s still gives the 6 s zoom-3 run an image on a busy machine.
