@@ -79,3 +79,35 @@ def test_no_pair_line_without_both_images(demo):
     cfg, fl = demo
     e = KeptFrame(np.zeros((8, 8), np.float32), DOME_POSE, 0.0, 1)
     assert pair_lines(cfg, fl, {"end-expiration": e}) == []
+
+
+def test_the_built_in_childs_dome_moves_diaphragm_mm_times_the_magnification(demo):
+    """The whole chain short of the display: the built-in child's end-expiration CT moved by the
+    breathing model to end-expiration and end-inspiration, cast by the OpenCL renderer (line
+    integrals, no noise) at the demo path's dome pose; the dome's edge read from the two images
+    moves diaphragm_mm x SID / SOD of the apex, within 2 %."""
+    from appliance.patient import builtin
+    from appliance.patient.breathing_motion import BreathingAnatomy
+    from appliance.patient.breathing_timeline import BreathingTimeline
+    from appliance.patient.volume import Volume
+    from appliance.xray.renderer import Renderer, View
+
+    cfg, fl = demo
+    builder = builtin.Builder()
+    spec = builtin.timeline()[0]
+    assert (spec.stage, spec.breath) == (0, 0.0)                     # end-expiration
+    ct = Volume(builder.phase(spec), builder.grid.T_ct_from_voxel)
+    params = cfg.case.respiration
+    anatomy = BreathingAnatomy(ct, params, cfg.case.materials)
+    states = BreathingTimeline.__new__(BreathingTimeline)           # only its state_of: no device, no thread
+    states.params = params
+    small = fl                      # the demo's 512 matrix: the check's pixel widths are set for it
+    renderer = Renderer(small, cfg.case.materials, contrast=cfg.case.contrast, device="cpu")
+    T = small.T_xray_from_webcam() @ DOME_POSE @ matrix(cfg.case.T_phantom_from_ct)
+    images = [renderer.render(renderer.prepare(anatomy.volume_at(states.state_of(e))), T,
+                              View(quantity="line-integral", noise=False)).image for e in (0.0, 1.0)]
+    check = dome_shift(cfg, small, KeptFrame(images[0], DOME_POSE, 0.0, 1), KeptFrame(images[1], DOME_POSE, 1.0, 1),
+                       builtin_apex(cfg.case))
+    assert check is not None and check.descent_mm == pytest.approx(params.diaphragm_mm)
+    assert check.predicted_mm == pytest.approx(params.diaphragm_mm * check.magnification, rel=0.03)
+    assert check.measured_px == pytest.approx(check.predicted_px, rel=0.02)
