@@ -293,7 +293,11 @@ class FileCamera(CameraSource):
 # --- synthetic camera -------------------------------------------------------------------
 
 class SyntheticCamera(CameraSource):
-    """A webcam stand-in: renders the box phantom at `trajectory(t)` (T_webcam_from_phantom, mm) at `fps`."""
+    """A webcam stand-in: renders the box phantom at `trajectory(t)` (T_webcam_from_phantom, mm) at `fps`.
+
+    `t` runs on `clock` (the appliance's clock, which the demo runs faster than the wall clock, so
+    the path keeps time with the scripted console and the patient); frames are stamped in
+    `time.monotonic` seconds."""
 
     def __init__(self, marker_ids: Sequence[int], T_phantom_from_marker: Sequence[np.ndarray], marker_size_mm: float,
                  dictionary: str, box_mm: tuple, K: np.ndarray, dist: np.ndarray | Sequence[float], width: int, height: int,
@@ -308,7 +312,9 @@ class SyntheticCamera(CameraSource):
 
     def render_at(self, t: float, bgr: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """(image, truth) for trajectory time `t` (s): the pose at mid-exposure, blurred over the exposure."""
-        exp = self.settings.exposure_s
+        # The exposure is wall-clock time; on a clock running faster (the demo's) the path moves
+        # that many times farther during it.
+        exp = self.settings.exposure_s * float(getattr(self.clock, "rate", 1.0))
         T_mid = self.trajectory(t - exp / 2)
         T_start, T_end = self.trajectory(t - exp), self.trajectory(t)
         # The line kernel is centred on the mid-exposure pose, so the smear covers the whole exposure.
@@ -317,12 +323,13 @@ class SyntheticCamera(CameraSource):
 
     def _run(self) -> None:
         period = 1.0 / self.fps
-        self.t0 = self.clock()
-        next_t = self.t0
+        if self.t0 is None:             # the path's time 0, unless the owner set it (a session's start)
+            self.t0 = self.clock()
+        next_t = time.monotonic()
         while not self._stop.is_set():
-            now = self.clock()
-            image, truth = self.render_at(now - self.t0)
-            self._publish(image, now, truth)
+            image, truth = self.render_at(self.clock() - self.t0)
+            # Stamped on the wall clock whatever clock the path runs on: latency is wall time.
+            self._publish(image, time.monotonic(), truth)
             self._set_state(CaptureState.OK)
             next_t += period
             self._stop.wait(max(0.0, next_t - time.monotonic()))

@@ -217,7 +217,7 @@ def test_demo_with_a_nan_script_refuses_quickly(configs):
     ('{"t": 0, "position_mm": [0, 0, 550], "yaw_deg": 1e300}', "'yaw_deg' must be a number from -360 to 360"),
 ])
 def test_bad_trajectory_is_refused(configs, capsys, line, expected):
-    path = configs / "trajectories/demo.jsonl"
+    path = configs / "trajectories/vcug-demo.jsonl"       # the demo profile's path
     path.write_text(line + "\n")
     with pytest.raises(FluorosimError, match=expected):
         load_trajectory(path)

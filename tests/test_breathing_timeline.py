@@ -99,28 +99,42 @@ def test_phase_worker_hands_the_presses_to_the_breathing_model(timeline):
     timeline.control = type(timeline.control)(p)        # leave the shared timeline as the other tests found it
 
 
-def test_snapshot_pair_end_expiration_then_end_inspiration(tmp_path):
-    """The pair is the first live end-expiration and the next end-inspiration within BREATH_PAIR_S."""
+def test_phase_worker_runs_the_case_on_the_console_clock_and_holds_only_the_breath(timeline):
+    """One clock: the case time is the appliance clock since the session's start (parts.t0). A
+    breath hold on the breathing model freezes the breath at the press's console time while the
+    case time (the contrast's timeline) runs on; resume carries the breath on from there."""
     from types import SimpleNamespace
 
-    from appliance.daemon.snapshots import BREATH_PAIR_S, Snapshotter, key_moments, read_png
+    from appliance.daemon.handoff import LatestValue
+    from appliance.daemon.phase_worker import PhaseWorker
+    from appliance.patient.respiration import state_at
 
-    snap = Snapshotter(tmp_path, key_moments())
-    state = SimpleNamespace(zoom=1, fov_mm=230.0, collimation_mm=(230.0, 230.0), invert=False, breath_hold=False,
-                            alarm_sounding=False, fluoro_on=True)
-
-    def frame(value, t, inspired):
-        rgb = np.full((8, 8, 3), value, np.uint8)
-        return SimpleNamespace(rgb_source=lambda: rgb, image=rgb, state=state, pose=None, live=True, t_wall=t,
-                               banners=[], saved_flash=False, inspired=inspired)
-    # One snapshot a frame: the first frames go to the first-live and zoom-1 moments.
-    warm_up = [frame(1, -3.0, 0.5), frame(2, -2.0, 0.5)]
-    for f in (*warm_up, frame(10, 0.0, 0.99), frame(20, 1.0, 0.01), frame(30, 2.0 + BREATH_PAIR_S, 0.99),
-              frame(40, 3.0, 0.5)):
-        snap(f)
-    assert (read_png(snap.taken["end-expiration"]) == 20).all()
-    assert "end-inspiration" not in snap.taken                  # too late after end-expiration
-    snap2 = Snapshotter(tmp_path / "b", key_moments())
-    for f in (*warm_up, frame(50, 0.0, 0.0), frame(60, 1.5, 1.0)):
-        snap2(f)
-    assert (read_png(snap2.taken["end-inspiration"]) == 60).all()
+    fl = load_profile(ROOT / "configs" / "fluoroscopes" / "generic-ii-carm.yaml", FluoroscopeProfile)
+    keymap = load_profile(ROOT / "configs" / "keymaps" / "usb-numeric-keypad.yaml", KeymapProfile)
+    now = [110.0]
+    console = Console(fl, keymap, 100.0)
+    states, phases = LatestValue("console"), LatestValue("phases")
+    states.put(console.snapshot())
+    worker = PhaseWorker(SimpleNamespace(timeline=timeline, generation=0, t0=100.0), states, phases,
+                         clock=lambda: now[0])
+    p = timeline.params
+    try:
+        assert worker.step()
+        assert phases.get()[0].t_case_s == pytest.approx(10.0)
+        console.handle(InputEvent(110.5, "scripted", "KEY_KPSLASH", True))
+        console.tick(110.5)
+        states.put(console.snapshot())
+        now[0] = 113.0
+        assert worker.step()
+        held = phases.get()[0]
+        assert held.t_case_s == pytest.approx(13.0)                      # the case runs on
+        assert held.inspired == pytest.approx(state_at(p, 10.5).inspired)  # the breath stopped at the press
+        console.handle(InputEvent(115.0, "scripted", "KEY_KPDOT", True))
+        console.tick(115.0)
+        states.put(console.snapshot())
+        now[0] = 116.0
+        assert worker.step()
+        # Resumed at 15.0 from where it stood: one second of breath on from 10.5.
+        assert phases.get()[0].inspired == pytest.approx(state_at(p, 11.5).inspired)
+    finally:
+        timeline.control = type(timeline.control)(p)        # leave the shared timeline as the other tests found it

@@ -252,7 +252,7 @@ def test_cache_reused_and_a_new_version_rebuilds_atomically(cache, tmp_path, mon
 
     def stop_at_first_phase(message):
         started.append(message)
-        if message.startswith("phase "):
+        if message.startswith("volume "):
             raise _Stop
     with pytest.raises(_Stop):
         builtin_phases("child-torso", copy, progress=stop_at_first_phase)

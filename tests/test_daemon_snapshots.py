@@ -67,8 +67,9 @@ def test_each_moment_is_taken_once_from_the_first_frame_that_shows_it(tmp_path):
     frames = [
         _Frame(np.full((9, 8, 3), 10, np.uint8), _state()),
         _Frame(np.full((9, 8, 3), 10, np.uint8), _state()),     # the same pixels again: no second name for them
-        _Frame(np.full((9, 8, 3), 20, np.uint8), _state()),
+        _Frame(np.full((9, 8, 3), 15, np.uint8), _state()),     # zoom 1 still: not yet "back to zoom 1"
         _Frame(np.full((9, 8, 3), 30, np.uint8), _state(zoom=3, fov_mm=130.0, collimation_mm=(130.0, 130.0))),
+        _Frame(np.full((9, 8, 3), 20, np.uint8), _state()),
         _Frame(np.full((9, 8, 3), 40, np.uint8), _state(collimation_mm=(120.0, 230.0))),
         _Frame(np.full((9, 8, 3), 45, np.uint8), _state(alarm_sounding=True)),   # banner in its dark half
         _Frame(alarm_on, _state(alarm_sounding=True)),
@@ -102,3 +103,35 @@ def test_the_alarm_banner_is_read_from_the_composed_screen_in_both_flash_phases(
     image = np.random.default_rng(0).uniform(0, 1, (256, 256)).astype(np.float32)
     assert alarm_banner_shown(comp.compose(image, overlay, now=5.0 + 0.1 * ALARM_FLASH_PERIOD_S))
     assert not alarm_banner_shown(comp.compose(image, overlay, now=5.0 + 0.7 * ALARM_FLASH_PERIOD_S))
+
+
+def _posed(value: int, t: float, inspired: float, T: np.ndarray, **state) -> SimpleNamespace:
+    rgb = np.full((8, 8, 3), value, np.uint8)
+    return SimpleNamespace(rgb_source=lambda: rgb, image=rgb, state=_state(**state), live=True, t_wall=t, banners=[],
+                           saved_flash=False, inspired=inspired,
+                           pose=SimpleNamespace(pose=SimpleNamespace(ok=True, T_webcam_from_phantom=T)))
+
+
+def test_breathing_pair_is_taken_at_one_pose_once_each_extreme_has_settled(tmp_path):
+    """End-expiration, then end-inspiration at the same pose, each only after the breath (held)
+    and the C-arm have stood still for more than BREATH_SETTLE_FRAMES images, so the recursive
+    filter shows the still anatomy; the breath-hold snapshot comes from a hold elsewhere."""
+    from appliance.daemon.snapshots import BREATH_SETTLE_FRAMES
+
+    snap = Snapshotter(tmp_path, key_moments())
+    home, moved, other = _pose(0.0), _pose(0.0, yaw_deg=2.0), _pose(0.0, yaw_deg=20.0)
+    n = BREATH_SETTLE_FRAMES + 3
+    frames = [_posed(1, 0.0, 0.5, home)]                                            # first live
+    frames += [_posed(10 + k, 1.0 + k, 0.01, home, breath_hold=True) for k in range(n)]
+    frames += [_posed(30 + k, 20.0 + k, 0.99, moved) for k in range(n)]              # another pose: not the pair
+    frames += [_posed(50, 30.0, 0.6, home)]                                           # breathing on
+    frames += [_posed(60 + k, 31.0 + k, 0.995, home, breath_hold=True) for k in range(n)]
+    frames += [_posed(80 + k, 40.0 + k, 0.2, other, breath_hold=True) for k in range(n)]
+    for f in frames:
+        snap(f)
+    # Each run's first image starts the count, so the image BREATH_SETTLE_FRAMES after it is taken.
+    assert (read_png(snap.taken["end-expiration"]) == 10 + BREATH_SETTLE_FRAMES).all()
+    assert (read_png(snap.taken["end-inspiration"]) == 60 + BREATH_SETTLE_FRAMES).all()
+    assert (read_png(snap.taken["breath-hold"]) == 80 + BREATH_SETTLE_FRAMES).all()
+    kept = snap.kept["end-inspiration"]
+    assert kept.inspired == 0.995 and (kept.image == 60 + BREATH_SETTLE_FRAMES).all()

@@ -77,6 +77,10 @@ class Daemon(Section):
                                         "failed and rendering fell back to the CPU, which is far slower (pixels).")
     clock_rate: float = Field(1.0, gt=0, le=100, description="Simulated seconds per wall-clock second for the console and its "
                               "scripted input (fluoroscopy time, dose, alarm); 1 on a real appliance (dimensionless).")
+    clock_pace_s: float | None = Field(None, gt=0, le=60, description="On an accelerated clock (the demo's): the most "
+                                       "simulated seconds it runs past the last image on screen before it waits for the "
+                                       "next, so a slow renderer lengthens the session instead of skipping through it "
+                                       "unseen; none: never waits (s, simulated).")
     log_max_mb: float = Field(10.0, gt=0, description="Size at which the log file in data_dir/logs is rotated (MiB).")
     log_backups: int = Field(5, ge=0, le=100, description="Rotated log files kept.")
 

@@ -69,6 +69,14 @@ class Respiration(Section):
     labels: dict[Literal[RESPIRATION_ROLES], list[int]] | None = Field(  # type: ignore[valid-type]  # the tuple's names
         None, description="Label ids per role (lungs, liver, spine, ribs, diaphragm) in label_map; an empty or missing role is "
                           "found from the HU thresholds instead.")
+    irregularity: float = Field(
+        0.0, ge=0, le=0.5,
+        description="Breath-to-breath variation: each breath (end-expiration to end-expiration) lasts the rate's breath "
+                    "times 1 + irregularity x u and goes to the depth times 1 + irregularity x v, with u and v drawn "
+                    "in -1..1 for that breath; 0 = regular, and the contract's end-inspiration/expiration times hold "
+                    "(fraction).")
+    irregularity_seed: int = Field(
+        0, ge=0, description="Seed of the breath-to-breath draws: the same seed, the same irregular breathing (count).")
     rate_step_per_min: float = Field(3.0, gt=0, le=20, description="Faster/slower keys change the rate by this (breaths/min).")
     rate_max_per_min: float = Field(40.0, gt=0, le=80, description="Fastest rate the console allows: hyperventilation (breaths/min).")
     depth_step: float = Field(

@@ -64,6 +64,7 @@ class ConsoleState:
     level_shift: float = 0.0        # the radiographer's level: the centre moved by this fraction of the width
     breath_rate_steps: int = 0      # faster minus slower presses so far (the breathing model applies each step)
     breath_depth_steps: int = 0     # deeper minus shallower presses so far
+    breath_changed_t: float = 0.0   # console time of the last breath hold or resume press (s): the breathing model stops there
 
     @property
     def held(self) -> bool:

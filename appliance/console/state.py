@@ -53,6 +53,7 @@ class Console:
         self.invert = fluoroscope.display.invert
         self.window_scale, self.level_shift = 1.0, 0.0
         self.breath_hold = False
+        self.breath_changed_t = 0.0
         self.breath_rate_steps = self.breath_depth_steps = 0
         self._fluoro_holders: set[tuple[str, str]] = set()
         self.fluoro_on = False
@@ -274,11 +275,11 @@ class Console:
                            carried_alarms=carried[1])
         elif action == "hold_breath":
             if not self.breath_hold:
-                self.breath_hold = True
+                self.breath_hold, self.breath_changed_t = True, t
                 self._emit(out, t, "hold_breath")
         elif action == "resume_breath":
             if self.breath_hold:
-                self.breath_hold = False
+                self.breath_hold, self.breath_changed_t = False, t
                 self._emit(out, t, "resume_breath")
         elif action in ("breath_faster", "breath_slower"):
             self.breath_rate_steps += 1 if action == "breath_faster" else -1
@@ -398,4 +399,5 @@ class Console:
             alarm_sounding=self.alarm_sounding, alarm_count=self.alarm_count, save_count=self.save_count,
             runs=self.runs, kvp=self.kvp, ma=self.ma, pulses=self._pulse_count,
             window_scale=self.window_scale, level_shift=self.level_shift,
-            breath_rate_steps=self.breath_rate_steps, breath_depth_steps=self.breath_depth_steps)
+            breath_rate_steps=self.breath_rate_steps, breath_depth_steps=self.breath_depth_steps,
+            breath_changed_t=self.breath_changed_t)

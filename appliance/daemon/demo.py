@@ -52,10 +52,17 @@ def build_patient(cfg, say=_say) -> int:
     t0 = time.monotonic()
     if cfg.case.builtin:
         say(f"[1/4] built-in patient '{cfg.case.builtin}' (cached under {shown(cfg.data_dir / 'cache')})")
+        from ..patient.builtin import distinct_volumes
+
         phases = patient_phases(cfg, progress=lambda message: say(f"      {message}"))
         volume = phases[0][1]()
         nx, ny, nz = volume.shape_xyz
-        say(f"      {len(phases)} phases of {nx}x{ny}x{nz} voxels ready in {time.monotonic() - t0:.1f} s")
+        say(f"      {len(phases)} phases ({distinct_volumes()} distinct volumes) of {nx}x{ny}x{nz} voxels "
+            f"ready in {time.monotonic() - t0:.1f} s")
+        r = cfg.case.respiration
+        if r is not None:
+            say(f"      breathing under the model at {r.rate_per_min:g}/min: each VCUG stage's end-expiration "
+                f"volume moved to {r.depth_states} depth states when the appliance starts")
         return len(phases)
     say(f"[1/4] case '{cfg.case.title}' ({shown(cfg.case_path)}): reading its CT")
     phases = patient_phases(cfg)
@@ -93,13 +100,18 @@ def run_demo(config_path: Path, *, case: Path | None = None, seconds: float | No
         app = Appliance(keeper, Notifier(), on_shown=snapper)
         _say(f"      ready in {time.monotonic() - t_open:.1f} s; rendering on {app.parts.renderer_device}")
         rate = app.clock.rate
+        screen = shown(cfg.data_dir / devices.display.path) if devices.display.path else devices.display.target
+        session_s: float | None = None
+        wall_s = seconds if seconds is not None else 0.0
         if seconds is None:
-            # The session lasts as long as its script (whose times are on the console's clock).
+            # The session lasts as long as its script, on the appliance clock (which a paced clock
+            # may slow down on a busy machine), plus a short tail.
             keypad = app.parts.keypad
-            script_s = keypad.duration_s if isinstance(keypad, ScriptedInput) else 0.0
-            seconds = script_s / rate + TAIL_S
-        _say(f"      running for {seconds:.0f} s (console clock x{rate:g}; "
-             f"screen: {shown(cfg.data_dir / devices.display.path) if devices.display.path else devices.display.target})")
+            session_s = (keypad.duration_s if isinstance(keypad, ScriptedInput) else 0.0) + TAIL_S * rate
+            paced = f", paced: at most {app.clock.pace_s:g} s ahead of the screen" if app.clock.pace_s else ""
+            _say(f"      running the {session_s:.0f} s session (appliance clock x{rate:g}{paced}; screen: {screen})")
+        else:
+            _say(f"      running for {seconds:.0f} s (appliance clock x{rate:g}; screen: {screen})")
         t_run = time.monotonic()
         next_line = [t_run + PROGRESS_EVERY_S]
 
@@ -108,7 +120,9 @@ def run_demo(config_path: Path, *, case: Path | None = None, seconds: float | No
             if now >= next_line[0]:
                 next_line[0] += PROGRESS_EVERY_S
                 _say("      " + progress_line(app, now - t_run))
-            return now - t_run >= seconds
+            if session_s is not None:
+                return app.clock() - app.parts.t0 >= session_s
+            return now - t_run >= wall_s
 
         app.run(until=until)
         run_s = time.monotonic() - t_run
@@ -124,7 +138,10 @@ def run_demo(config_path: Path, *, case: Path | None = None, seconds: float | No
         report = teaching_report(app, cfg.data_dir / "reports")
 
         _say("[4/4] summary")
-        for line in summary_lines(app, run_s, shots, sheet_path, exports) + report_lines(app, report):
+        from .breath_pair import pair_lines
+
+        pair = pair_lines(cfg, app.parts.renderer.fluoroscope, snapper.kept)
+        for line in summary_lines(app, run_s, shots, sheet_path, exports) + pair + report_lines(app, report):
             _say("      " + line)
         return 0
     finally:

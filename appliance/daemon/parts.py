@@ -14,7 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from drivers.camera import CameraSource
+from drivers.camera import CameraSource, SyntheticCamera
 from drivers.framebuffer import Display
 from drivers.input_event import InputDevice
 
@@ -72,9 +72,9 @@ def is_cpu(renderer: Renderer | ProgressiveRenderer) -> bool:
     return bool(renderer.device.type & cl.device_type.CPU)
 
 
-def open_camera(cfg: ApplianceConfig) -> CameraSource:
+def open_camera(cfg: ApplianceConfig, clock: Callable[[], float]) -> CameraSource:
     from ..tracking.sources import open_camera as open_source
-    return open_source(cfg)
+    return open_source(cfg, clock)
 
 
 def open_tracker(cfg: ApplianceConfig) -> Tracker:
@@ -103,6 +103,8 @@ class Parts:
     display: Display
     alarm: AlarmSound
     badge: InputDevice | None = None      # teaching's badge reader: its keys go to the trainee's name only
+    #: The appliance clock's reading when the console started: the session's and the case's time 0 (s).
+    t0: float = 0.0
     closed: bool = False
     #: Counts replacements of the renderer or the case: phases prepared under an older one are not drawn.
     generation: int = 0
@@ -152,7 +154,11 @@ def warm_up(cfg: ApplianceConfig, renderer: ProgressiveRenderer, timeline: Phase
     from ..tracking.trajectory import pose_from_angles
 
     t0 = time.monotonic()
-    timeline.wait_ready(FIRST_PHASE_TIMEOUT_S)
+    # On a clock running faster than the wall (the demo's), a phase window of an exercise lasts
+    # a fraction of a second: every phase is prepared before the session starts, rather than
+    # beside it, slowing the frames that have to land in those windows. A real appliance (x1)
+    # starts on the first phase and prepares the rest as it runs.
+    timeline.wait_ready(FIRST_PHASE_TIMEOUT_S, all_phases=cfg.appliance.daemon.clock_rate > 1)
     a, _, _ = timeline.at(0.0)
     # The box straight under the webcam: any pose that puts the patient in the beam will do.
     T = cfg.fluoroscope.T_xray_from_webcam() @ pose_from_angles([0.0, 0.0, 550.0]) @ matrix(cfg.case.T_phantom_from_ct)
@@ -178,8 +184,10 @@ def open_parts(cfg: ApplianceConfig, console_clock: Callable[[], float]) -> Part
     try:
         took = warm_up(cfg, renderer, timeline)
         log.info("renderer warm on %s in %.1f s", device_label(renderer), took)
-        camera = open_camera(cfg)
+        camera = open_camera(cfg, console_clock)
         now = console_clock()
+        if isinstance(camera, SyntheticCamera):
+            camera.t0 = now             # its path keeps time with the scripted console and the case
         keypad, pedal = open_inputs(cfg, now)
         return Parts(
             camera=camera,
@@ -191,6 +199,7 @@ def open_parts(cfg: ApplianceConfig, console_clock: Callable[[], float]) -> Part
             compositor=compositor,
             display=display,
             alarm=AlarmSound(),
+            t0=now,
         )
     except BaseException:
         timeline.close()

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
+from typing import Any
 
 from ..console.state import ConsoleState
 from ..errors import FluorosimError
@@ -20,23 +22,32 @@ class PhaseWorker(Worker):
     """time since the case started -> PhaseTimeline.at() -> `phases`; the timeline's own thread
     loads and prepares the phases, so this only looks up what is ready.
 
-    Owns the case clock: a breath hold freezes the patient where it is and breathing resumes
-    from there; a new case (reload) starts at its time 0.
+    Owns the case clock, which runs on the appliance clock (`clock`, the console's) from the
+    session's start (`parts.t0`): one clock for the console, the scripted input, the camera path
+    and the patient, so a phase window of an exercise means the same second to all of them.
+    A breath hold on a case breathing under the model stops the breath only (the contrast's
+    timeline goes on, as a bladder keeps filling while a child holds its breath); on a 4D CT,
+    whose phases carry breath and everything else together, it freezes the whole patient where
+    it is and the case resumes from there. A new case (reload) starts at its time 0.
     """
 
-    def __init__(self, parts: Parts, console_state: LatestValue[ConsoleState], phases: LatestValue[PhaseValue]):
+    def __init__(self, parts: Parts, console_state: LatestValue[ConsoleState], phases: LatestValue[PhaseValue],
+                 clock: Callable[[], float] = time.monotonic):
         super().__init__("phases")
         self.parts, self.console_state, self.phases = parts, console_state, phases
-        self._case_t0 = time.monotonic()
+        self.case_clock = clock     # not `clock`: the worker's heartbeat keeps the wall clock
+        t0 = getattr(parts, "t0", 0.0)
+        self._case_t0 = t0 if t0 else clock()
         self._hold_t: float | None = None
         self._case_started: LatestValue[float] = LatestValue("case started")
         self._case_started_seq = 0
         # Console presses of the breathing keys already handed to the breathing model.
         self._breath_steps = (0, 0)
+        self._held_control: Any = None     # the breathing model this worker holds (BreathingControl)
 
     def restart_case(self) -> None:
         """The case was replaced (from another thread): its time starts again now."""
-        self._case_started.put(time.monotonic())
+        self._case_started.put(self.case_clock())
 
     def step(self) -> bool:
         restarted = self._case_started.newer(self._case_started_seq)
@@ -44,8 +55,21 @@ class PhaseWorker(Worker):
             t0, self._case_started_seq = restarted
             self._case_t0 = t0 if t0 is not None else self._case_t0
         state, _ = self.console_state.get()
-        t = time.monotonic() - self._case_t0
-        if state is not None and state.breath_hold:
+        t = self.case_clock() - self._case_t0
+        control = getattr(self.parts.timeline, "control", None)     # a breathing model, when the case has one
+        hold = state is not None and state.breath_hold
+        if control is not None:
+            # At the console's time of the press, not when this worker sees it (a busy machine may
+            # see it a breath later).
+            at = min(t, state.breath_changed_t - self._case_t0) if state is not None else t
+            if hold and self._held_control is not control:       # a new timeline (reload) is held too
+                control.hold(at)
+                self._held_control = control
+            elif not hold and self._held_control is not None:
+                if self._held_control is control:
+                    control.resume(at)
+                self._held_control = None
+        elif hold:
             if self._hold_t is None:
                 self._hold_t = t
             t = self._hold_t
@@ -54,7 +78,6 @@ class PhaseWorker(Worker):
             t = self._hold_t
             self._hold_t = None
         generation = self.parts.generation
-        control = getattr(self.parts.timeline, "control", None)     # a breathing model, when the case has one
         if control is not None and state is not None:
             self._apply_breath_keys(control, state, t)
         try:

@@ -21,9 +21,11 @@ workers and hands them out. Only console events travel through a queue (each is 
 record and none may be lost); everything else is the newest value, so a slow renderer
 skips stale poses. The path of one frame reads top to bottom in `RenderWorker.step`.
 
-Clocks: the camera, the patient timeline and latency use the wall-clock monotonic time;
-the console and its scripted input use the appliance clock (`daemon.clock_rate`), which
-the demo runs faster so five minutes of fluoroscopy fit in a short session.
+Clocks: the console, its scripted input, the synthetic camera's path and the patient
+timeline all run on the appliance clock (`daemon.clock_rate`, 1 on a real appliance), which
+the demo runs faster so five minutes of fluoroscopy fit in a short session; one clock, so
+an exercise's phase window means the same second to the console, the camera and the case.
+Frame stamps and latency stay on the wall-clock monotonic time.
 """
 
 from __future__ import annotations
@@ -90,7 +92,7 @@ class Appliance:
         self.keeper = keeper
         cfg = keeper.current
         daemon = cfg.appliance.daemon
-        self.clock = SimClock(daemon.clock_rate)
+        self.clock = SimClock(daemon.clock_rate, pace_s=daemon.clock_pace_s)
         try:
             cfg.data_dir.mkdir(parents=True, exist_ok=True)
         except OSError as e:
@@ -127,11 +129,12 @@ class Appliance:
         self.teaching = live_teaching_for(cfg)
 
         self.capture = CaptureWorker(parts.camera, parts.tracker, self.poses)
-        self.phase = PhaseWorker(parts, self.console_state, self.phases)
+        self.phase = PhaseWorker(parts, self.console_state, self.phases, self.clock)
         self.render = RenderWorker(parts, keeper, poses=self.poses, phases=self.phases,
                                    console_state=self.console_state, saves=saves, shown=self.shown,
                                    exposure_factor=exposure_factor, banners=lambda: self.supervisor.banners(),
-                                   on_first_frame=lambda: self.supervisor.first_frame.set(), on_shown=on_shown,
+                                   on_first_frame=lambda: self.supervisor.first_frame.set(),
+                                   on_shown=lambda frame: self._shown(frame, on_shown),
                                    views=views, teaching=self.teaching_status)
         self.input = InputWorker(parts.console, [parts.keypad, parts.pedal], parts.alarm, self.clock,
                                  console_state=self.console_state, events=self.events,
@@ -161,6 +164,11 @@ class Appliance:
                 dicom_send_check(lambda: self.sender.problem),
                 xapi_send_check(lambda: self.sender.xapi_problem),
             ])
+
+    def _shown(self, frame: ShownFrame, then: Callable[[ShownFrame], None] | None) -> None:
+        self.clock.shown()          # a paced clock runs on from each image on screen
+        if then is not None:
+            then(frame)
 
     # --- what the demo, the benchmarks and the tests read --------------------------------------
     @property

@@ -60,6 +60,12 @@ def view_for(cfg: ApplianceConfig, state: ConsoleState) -> View:
                 window_scale=state.window_scale, level_shift=state.level_shift)
 
 
+def breathes(case) -> bool:
+    """Whether the case's patient breathes: under the breathing model, as the built-in child, or
+    as a 4D CT's phases. A breath hold on a static CT holds nothing, and the monitor must not say so."""
+    return case.respiration is not None or case.builtin is not None or len(case.phases or ()) > 1
+
+
 def overlay_for(cfg: ApplianceConfig, state: ConsoleState, *, live: bool, saved_flash: bool, warnings: list[str],
                 fps: float | None, teaching: TeachingStatus | None = None, breathing: str = "") -> Overlay:
     """What the compositor draws over the image: the console's readings, the session's names and,
@@ -72,7 +78,7 @@ def overlay_for(cfg: ApplianceConfig, state: ConsoleState, *, live: bool, saved_
                    air_kerma_rate_mgy_per_min=state.air_kerma_rate_mgy_per_min,
                    dap_gy_cm2=state.dap_gy_cm2, mode=state.mode, alarm=state.alarm_sounding,
                    technique=(state.kvp, state.ma) if state.fluoro_on else None,
-                   saved_flash=saved_flash, invert=state.invert, breath_hold=state.breath_hold,
+                   saved_flash=saved_flash, invert=state.invert, breath_hold=state.breath_hold and breathes(cfg.case),
                    case=cfg.case.title, operator=(teaching.trainee if teaching is not None and teaching.trainee
                                                   else cfg.appliance.operator), fluoroscope=cfg.fluoroscope.name,
                    warnings=list(warnings), fps=fps, breathing=breathing)

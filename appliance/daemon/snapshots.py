@@ -66,40 +66,117 @@ def _collimated(f: ShownFrame) -> bool:
     return bool(np.min(np.atleast_1d(np.asarray(c, dtype=float))) < f.state.fov_mm - 1e-6)
 
 
-#: The end-inspiration snapshot comes within this of the end-expiration one (s), so the camera
-#: has barely moved between the two and the pair shows the breath, not the path.
-BREATH_PAIR_S = 10.0
+#: The end-inspiration snapshot comes within this of the end-expiration one (wall s): the same
+#: breathing exercise, even when a busy machine's paced clock stretches it.
+BREATH_PAIR_S = 60.0
+#: A pair or breath-hold image is taken once the breath has stood at one point, the C-arm
+#: still, for more than this many live images, so the fluoroscope's recursive filter has settled
+#: on the still anatomy instead of blending in the image before (the shipped profiles' weight
+#: 0.5 leaves 0.5^5 = 3 % of it in the fifth image, a faint ghost beside a dome that moved 40 px).
+#: Counted in images, not seconds: the filter works per image, whatever the clock.
+BREATH_SETTLE_FRAMES = 4
+#: "The same pose": the C-arm moved less than this between the two images of the pair (mm of the
+#: box's origin, degrees), so the pair shows the breath and not the path.
+PAIR_POSE_MM, PAIR_POSE_DEG = 1.0, 0.5
+#: End-expiration is inspired below this, end-inspiration above 1 minus it.
+BREATH_EXTREME = 0.03
 
 
-def _breath_pair() -> list[Moment]:
-    """End-expiration, then the next end-inspiration within BREATH_PAIR_S: a case breathing under the model."""
-    taken: dict[str, float] = {}
+def _pose_matrix(f: ShownFrame) -> np.ndarray | None:
+    if f.pose is None or not f.pose.pose.ok or f.pose.pose.T_webcam_from_phantom is None:
+        return None
+    return np.asarray(f.pose.pose.T_webcam_from_phantom, dtype=float)
+
+
+def same_pose(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two T_webcam_from_phantom are the same pose within PAIR_POSE_MM and PAIR_POSE_DEG."""
+    moved = float(np.linalg.norm(a[:3, 3] - b[:3, 3]))
+    cos = (float(np.trace(a[:3, :3].T @ b[:3, :3])) - 1.0) / 2.0
+    return moved <= PAIR_POSE_MM and math.degrees(math.acos(min(max(cos, -1.0), 1.0))) <= PAIR_POSE_DEG
+
+
+class _Settled:
+    """Whether the live images have shown one breath (None: a case without the breathing model)
+    at one pose for more than BREATH_SETTLE_FRAMES images."""
+
+    def __init__(self):
+        self.inspired: float | None = None
+        self.pose: np.ndarray | None = None
+        self.frames = 0
+        self._last: float | None = None       # the image counted last (asked once per moment per image)
+
+    def __call__(self, f: ShownFrame) -> bool:
+        T = _pose_matrix(f)
+        same_breath = ((f.inspired is None) == (self.inspired is None)
+                       and (f.inspired is None or abs(f.inspired - self.inspired) <= 1e-3))  # type: ignore[operator]
+        if not _live(f) or T is None or self.pose is None or not same_breath or not same_pose(T, self.pose):
+            self.inspired, self.pose, self.frames, self._last = f.inspired, T, 1, f.t_wall
+            return False
+        if f.t_wall != self._last:
+            self.frames, self._last = self.frames + 1, f.t_wall
+        return self.frames > BREATH_SETTLE_FRAMES
+
+
+def _breath_moments() -> list[Moment]:
+    """End-expiration, then end-inspiration within BREATH_PAIR_S at the same pose (the C-arm
+    still), on a case breathing under the model; and a breath hold elsewhere. Each is taken once
+    the breath (held, as a radiographer asks for) and the recursive filter have settled; the
+    breath hold is not taken at the pair's pose, where it would show the pair's picture again."""
+    taken: list[tuple[float, np.ndarray]] = []       # (wall time, pose) of the end-expiration image
+    settled, held = _Settled(), _Settled()
 
     def expiration(f) -> bool:
-        hit = _live(f) and f.inspired is not None and f.inspired < 0.03
-        if hit:
-            taken["t"] = f.t_wall
-        return hit
+        T = _pose_matrix(f)
+        if T is None or not settled(f) or f.inspired is None or f.inspired >= BREATH_EXTREME:
+            return False
+        taken.append((f.t_wall, T))
+        return True
 
     def inspiration(f) -> bool:
-        return ("t" in taken and f.t_wall - taken["t"] <= BREATH_PAIR_S and _live(f)
-                and f.inspired is not None and f.inspired > 0.97)
+        if not taken or not settled(f) or f.inspired is None or f.inspired <= 1.0 - BREATH_EXTREME:
+            return False
+        T = _pose_matrix(f)
+        t_expiration, pose = taken[-1]
+        return f.t_wall - t_expiration <= BREATH_PAIR_S and T is not None and same_pose(T, pose)
+
+    def breath_hold(f) -> bool:
+        if not (_live(f) and bool(f.state.breath_hold) and held(f)):
+            return False
+        T = _pose_matrix(f)
+        return T is not None and not (taken and same_pose(T, taken[-1][1]))
+    # The pair first: on the frame both could take, the pair takes it.
     return [Moment("end-expiration", "end-expiration", expiration),
-            Moment("end-inspiration", "end-inspiration", inspiration)]
+            Moment("end-inspiration", "end-inspiration", inspiration),
+            Moment("breath-hold", "breath hold", breath_hold)]
+
+
+def _back_to_zoom_1() -> Callable[[ShownFrame], bool]:
+    """Zoom 1 after another zoom: the first live image is at zoom 1 too, and a second snapshot
+    of that moment would show nothing new."""
+    other = [False]
+
+    def when(f) -> bool:
+        if not _live(f):
+            return False
+        if f.state.zoom != 1:
+            other[0] = True
+            return False
+        return other[0]
+    return when
 
 
 def key_moments() -> list[Moment]:
     """The moments the demo shows, in the order they appear on the contact sheet."""
     moments = [Moment("first-live", "first live image", _live)]
-    for z in (1, 2, 3, 4):
+    moments.append(Moment("zoom-1", "back to zoom 1", _back_to_zoom_1()))
+    for z in (2, 3, 4):
         moments.append(Moment(f"zoom-{z}", f"zoom {z}", lambda f, z=z: _live(f) and f.state.zoom == z))  # type: ignore[misc]
     moments += [
         Moment("collimated", "collimator closed in", lambda f: _live(f) and _collimated(f)),
         Moment("inverted", "inverted", lambda f: _live(f) and bool(f.state.invert)),
         Moment("roll-plus-90", "roll +90 degrees", lambda f: _live(f) and (_pose_roll(f) or 0) > 75),
         Moment("roll-minus-90", "roll -90 degrees", lambda f: _live(f) and (_pose_roll(f) or 0) < -75),
-        Moment("breath-hold", "breath hold", lambda f: _live(f) and bool(f.state.breath_hold)),
-        *_breath_pair(),
+        *_breath_moments(),
         Moment("saved", "image saved", lambda f: bool(f.saved_flash)),
         Moment("alarm", "5-minute alarm", lambda f: bool(f.state.alarm_sounding) and alarm_banner_shown(f.rgb_source())),
         Moment("last-image-hold", "last-image hold", lambda f: not f.live and f.image is not None
@@ -107,6 +184,20 @@ def key_moments() -> list[Moment]:
         Moment("tracking-lost", "tracking lost", lambda f: any("tracking lost" in b for b in f.banners)),
     ]
     return moments
+
+
+#: Moments whose rendered frame the snapshotter keeps beside the PNG.
+KEPT = ("end-expiration", "end-inspiration")
+
+
+@dataclass(frozen=True)
+class KeptFrame:
+    """A snapshot's frame as rendered: the image in [0, 1] (detector rows x columns), the pose and the breath."""
+
+    image: np.ndarray
+    T_webcam_from_phantom: np.ndarray
+    inspired: float | None
+    zoom: int
 
 
 class Snapshotter:
@@ -129,6 +220,8 @@ class Snapshotter:
         self._retry_at = 0.0
         self._alarm_seen = False
         self._digests: set[bytes] = set()
+        #: The breathing pair's frames as rendered (image, pose, breath), for checking the dome's motion.
+        self.kept: dict[str, KeptFrame] = {}
 
     def __call__(self, frame) -> None:
         try:
@@ -173,6 +266,10 @@ class Snapshotter:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         write_png(path, rgb)
         self.taken[moment.name] = path
+        T = _pose_matrix(frame) if moment.name in KEPT else None
+        if T is not None and frame.image is not None:
+            self.kept[moment.name] = KeptFrame(np.array(frame.image, dtype=np.float32), T, frame.inspired,
+                                               int(frame.state.zoom))
         self.problem = None
         self._digests.add(digest)
         log.info("snapshot %s: %s", moment.name, path)

@@ -213,6 +213,11 @@ def load_mha(path: Path) -> Volume:
     return Volume(hu.astype(np.int16, copy=False), T, source=str(path))
 
 
+def distinct_volumes() -> int:
+    """How many different CT volumes the timeline's phases are drawn from (phases repeat some)."""
+    return len({s.file_name for s in timeline()})
+
+
 def build(target: Path, progress: Callable[[str], None] | None = None) -> None:
     """Build every phase into the folder `target` (created here, atomically: all or nothing)."""
     progress = progress or (lambda message: None)
@@ -226,7 +231,7 @@ def build(target: Path, progress: Callable[[str], None] | None = None) -> None:
         builder = Builder(progress)
         specs = timeline()
         written: set[str] = set()
-        distinct = len({s.file_name for s in specs})
+        distinct = distinct_volumes()
         T = builder.grid.T_ct_from_voxel
         # Compressing and writing one phase overlaps drawing the next (the second core);
         # at most two phases wait, so memory stays bounded.
@@ -235,7 +240,9 @@ def build(target: Path, progress: Callable[[str], None] | None = None) -> None:
             for spec in specs:
                 if spec.file_name in written:
                     continue
-                progress(f"phase {len(written) + 1}/{distinct} ({spec.file_name[:-4]}): {STAGES[spec.stage].name}")
+                # Counted in volumes, not phases: phases that share a stage and a breath share a volume.
+                progress(f"volume {len(written) + 1}/{distinct} of {len(specs)} phases "
+                         f"({spec.file_name[:-4]}): {STAGES[spec.stage].name}")
                 pending.append(writer.submit(_write_mha, work / spec.file_name, builder.phase(spec), T))
                 written.add(spec.file_name)
                 if len(pending) >= 2:

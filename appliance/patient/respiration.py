@@ -53,10 +53,71 @@ def muscle_amplitudes(params: Respiration) -> tuple[float, float, float]:
     return params.rib_gamma_deg * rib, params.rib_lambda_deg * rib, params.diaphragm_mm * dia
 
 
+class Irregularity:
+    """Breath-to-breath variation as a warp of the regular breath count.
+
+    Breath n runs from one end-expiration to the next; in breaths of the set rate it lasts
+    L_n = 1 + a u_n and reaches the depth times D_n = 1 + a v_n (u_n, v_n uniform in -1..1,
+    drawn from the seed and n, so a lesson repeats). Both change only at end-expiration,
+    where the breath stands still (inspired = 0 and its slope 0): the anatomy moves on without
+    a jump or a kink, as the console's own rate changes do. Before the first end-expiration
+    (the case's first three quarters of a breath) the breath is regular.
+    """
+
+    def __init__(self, amount: float, seed: int):
+        import numpy as np
+
+        self.amount, self.seed = amount, seed
+        self._rng = np.random.default_rng([seed, 0x5EED])
+        self._starts = [0.0]                  # regular breaths (from the first end-expiration) at which breath n starts
+        self._lengths: list[float] = []
+        self._depths: list[float] = []
+        self._lock = threading.Lock()
+
+    def _grow_to(self, c: float) -> None:
+        while self._starts[-1] <= c:
+            u, v = self._rng.uniform(-1.0, 1.0, 2)
+            self._lengths.append(1.0 + self.amount * float(u))
+            self._depths.append(1.0 + self.amount * float(v))
+            self._starts.append(self._starts[-1] + self._lengths[-1])
+
+    def warp(self, cycles: float) -> tuple[float, float]:
+        """(irregular breath count, depth factor) for `cycles` regular breaths since the start."""
+        import bisect
+
+        c = cycles - 0.75                     # breaths since the first end-expiration
+        if c < 0.0:
+            return cycles, 1.0
+        with self._lock:
+            self._grow_to(c)
+            n = bisect.bisect_right(self._starts, c) - 1
+            return 0.75 + n + (c - self._starts[n]) / self._lengths[n], self._depths[n]
+
+
+_IRREGULAR: dict[tuple[float, int], Irregularity] = {}
+_IRREGULAR_LOCK = threading.Lock()
+
+
+def irregularity_of(params: Respiration) -> Irregularity | None:
+    """The profile's breath-to-breath variation (one per amount and seed, so every caller sees the same breaths)."""
+    if not params.irregularity:
+        return None
+    key = (params.irregularity, params.irregularity_seed)
+    with _IRREGULAR_LOCK:
+        if key not in _IRREGULAR:
+            _IRREGULAR[key] = Irregularity(*key)
+        return _IRREGULAR[key]
+
+
 def state_from(params: Respiration, t_s: float, cycles: float, depth: float, rate_per_min: float,
                held: bool) -> BreathState:
-    """The muscle angles and tendon position for a phase `cycles` (breaths) and a `depth`."""
+    """The muscle angles and tendon position for a phase `cycles` (breaths) and a `depth`; with
+    `irregularity`, the breath count warped and the depth scaled breath by breath (Irregularity)."""
     gamma_max, lambda_max, excursion_mm = muscle_amplitudes(params)
+    irregular = irregularity_of(params)
+    if irregular is not None:
+        cycles, factor = irregular.warp(cycles)
+        depth *= factor
     s = math.sin(2.0 * math.pi * cycles)
     inspired = 0.5 * (1.0 + s)
     return BreathState(t_s=t_s, cycles=cycles, inspired=inspired, depth=depth, rate_per_min=rate_per_min, held=held,

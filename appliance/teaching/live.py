@@ -207,6 +207,24 @@ class LiveTeaching:
         return TeachingStatus(self.exposures, trainee, task, state, cue if now - t_cue < self.cue_s else "")
 
 
+def same_patient(case_path, case) -> bool:
+    """Whether the case profile at `case_path` shows the same patient as `case`: the same built-in
+    patient lying the same way in the box (its breathing may differ: the built-in child's own
+    4 s breath or the controllable one), so an exercise's targets (CT mm) and phase windows
+    (the built-in study's timeline, which breathing does not change) hold on both."""
+    from ..config.case import CaseProfile
+    from ..config.loading import load_profile
+    from ..errors import FluorosimError
+
+    if case.builtin is None:
+        return False
+    try:
+        other = load_profile(case_path, CaseProfile)
+    except FluorosimError:
+        return False
+    return other.builtin == case.builtin and other.T_phantom_from_ct == case.T_phantom_from_ct
+
+
 def live_teaching_for(cfg) -> LiveTeaching:
     """The live teaching of an ApplianceConfig: its exercise (when written for the active case) and settings."""
     import logging
@@ -215,7 +233,7 @@ def live_teaching_for(cfg) -> LiveTeaching:
     exercise = cfg.exercise
     if exercise is not None and cfg.exercise_path is not None:
         case_of_exercise = (cfg.exercise_path.parent / exercise.case).resolve()
-        if case_of_exercise != cfg.case_path.resolve():
+        if case_of_exercise != cfg.case_path.resolve() and not same_patient(case_of_exercise, cfg.case):
             logging.getLogger(__name__).warning("%s is written for %s, not the active case %s; no exercise offered",
                                                 cfg.exercise_path, case_of_exercise, cfg.case_path)
             exercise = None

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 from drivers.camera import CameraSource, FileCamera, V4L2Camera
@@ -17,12 +19,13 @@ from .trajectory import load_trajectory
 DEMO_TRAJECTORY = Path(__file__).resolve().parents[2] / "configs" / "trajectories" / "demo.jsonl"
 
 
-def open_camera(config: ApplianceConfig) -> CameraSource:
-    """The camera source of `config.appliance.devices.camera` (not yet started)."""
+def open_camera(config: ApplianceConfig, clock: Callable[[], float] = time.monotonic) -> CameraSource:
+    """The camera source of `config.appliance.devices.camera` (not yet started); a synthetic
+    camera's path runs on `clock` (the appliance's)."""
     cam = config.appliance.devices.camera
     if cam.source == "synthetic":
         path = config.resolve(cam.trajectory) if cam.trajectory else DEMO_TRAJECTORY
-        return synthetic_camera(config.phantom, config.webcam, load_trajectory(path), fps=cam.fps)
+        return synthetic_camera(config.phantom, config.webcam, load_trajectory(path), clock=clock, fps=cam.fps)
     source = config.resolve(cam.source)
     if (cam.width, cam.height) != (config.webcam.width, config.webcam.height):
         # Intrinsics hold for the resolution they were measured at; another one would bias every pose.
