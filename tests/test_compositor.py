@@ -139,6 +139,12 @@ def test_alarm_banner_flashes_red():
     assert red_pixels(on) > 5000
     assert red_pixels(off) == 0
     assert red_pixels(comp.compose(img, plain_overlay(), now=10.1)) == 0
+    # The flash runs from the alarm's onset: lit at once, dark half a period later, lit again.
+    onset = 17.37
+    started = plain_overlay(alarm=True, fluoro_time_s=300.0, alarm_since=onset)
+    assert red_pixels(comp.compose(img, started, now=onset)) > 5000
+    assert red_pixels(comp.compose(img, started, now=onset + 0.6 * ALARM_FLASH_PERIOD_S)) == 0
+    assert red_pixels(comp.compose(img, started, now=onset + 1.1 * ALARM_FLASH_PERIOD_S)) > 5000
 
 
 def test_live_marker_is_yellow_and_hold_is_not():

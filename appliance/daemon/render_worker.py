@@ -115,6 +115,7 @@ class RenderWorker(Worker):
         self._image_T: np.ndarray | None = None        # the pose it was rendered at (T_xray_from_ct)
         self._drawn: ConsoleState | None = None        # the console state it was rendered at
         self._last_compose = 0.0
+        self._alarm_since: float | None = None       # when the alarm's banner began (time.monotonic s)
         self._factor_sent = Technique(1.0)
         self._request: tuple | None = None        # what the last live frame was rendered from
 
@@ -155,7 +156,12 @@ class RenderWorker(Worker):
         overlay = overlay_for(cfg, state, live=live, saved_flash=saved_flash, warnings=banners,
                               fps=self.stats.fps(now), teaching=teaching,
                               breathing=phase.breathing if phase is not None else "")
-        self.parts.display.show(self.parts.compositor.compose(self._image, overlay))
+        if state.alarm_sounding and self._alarm_since is None:
+            self._alarm_since = now
+        elif not state.alarm_sounding:
+            self._alarm_since = None
+        overlay.alarm_since = self._alarm_since
+        self.parts.display.show(self.parts.compositor.compose(self._image, overlay, now))
         t_shown = time.monotonic()
         self._last_compose = t_shown
         latency = None

@@ -80,6 +80,7 @@ class Overlay:
     mode: str = ""
     technique: tuple[float, float] | None = None   # (kV, mA) the exposure control set, shown while exposing
     alarm: bool = False
+    alarm_since: float | None = None   # when the alarm began sounding (the compose clock's s); its flash starts lit there
     saved_flash: bool = False
     invert: bool = False               # shows the INVERT label; the image arrives already inverted
     breath_hold: bool = False
@@ -338,7 +339,9 @@ class Compositor:
         if overlay.cue:
             met = overlay.cue.startswith("task met")
             self._banner(frame, overlay.cue.upper(), max(y, round(self.height * 0.2)), GREEN if met else AMBER, BLACK)
-        if overlay.alarm and (now % ALARM_FLASH_PERIOD_S) < ALARM_FLASH_PERIOD_S / 2:
+        # The flash runs from the alarm's onset, so its banner is lit the moment it sounds.
+        since = 0.0 if overlay.alarm_since is None else overlay.alarm_since
+        if overlay.alarm and ((now - since) % ALARM_FLASH_PERIOD_S) < ALARM_FLASH_PERIOD_S / 2:
             self._banner(frame, f"FLUOROSCOPY TIME ALARM  {fluoro_time_clock(overlay.fluoro_time_s)}  -  PRESS ALARM RESET",
                          self.height - self.margin - 3 * self.line, RED, WHITE, from_bottom=True)
         return frame
