@@ -25,7 +25,7 @@ import numpy as np
 
 from ..config.case import Contrast, Materials
 from ..config.fluoroscope import Tube
-from ..errors import FluorosimError
+from .spekpy_beam import beam
 
 #: Material order everywhere: kernel accumulators, attenuation tables.
 MATERIAL_NAMES = ("air", "soft tissue", "bone", "contrast")
@@ -127,18 +127,9 @@ class Spectrum:
 
 @functools.lru_cache(maxsize=16)
 def _spectrum(kvp: float, filtration_mm_al: float, n_bins: int) -> Spectrum:
-    import spekpy
-
-    try:
-        s = spekpy.Spek(kvp=kvp, th=ANODE_ANGLE_DEG, dk=0.5)
-        if filtration_mm_al > 0:
-            s.filter("Al", filtration_mm_al)
-        k, phi = s.get_spectrum()   # keV, photons / cm^2 / mAs / keV at 1 m
-        eff = float(s.get_eeff())
-        mean = float(s.get_emean())
-    except Exception as e:  # spekpy raises plain Exceptions for out-of-range settings
-        raise FluorosimError(f"spekpy cannot model a {kvp} kVp tube with {filtration_mm_al} mm Al: {e}; check "
-                             "tube.kvp and tube.filtration_mm_al") from None
+    b = beam(kvp, ANODE_ANGLE_DEG, 0.5, (("Al", filtration_mm_al),))
+    k, phi = b.energies_kev, b.photons_per_cm2_per_mas_per_kev   # keV, photons / cm^2 / mAs / keV at 1 m
+    eff, mean = b.effective_kev, b.mean_kev
     dk = float(k[1] - k[0])
     counts = phi * dk / 100.0    # photons / mm^2 / mAs per fine bin
     # Equal-width coarse bins from the lowest energy carrying fluence to kVp.
