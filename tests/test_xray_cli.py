@@ -1,4 +1,4 @@
-"""`fluorosim render`: the command-line contract, run as a separate process."""
+"""`fluorosim render`: the command-line contract, run through the command's own main (see in_process_cli)."""
 
 from pathlib import Path
 
