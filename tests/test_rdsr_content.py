@@ -218,5 +218,32 @@ def test_events_carry_their_run_in_the_reports_units(rows):
     assert number(acc["Dose (RP) Total"][0]) == (pytest.approx(sum(r[1] for r in RUNS) / 1000, rel=1e-9), "Gy")
 
 
-def test_identity_helpers():
+def test_times_are_utc_whatever_the_machines_zone(rows, monkeypatch):
+    import time
+
+    session, events = rows
+    monkeypatch.setenv("TZ", "Pacific/Auckland")        # +13:00 in November: a local time would read 11:13
+    time.tzset()
+    try:
+        ds = rdsr.session_report(session, events)
+    finally:
+        monkeypatch.delenv("TZ")
+        time.tzset()
+    assert (ds.SeriesDate, ds.SeriesTime) == ("20231114", "221320.000000")
+    first = children(children(ds)["Irradiation Event X-Ray Data"][0])
+    assert first["DateTime Started"][0].DateTime == "20231114221321.000000"
+
+
+def test_device_observer_name_falls_back_to_the_product(rows):
+    session, events = rows
+    nameless = dict(session, fluoroscope="")
+    assert children(rdsr.session_report(nameless, events))["Device Observer Name"][0].TextValue == "fluorosim"
+
+
+def test_identity_of_a_case_and_a_machine():
+    from appliance.config.case import CaseProfile
+
+    case = CaseProfile(title="t", phases=[{"volume": "ct.mha", "time_s": 0}],
+                       patient={"sex": "F", "age_years": 6, "weight_kg": 21.0, "height_m": 1.16})
+    assert rdsr.patient_of(case) == {"sex": "F", "age_years": 6, "weight_kg": 21.0, "height_m": 1.16}
     assert rdsr.equipment_of(FLAT) == {"manufacturer": FLAT.manufacturer, "model": FLAT.model, "serial": FLAT.name}
