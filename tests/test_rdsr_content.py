@@ -180,7 +180,9 @@ def test_device_observer_names_the_machine_and_cuts_long_names(rows):
     person = top["Irradiation Event X-Ray Data"][0]
     (who,) = children(person)["Person Name"]
     properties = children(who)
-    assert properties["Organization Name"][0].TextValue == "I" * 64
+    (organization,) = properties["Organization Name"]
+    assert organization.TextValue == "I" * 64
+    assert (organization.RelationshipType, organization.ValueType) == TEMPLATE_ROWS["Organization Name"]
     assert properties["Person Role in Procedure"][0].ConceptCodeSequence[0].CodeMeaning == "Irradiation Administering"
 
 
