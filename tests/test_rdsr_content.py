@@ -249,3 +249,14 @@ def test_identity_of_a_case_and_a_machine():
                        patient={"sex": "F", "age_years": 6, "weight_kg": 21.0, "height_m": 1.16})
     assert rdsr.patient_of(case) == {"sex": "F", "age_years": 6, "weight_kg": 21.0, "height_m": 1.16}
     assert rdsr.equipment_of(FLAT) == {"manufacturer": FLAT.manufacturer, "model": FLAT.model, "serial": FLAT.name}
+
+
+def test_a_pulsed_run_recorded_without_its_pulse_count_reports_none(rows):
+    # A ledger row from before runs counted their pulses: the report says 0 pulses, not a guess.
+    session, events = rows
+    offs = [e for e in events if e["kind"] == "fluoro_off"]
+    detail = json.loads(offs[2]["detail"])
+    assert detail["pulse_rate_per_s"] and detail.pop("pulses") == 45
+    older = [dict(e, detail=json.dumps(detail)) if e is offs[2] else e for e in events]
+    pulsed = children(children(rdsr.session_report(session, older))["Irradiation Event X-Ray Data"][2])
+    assert number(pulsed["Number of Pulses"][0]) == (0.0, "{pulses}")
