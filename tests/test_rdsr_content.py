@@ -260,3 +260,28 @@ def test_a_pulsed_run_recorded_without_its_pulse_count_reports_none(rows):
     older = [dict(e, detail=json.dumps(detail)) if e is offs[2] else e for e in events]
     pulsed = children(children(rdsr.session_report(session, older))["Irradiation Event X-Ray Data"][2])
     assert number(pulsed["Number of Pulses"][0]) == (0.0, "{pulses}")
+
+
+def with_run_detail(events, index, **changes):
+    offs = [e for e in events if e["kind"] == "fluoro_off"]
+    detail = {**json.loads(offs[index]["detail"]), **changes}
+    return [dict(e, detail=json.dumps(detail)) if e is offs[index] else e for e in events]
+
+
+def test_a_run_cut_off_by_a_crash_says_so_and_continuous_runs_carry_no_pulse_width(rows):
+    session, events = rows
+    changed = with_run_detail(events, 0, reason="recovered", pulse_width_ms=8.0)
+    first = children(children(rdsr.session_report(session, changed))["Irradiation Event X-Ray Data"][0])
+    (comment,) = first["Comment"]
+    assert comment.TextValue == ("Run cut off by a power loss or crash; values cover the exposure recorded before it.")
+    assert (comment.RelationshipType, comment.ValueType) == TEMPLATE_ROWS["Comment"]
+    assert "Pulse Width" not in first              # a continuous run has no pulses, whatever the record holds
+    plain = children(children(rdsr.session_report(session, events))["Irradiation Event X-Ray Data"][0])
+    assert "Comment" not in plain
+
+
+def test_a_session_never_ended_dates_its_report_at_its_start(rows):
+    session, events = rows
+    ds = rdsr.session_report(dict(session, ended_wall=None), events)
+    assert (ds.ContentDate, ds.ContentTime) == ("20231114", "221320.000000")
+    assert (ds.InstanceCreationDate, ds.InstanceCreationTime) == ("20231114", "221320.000000")
