@@ -115,3 +115,10 @@ def test_pinhole_puts_each_axis_at_its_own_focal_length(fx, fy, cx, cy, x, y, z)
     # Back along the ray: the pixel's normalised direction times z returns the point.
     back = np.array([(u - cx) / fx * z, (v - cy) / fy * z, z])
     assert np.allclose(back, [x, y, z], rtol=1e-9, atol=1e-6)
+
+
+def test_a_pose_file_with_an_integer_too_big_for_int64_is_a_problem_not_a_crash():
+    # YAML reads 1000000000000000000000000000000 as a Python int; numpy would hold it as an object.
+    huge = [[10**30, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+    assert "not orthonormal" in rigid_problem(huge)
+    assert rigid_problem([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 10**20], [0, 0, 0, 1]]) is None
