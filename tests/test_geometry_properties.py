@@ -140,3 +140,13 @@ def test_each_refusal_says_what_is_wrong_and_a_deviation_at_the_tolerance_passes
     grown = np.diag([1.25, 1.25, 1.25, 1.0])        # R^T R - I = 0.5625; det - 1 = 0.953125 (to LAPACK's rounding)
     assert rigid_problem(grown, tol=0.9) == "rotation part must have determinant +1 (a mirror is not a rigid motion)"
     assert rigid_problem(grown, tol=abs(np.linalg.det(grown[:3, :3]) - 1.0)) is None
+
+
+def test_a_transform_takes_opencvs_column_vector_translation():
+    import cv2
+
+    R = rotation_about([0, 0, 1], 0.3)
+    rvec, _ = cv2.Rodrigues(R)
+    tvec = np.array([[12.0], [-4.0], [550.0]])         # solvePnP's shape: 3 x 1
+    T = make_transform(cv2.Rodrigues(rvec)[0], tvec)
+    np.testing.assert_allclose(T, [[*R[0], 12.0], [*R[1], -4.0], [*R[2], 550.0], [0, 0, 0, 1]], atol=1e-12)
