@@ -41,6 +41,11 @@ def test_a_word_longer_than_a_line_is_cut_into_pieces_that_fit():
     assert all(width(c, line) <= max_w for line in lines), lines
     pieces = [line for line in lines if line not in ("pedal",) and not line.endswith("gone")]
     assert len(pieces) >= 2 and all(len(p) >= 8 for p in pieces)
+    # Text exactly as wide as the line still fits on it, a word or a cut piece alike.
+    assert c._wrap("tracking lost", width(c, "tracking lost")) == ["tracking lost"]
+    assert c._wrap("ABCDEFGHIJ", width(c, "ABCDEFGHIJ")) == ["ABCDEFGHIJ"]
+    # A piece is never cut shorter than 8 characters, even where 8 are wider than the line.
+    assert c._wrap("ABCDEFGHIJKLMNOPQRST", width(c, "ABC")) == ["ABCDEFGH", "IJKLMNOP", "QRST"]
     # A short text is one line; nothing at all is one empty line.
     assert c._wrap("tracking lost", max_w) == ["tracking lost"]
     assert c._wrap("", max_w) == [""]
