@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 import synthetic_chest as sc
+from in_process_cli import fluorosim as in_process
 from test_breathing_motion import SOD, T_XRAY_FROM_CT, dome_edge_row
 from test_xray_cli import small_profile
 
@@ -44,7 +45,7 @@ def case(tmp_path_factory):
 
 
 def render(d, t, out, *extra):
-    r = fluorosim("render", "--volume", "case.yaml", "--fluoroscope", "flat256.yaml", "--pose", "pose.yaml",
+    r = in_process("render", "--volume", "case.yaml", "--fluoroscope", "flat256.yaml", "--pose", "pose.yaml",
                   "--quantity", "line-integral", "--output", out, "--phase-time", t, *extra, cwd=d)
     assert r.returncode == 0, r.stderr
     return np.load(d / out)

@@ -59,6 +59,9 @@ def test_an_uncertain_principal_point_is_refused():
     assert result(fit(sigma_pp_px=(0.3, 0.4))).passed
     r = result(fit(sigma_pp_px=(0.48, 0.64)))
     assert not r.passed and len(r.failures) == 1 and r.failures[0].startswith("principal point uncertain to +-0.80 px")
+    # The refusal tells the radiographer what to do about it, in those words.
+    assert r.failures[0].endswith("(bar 0.5 px): these images cannot tell it from decentring distortion; add images "
+                                  "with the phantom tilted 10-15 degrees toward more directions"), r.failures[0]
 
 
 def test_a_fit_inside_every_bar_passes():

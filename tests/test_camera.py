@@ -49,9 +49,8 @@ def _truth_corners(T, dist):
 def test_synthetic_marker_lands_where_opencv_projects_it(dist):
     # The marker is placed off-centre so that the distortion moves it by several pixels.
     T = _pose(15, -20, [120.0, 80.0, 500.0])
-    image, truth = _single_marker_camera(T, dist).render_at(0.0)
+    image, _ = _single_marker_camera(T, dist).render_at(0.0)     # (the truth of a moving pose: the thread test)
     assert image.shape == (720, 1280, 3) and image.dtype == np.uint8
-    np.testing.assert_allclose(truth, T)
     found = _detect(image)
     assert list(found) == [7]
     err = np.linalg.norm(found[7] - _truth_corners(T, dist), axis=1)
@@ -110,8 +109,11 @@ class FakeClock:
 
 
 def test_synthetic_camera_thread_contract():
-    T = _pose(0, 0, [0.0, 0.0, 500.0])
-    cam = _single_marker_camera(T, fps=200.0)
+    # The box recedes 20 mm/s, so each frame's truth is the trajectory at its own time, not a constant.
+    T0 = _pose(0, 0, [0.0, 0.0, 500.0])
+    exposure = RenderSettings().exposure_s
+    away = lambda t: T0 @ np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, -20.0 * t], [0, 0, 0, 1.0]])
+    cam = SyntheticCamera([7], [np.eye(4)], SIZE, DICT, None, K, (0.0,) * 5, 1280, 720, away, fps=200.0, seed=3)
     assert cam.latest() is None and cam.state == "starting"
     with cam:
         first = cam.wait(-1, 5.0)
@@ -119,8 +121,13 @@ def test_synthetic_camera_thread_contract():
         second = cam.wait(first.seq, 5.0)
         assert second.seq > first.seq and second.t_monotonic >= first.t_monotonic
         assert cam.latest(after_seq=second.seq + 10**6) is None          # nothing newer: None at once
-        np.testing.assert_allclose(second.truth, T)
         assert second.image.shape == (720, 1280, 3)
+    for frame in (first, second):
+        # Mid-exposure of a frame published at t_monotonic: 500 mm + 20 mm/s x the time since start.
+        age_s = frame.t_monotonic - cam.t0 - exposure / 2
+        np.testing.assert_allclose(frame.truth[:3, 3], [0.0, 0.0, 500.0 + 20.0 * age_s], atol=1e-6)
+        np.testing.assert_allclose(frame.truth[:3, :3], T0[:3, :3], atol=1e-12)
+    assert second.truth[2, 3] - first.truth[2, 3] == pytest.approx(20.0 * (second.t_monotonic - first.t_monotonic))
 
 
 def test_synthetic_camera_uses_its_clock_for_the_trajectory():

@@ -13,7 +13,9 @@ from pathlib import Path
 
 import cv2
 import pydicom
+import pytest
 from appliance_setup import REPO, make_appliance
+from test_export import name, num
 
 from appliance.config import FluoroscopeProfile, load_profile
 
@@ -87,11 +89,33 @@ def test_demo_runs_the_session_and_writes_everything_it_lists(tmp_path):
     limits = fluoroscope.abc
     assert all(limits.min_factor - 0.01 <= r <= limits.max_factor + 0.01 for r in ratios), ratios
     assert max(ratios) > 2.0, ratios
-    sr = pydicom.dcmread(next(folder.glob("*.dcm")))
-    assert sr.Modality == "SR"
+    check_dose_report(pydicom.dcmread(next(folder.glob("*.dcm"))), session)
     saved = sorted((data / "images").glob("*.dcm"))
     assert len(saved) == SCRIPT_SAVES
     # Saved at the detector's native matrix (twice the 64-pixel live one here), 16-bit.
     first = pydicom.dcmread(saved[0])
     assert (first.Rows, first.Columns, first.BitsStored) == (128, 128, 16)
     assert f"fluoroscopy time:   {int(SCRIPT_FLUORO_S // 60):02d}:{int(SCRIPT_FLUORO_S % 60):02d}" in out
+
+
+def check_dose_report(sr, session: dict) -> None:
+    """The demo's RDSR against its ledger: the totals, and one irradiation event per run with
+    the run's duration, kerma and DAP, in the report's units (s, Gy, Gy.m2)."""
+    assert sr.Modality == "SR" and sr.SOPClassUID == "1.2.840.10008.5.1.4.1.1.88.67"
+    top = list(sr.ContentSequence)
+    (accumulated,) = [i for i in top if name(i) == "Accumulated X-Ray Dose Data"]
+    acc = list(accumulated.ContentSequence)
+    assert num(acc, "Total Fluoro Time") == (pytest.approx(SCRIPT_FLUORO_S, abs=0.05), "s")
+    assert num(acc, "Fluoro Dose (RP) Total") == (pytest.approx(session["air_kerma_mgy"] / 1000, rel=1e-9), "Gy")
+    assert num(acc, "Fluoro Dose Area Product Total") == (pytest.approx(session["dap_gy_cm2"] / 1e4, rel=1e-9), "Gy.m2")
+    runs = [e["detail"] for e in session["events"] if e["kind"] == "fluoro_off"]
+    events = [list(i.ContentSequence) for i in top if name(i) == "Irradiation Event X-Ray Data"]
+    assert len(events) == len(runs) >= 6          # the script's six pedal runs, each split at a zoom or mode change
+    for items, run in zip(events, runs):
+        assert num(items, "Irradiation Duration")[0] == pytest.approx(run["duration_s"], abs=1e-6)
+        assert num(items, "Dose (RP)")[0] == pytest.approx(run["air_kerma_mgy"] / 1000, rel=1e-9)
+        assert num(items, "Dose Area Product")[0] == pytest.approx(run["dap_gy_cm2"] / 1e4, rel=1e-9)
+    # The events add up to the totals the report states.
+    assert sum(num(items, "Irradiation Duration")[0] for items in events) == pytest.approx(SCRIPT_FLUORO_S, abs=0.05)
+    assert sum(num(items, "Dose (RP)")[0] for items in events) == pytest.approx(num(acc, "Fluoro Dose (RP) Total")[0],
+                                                                             rel=1e-6)

@@ -115,3 +115,38 @@ def test_pinhole_puts_each_axis_at_its_own_focal_length(fx, fy, cx, cy, x, y, z)
     # Back along the ray: the pixel's normalised direction times z returns the point.
     back = np.array([(u - cx) / fx * z, (v - cy) / fy * z, z])
     assert np.allclose(back, [x, y, z], rtol=1e-9, atol=1e-6)
+
+
+def test_a_pose_file_with_an_integer_too_big_for_int64_is_a_problem_not_a_crash():
+    # YAML reads 1000000000000000000000000000000 as a Python int; numpy would hold it as an object.
+    huge = [[10**30, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+    assert "not orthonormal" in rigid_problem(huge)
+    assert rigid_problem([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 10**20], [0, 0, 0, 1]]) is None
+
+
+def test_each_refusal_says_what_is_wrong_and_a_deviation_at_the_tolerance_passes():
+    eye = np.eye(4)
+    nan = eye.copy()
+    nan[0, 3] = np.nan
+    assert rigid_problem(nan) == "must contain only finite numbers"
+    assert rigid_problem(np.eye(3)) == "must be a 4x4 matrix, got shape (3, 3)"
+    row = eye.copy()
+    row[3, 3] = 1.5                         # 0.5 off: refused at a tolerance below, accepted at 0.5 itself
+    assert rigid_problem(row, tol=0.25) == "last row must be 0 0 0 1"
+    assert rigid_problem(row, tol=0.5) is None
+    stretched = np.diag([1.25, 1.0, 1.0, 1.0])      # R^T R - I = 0.5625 exactly; det - 1 = 0.25
+    assert rigid_problem(stretched, tol=0.5) == "rotation part is not orthonormal (tolerance 0.5)"
+    assert rigid_problem(stretched, tol=0.5625) is None
+    grown = np.diag([1.25, 1.25, 1.25, 1.0])        # R^T R - I = 0.5625; det - 1 = 0.953125 (to LAPACK's rounding)
+    assert rigid_problem(grown, tol=0.9) == "rotation part must have determinant +1 (a mirror is not a rigid motion)"
+    assert rigid_problem(grown, tol=abs(np.linalg.det(grown[:3, :3]) - 1.0)) is None
+
+
+def test_a_transform_takes_opencvs_column_vector_translation():
+    import cv2
+
+    R = rotation_about([0, 0, 1], 0.3)
+    rvec, _ = cv2.Rodrigues(R)
+    tvec = np.array([[12.0], [-4.0], [550.0]])         # solvePnP's shape: 3 x 1
+    T = make_transform(cv2.Rodrigues(rvec)[0], tvec)
+    np.testing.assert_allclose(T, [[*R[0], 12.0], [*R[1], -4.0], [*R[2], 550.0], [0, 0, 0, 1]], atol=1e-12)

@@ -106,8 +106,11 @@ def test_verify_reports_the_first_broken_link(tmp_path):
     conn.commit()
     report = verify(open_readonly(path))
     assert not report.ok and report.first_bad_id == 31
+    # A session's totals edited as well: the first broken link is still the one reported.
     conn.execute("UPDATE sessions SET air_kerma_mgy = 0.001")
     conn.commit()
+    report = verify(open_readonly(path))
+    assert not report.ok and report.first_bad_id == 31, report.message
 
 
 def test_edited_session_totals_are_detected(tmp_path):

@@ -117,10 +117,11 @@ class Running:
 
 
 def test_invert_flips_every_displayed_pixel(tmp_path):
-    # The pedal is held throughout; INVERT is pressed every 3 s of console time. Each screen read
+    # The pedal is held throughout; INVERT is pressed every 2 s of console time. Each screen read
     # back is classed by the ledger's INVERT presses before it; only screens at least 1 s after a
-    # press count (a held image re-composed for a moment must not pass for a rendered one).
-    script = ['{"t": 0.0, "hold": "pedal", "for_s": 600.0}'] + [f'{{"t": {3.0 * k}, "tap": "invert"}}'
+    # press count (a held image re-composed for a moment must not pass for a rendered one). Four
+    # presses give two settled seconds of each polarity, the first normal one before any press.
+    script = ['{"t": 0.0, "hold": "pedal", "for_s": 600.0}'] + [f'{{"t": {2.0 * k}, "tap": "invert"}}'
                                                                 for k in range(1, 30)]
     config = make_appliance(tmp_path, script=script, display=DISPLAY)
     static_noise_free(config)
@@ -129,7 +130,7 @@ def test_invert_flips_every_displayed_pixel(tmp_path):
     captures: list[tuple[float, np.ndarray]] = []
     try:
         deadline = time.monotonic() + 90
-        while time.monotonic() < deadline and proc.poll() is None and len(invert_presses(tmp_path)) < 5:
+        while time.monotonic() < deadline and proc.poll() is None and len(invert_presses(tmp_path)) < 4:
             time.sleep(0.2)
             rgb = screen(tmp_path / "data")
             if rgb is not None:

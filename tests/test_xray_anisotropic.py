@@ -8,12 +8,11 @@ pinhole projection with a camera matrix written out by hand from the profile's n
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from in_process_cli import fluorosim
 from ruamel.yaml import YAML
 
 from appliance.config.case import Materials
@@ -120,10 +119,8 @@ def test_render_command_zoom_magnifies_about_the_principal_point(profile_path, t
     found = {}
     for zoom in (1, 3):
         out = tmp_path / f"zoom{zoom}.npy"
-        result = subprocess.run([sys.executable, "-m", "appliance.cli", "render", "--fluoroscope", str(profile_path),
-                                 "--volume", str(ct), "--pose", str(pose), "--zoom", str(zoom),
-                                 "--quantity", "line-integral", "--output", str(out)],
-                                capture_output=True, text=True, timeout=120, cwd=REPO)
+        result = fluorosim("render", "--fluoroscope", profile_path, "--volume", ct, "--pose", pose, "--zoom", zoom,
+                           "--quantity", "line-integral", "--output", out, cwd=REPO)
         assert result.returncode == 0, result.stderr
         image = np.load(out)
         assert image.shape == (ROWS, COLUMNS)

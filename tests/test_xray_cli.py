@@ -1,13 +1,11 @@
-"""`fluorosim render`: the command-line contract, run as a separate process."""
+"""`fluorosim render`: the command-line contract, run through the command's own main (see in_process_cli)."""
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from in_process_cli import fluorosim as in_process
 
 from appliance.config.fluoroscope import FluoroscopeProfile
 from appliance.config.loading import load_profile
@@ -16,11 +14,6 @@ from appliance.xray.truth.analytic import box_chords, box_volume, pixel_rays_ct
 
 ROOT = Path(__file__).resolve().parents[1]
 PROFILE = ROOT / "configs" / "fluoroscopes" / "generic-flat-detector.yaml"
-
-
-def fluorosim(*args, cwd):
-    return subprocess.run([sys.executable, "-m", "appliance", *map(str, args)], cwd=cwd, capture_output=True,
-                          text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=120)
 
 
 def small_profile(d):
@@ -51,7 +44,7 @@ def case(tmp_path_factory):
 
 def test_line_integral_npy_matches_closed_form(case):
     d, lo, hi, T = case
-    r = fluorosim("render", "--volume", "box.nii.gz", "--fluoroscope", "flat256.yaml", "--pose", "pose.yaml",
+    r = in_process("render", "--volume", "box.nii.gz", "--fluoroscope", "flat256.yaml", "--pose", "pose.yaml",
                   "--quantity", "line-integral", "--output", "li.npy", cwd=d)
     assert r.returncode == 0, r.stderr
     mu = float(r.stdout.split("mu_water = ")[1].split()[0])
@@ -67,7 +60,7 @@ def test_line_integral_npy_matches_closed_form(case):
 
 def test_display_png_and_zoom(case):
     d, _, _, _ = case
-    r = fluorosim("render", "--volume", "box.nii.gz", "--fluoroscope", "flat256.yaml", "--pose", "pose.yaml",
+    r = in_process("render", "--volume", "box.nii.gz", "--fluoroscope", "flat256.yaml", "--pose", "pose.yaml",
                   "--quantity", "display", "--output", "d.png", "--zoom", "2", "--seed", "1", cwd=d)
     assert r.returncode == 0, r.stderr
     import cv2
@@ -89,7 +82,9 @@ def test_bad_input_exits_2_with_one_line(case, change, expect):
     (d / "bad_profile.yaml").write_text((d / "flat256.yaml").read_text().replace("kvp: 70", "kvp: 7000"))
     args = {"volume": "box.nii.gz", "fluoroscope": "flat256.yaml", "pose": "pose.yaml", "output": "o.npy"}
     args.update(change)
-    r = fluorosim("render", "--volume", args["volume"], "--fluoroscope", args["fluoroscope"], "--pose", args["pose"],
+    # In the test process: a traceback would fail the test as surely as on stderr; the real
+    # process's stderr is checked by test_breathing_cli's bad overrides.
+    r = in_process("render", "--volume", args["volume"], "--fluoroscope", args["fluoroscope"], "--pose", args["pose"],
                   "--quantity", "line-integral", "--output", args["output"], cwd=d)
     assert r.returncode == 2
     assert expect in r.stderr
@@ -127,7 +122,7 @@ def test_render_and_bench_are_registered():
 
 def test_size_renders_the_same_field_on_another_matrix(case):
     d, lo, hi, T = case
-    r = fluorosim("render", "--volume", "box.nii.gz", "--fluoroscope", "flat256.yaml", "--pose", "pose.yaml",
+    r = in_process("render", "--volume", "box.nii.gz", "--fluoroscope", "flat256.yaml", "--pose", "pose.yaml",
                   "--quantity", "line-integral", "--output", "small.npy", "--size", "96x64", cwd=d)
     assert r.returncode == 0, r.stderr
     assert "casting 96 x 64 rays" in r.stdout and "preparing 24 x 24 x 20 voxels" in r.stdout
@@ -143,14 +138,14 @@ def test_size_renders_the_same_field_on_another_matrix(case):
     truth = box_chords(s, dirs, lo, hi) * mu
     sel = truth > 10 * mu
     assert sel.sum() > 100 and (np.abs(img[sel] - truth[sel]) / truth[sel]).max() < 0.005
-    bad = fluorosim("render", "--volume", "box.nii.gz", "--fluoroscope", "flat256.yaml", "--pose", "pose.yaml",
+    bad = in_process("render", "--volume", "box.nii.gz", "--fluoroscope", "flat256.yaml", "--pose", "pose.yaml",
                     "--quantity", "line-integral", "--output", "x.npy", "--size", "0", cwd=d)
     assert bad.returncode == 2 and "16 to 8192" in bad.stderr
 
 
 def test_render_help_defines_the_xray_frame_of_the_pose_file(case):
     d, _, _, _ = case
-    r = fluorosim("render", "--help", cwd=d)
+    r = in_process("render", "--help", cwd=d)
     text = " ".join(r.stdout.split())
     assert "focal spot at the origin" in text and "+z along the principal ray toward the detector" in text
     assert "LPS" in text

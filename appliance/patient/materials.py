@@ -20,15 +20,14 @@ from __future__ import annotations
 
 import functools
 import math
-import os
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from ..config.case import Contrast, Materials
 from ..config.fluoroscope import Tube
 from ..errors import FluorosimError
+from .spekpy_beam import beam
 
 #: Material order everywhere: kernel accumulators, attenuation tables.
 MATERIAL_NAMES = ("air", "soft tissue", "bone", "contrast")
@@ -136,51 +135,14 @@ class Spectrum:
         return w / w.sum()
 
 
-def spectra_cache_dir() -> Path:
-    """Where spekpy's spectra are kept between runs: systemd's CacheDirectory for the service,
-    else the user's cache (XDG). Each takes spekpy a second or more, and an exposure control's
-    curve needs several at start-up."""
-    base = os.environ.get("CACHE_DIRECTORY") or os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base.split(":")[0]) / "fluorosim" / "spectra"
-
-
 @functools.lru_cache(maxsize=16)
 def _fine_spectrum(kvp: float, filtration_mm_al: float) -> tuple[np.ndarray, np.ndarray, float, float, float]:
-    """spekpy's spectrum in 0.5 keV steps: (keV, photons / mm^2 / mAs per step at 1 m, air kerma
-    uGy / mAs at 1 m, effective keV, mean keV). Cached in memory and on disk (a cache only:
-    an unreadable or unwritable one is recomputed and left alone)."""
-    from importlib.metadata import version
-
-    # (spekpy's own import takes about a second: the file's name needs only its version)
-    path = spectra_cache_dir() / f"{kvp:g}kV-{filtration_mm_al:g}mmAl-{ANODE_ANGLE_DEG:g}deg-spekpy{version('spekpy')}.npz"
-    try:
-        with np.load(path) as z:
-            return z["k"], z["counts"], float(z["kerma"]), float(z["eff"]), float(z["mean"])
-    except (OSError, KeyError, ValueError):
-        pass
-    import spekpy
-
-    try:
-        s = spekpy.Spek(kvp=kvp, th=ANODE_ANGLE_DEG, dk=0.5)
-        if filtration_mm_al > 0:
-            s.filter("Al", filtration_mm_al)
-        k, phi = s.get_spectrum()   # keV, photons / cm^2 / mAs / keV at 1 m
-        eff = float(s.get_eeff())
-        mean = float(s.get_emean())
-        kerma = float(s.get_kerma())
-    except Exception as e:  # spekpy raises plain Exceptions for out-of-range settings
-        raise FluorosimError(f"spekpy cannot model a {kvp} kVp tube with {filtration_mm_al} mm Al: {e}; check "
-                             "tube.kvp and tube.filtration_mm_al") from None
+    """spekpy's spectrum in 0.5 keV steps (kept on disk by spekpy_beam): (keV, photons / mm^2 /
+    mAs per step at 1 m, air kerma uGy / mAs at 1 m, effective keV, mean keV)."""
+    b = beam(kvp, ANODE_ANGLE_DEG, 0.5, (("Al", filtration_mm_al),))
+    k, phi = b.energies_kev, b.photons_per_cm2_per_mas_per_kev   # keV, photons / cm^2 / mAs / keV at 1 m
     dk = float(k[1] - k[0])
-    k, counts = np.asarray(k, float), np.asarray(phi, float) * dk / 100.0
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        part = path.with_suffix(f".{os.getpid()}.part.npz")
-        np.savez(part, k=k, counts=counts, kerma=kerma, eff=eff, mean=mean)
-        os.replace(part, path)
-    except OSError:
-        pass
-    return k, counts, kerma, eff, mean
+    return np.asarray(k, float), np.asarray(phi, float) * dk / 100.0, b.air_kerma_ugy_per_mas, b.effective_kev, b.mean_kev
 
 
 def _binned(k: np.ndarray, counts: np.ndarray, kvp: float, filtration_mm_al: float, n_bins: int, eff: float,

@@ -19,8 +19,8 @@ import numpy as np
 
 from ..config.fluoroscope import FluoroscopeProfile
 from ..console.dose import reference_distance_mm
-from ..errors import FluorosimError
 from ..patient.materials import ANODE_ANGLE_DEG, Spectrum, tube_spectrum, water_mu_per_mm
+from ..patient.spekpy_beam import beam
 from .casting import DetectorTables, field_edge, field_radius_px, penumbra_px, pixel_pitch_at_zoom_mm
 
 #: MTF of the detector at its stated limiting resolution: the contrast at which the bars of
@@ -34,18 +34,8 @@ _SIGMA_TIMES_F = math.sqrt(math.log(1.0 / MTF_AT_LIMIT) / (2.0 * math.pi ** 2))
 def fluence_per_air_kerma(kvp: float, filtration_mm_al: float, water_mm: float) -> float:
     """Photons per mm^2 per uGy of air kerma of the tube's beam after `water_mm` of water
     (spekpy: fluence over air kerma of the same spectrum)."""
-    import spekpy
-
-    try:
-        s = spekpy.Spek(kvp=kvp, th=ANODE_ANGLE_DEG, dk=0.5)
-        if filtration_mm_al > 0:
-            s.filter("Al", filtration_mm_al)
-        if water_mm > 0:
-            s.filter("Water, Liquid", water_mm)
-        return float(s.get_flu()) / float(s.get_kerma()) / 100.0   # /cm^2 per uGy -> /mm^2 per uGy
-    except Exception as e:  # spekpy raises plain Exceptions for out-of-range settings
-        raise FluorosimError(f"spekpy cannot model a {kvp} kVp tube with {filtration_mm_al} mm Al: {e}; "
-                             "check tube.kvp and tube.filtration_mm_al") from None
+    b = beam(kvp, ANODE_ANGLE_DEG, 0.5, (("Al", filtration_mm_al), ("Water, Liquid", water_mm)))
+    return b.fluence_per_cm2_per_mas / b.air_kerma_ugy_per_mas / 100.0   # /cm^2 per uGy -> /mm^2 per uGy
 
 
 def _fluence_per_kerma(spectrum: Spectrum, water_mm: float) -> float:
