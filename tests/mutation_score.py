@@ -22,6 +22,8 @@ HERE = Path(__file__).resolve().parent
 TARGETS = (
     "appliance.console.dose.*",
     "appliance.console.state.*",
+    "appliance.console.readout.*",        # the state machine's readout, split from state.py
+    "appliance.display.text.*",           # the compositor's text, split from compositor.py
     "appliance.geometry.*",
     "appliance.display.compositor.*",
     "appliance.records.rdsr.*",

@@ -9,9 +9,15 @@ import numpy as np
 import pytest
 
 from appliance.display.compositor import AMBER, FONT, Compositor, Overlay
+from appliance.display.text import wrap_text
 
 MESSAGE = ("camera lost: the webcam at usb-0000:00:14.0-2 stopped sending frames; check its cable "
            "and that no other program holds the device, then wait for it to come back")
+
+
+def wrap(c: Compositor, text: str, max_w: int) -> list[str]:
+    """The compositor's wrapping at its own text size (display/text.py)."""
+    return wrap_text(text, max_w, c.scale, c.thickness)
 
 
 def width(c: Compositor, text: str) -> int:
@@ -22,7 +28,7 @@ def width(c: Compositor, text: str) -> int:
 def test_long_text_wraps_greedily_at_spaces_into_lines_that_fit(size):
     c = Compositor(*size)
     max_w = round(c.side * 0.9) - 2 * c.margin
-    lines = c._wrap(MESSAGE, max_w)
+    lines = wrap(c, MESSAGE, max_w)
     assert len(lines) >= 2
     assert " ".join(lines) == MESSAGE                              # every word, in order, none split
     assert all(width(c, line) <= max_w for line in lines), [(line, width(c, line)) for line in lines]
@@ -35,21 +41,21 @@ def test_a_word_longer_than_a_line_is_cut_into_pieces_that_fit():
     c = Compositor(640, 512)
     max_w = 150
     word = "/dev/serial/by-id/usb-FTDI_FT232R_USB_UART_A50285BI-if00-port0"
-    lines = c._wrap(f"pedal {word} gone", max_w)
+    lines = wrap(c, f"pedal {word} gone", max_w)
     assert "".join(lines).replace(" ", "") == f"pedal{word}gone"
     assert lines[0] == "pedal" and lines[-1].endswith("gone")
     assert all(width(c, line) <= max_w for line in lines), lines
     pieces = [line for line in lines if line not in ("pedal",) and not line.endswith("gone")]
     assert len(pieces) >= 2 and all(len(p) >= 8 for p in pieces)
     # Text exactly as wide as the line still fits on it, a word or a cut piece alike.
-    assert c._wrap("tracking lost", width(c, "tracking lost")) == ["tracking lost"]
-    assert c._wrap("ABCDEFGHIJ", width(c, "ABCDEFGHIJ")) == ["ABCDEFGHIJ"]
+    assert wrap(c, "tracking lost", width(c, "tracking lost")) == ["tracking lost"]
+    assert wrap(c, "ABCDEFGHIJ", width(c, "ABCDEFGHIJ")) == ["ABCDEFGHIJ"]
     # A piece is never cut shorter than 8 characters, even where 8 are wider than the line.
-    assert c._wrap("ABCDEFGHIJKLMNOPQRST", width(c, "ABC")) == ["ABCDEFGH", "IJKLMNOP", "QRST"]
+    assert wrap(c, "ABCDEFGHIJKLMNOPQRST", width(c, "ABC")) == ["ABCDEFGH", "IJKLMNOP", "QRST"]
     # A short text is one line; nothing at all is one empty line.
-    assert c._wrap("tracking lost", max_w) == ["tracking lost"]
-    assert c._wrap("", max_w) == [""]
-    assert c._wrap("   ", max_w) == [""]
+    assert wrap(c, "tracking lost", max_w) == ["tracking lost"]
+    assert wrap(c, "", max_w) == [""]
+    assert wrap(c, "   ", max_w) == [""]
 
 
 def test_a_banner_box_holds_its_wrapped_lines_and_the_next_goes_below_it():
@@ -65,7 +71,7 @@ def test_a_banner_box_holds_its_wrapped_lines_and_the_next_goes_below_it():
     # Centred across the screen, no wider than the image square.
     assert abs((cols.min() + cols.max()) / 2 - 320) <= 1 and cols.max() - cols.min() <= c.side * 0.9 + 1
     # As many text lines as the wrap gives: count the bands of black text inside the box.
-    lines = c._wrap(MESSAGE, round(c.side * 0.9) - 2 * c.margin)
+    lines = wrap(c, MESSAGE, round(c.side * 0.9) - 2 * c.margin)
     box = frame[rows.min():rows.max() + 1, cols.min():cols.max() + 1]
     text_rows = (box.sum(axis=2) < 200).any(axis=1)
     bands = int(np.sum(text_rows[1:] & ~text_rows[:-1]) + text_rows[0])
