@@ -174,14 +174,14 @@ def memory_backed_dir(tmp_path):
     shutil.rmtree(folder, ignore_errors=True)
 
 
-def test_kill_9_at_200_random_moments_loses_nothing_committed(memory_backed_dir):
+def test_kill_9_at_100_random_moments_loses_nothing_committed(memory_backed_dir):
     path = memory_backed_dir / "ledger.sqlite"
     rng = random.Random(2024)
     sessions_seen = runs_cut = 0
     checked = None
     Ledger(path).close()   # the schema exists before the first kill (creation itself is one transaction)
     conn = open_readonly(path)   # a reader beside the writers, as `fluorosim logs verify` would be
-    for i in range(200):
+    for i in range(100):
         r, w = os.pipe()
         pid = os.fork()
         if pid == 0:
@@ -240,7 +240,7 @@ def test_kill_9_at_200_random_moments_loses_nothing_committed(memory_backed_dir)
         checked = report.last
     conn.close()
     assert verify(open_readonly(path)).ok
-    assert sessions_seen > 140 and runs_cut > 30
+    assert sessions_seen > 70 and runs_cut > 15      # most kills land mid-session, many mid-run
 
 
 def test_unreadable_or_newer_ledger_gives_one_clear_error(tmp_path):
