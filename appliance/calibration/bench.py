@@ -107,13 +107,14 @@ def _renderer_images(phantom, fluoroscope, machine, poses, rng):
 
 def run_benchmark(args) -> int:
     config = default_config_dir()
-    phantom = load_profile(config / "calibration-phantoms" / "two-plane-36.yaml", CalibrationPhantomProfile)
+    phantom_path = Path(args.phantom_model) if args.phantom_model else config / "calibration-phantoms" / "two-plane-36.yaml"
+    phantom = load_profile(phantom_path, CalibrationPhantomProfile)
     fl_path = Path(args.fluoroscope) if args.fluoroscope else config / "fluoroscopes" / "generic-ii-carm.yaml"
     fluoroscope = load_profile(fl_path, FluoroscopeProfile)
     machine = scenario.true_machine(fluoroscope)
     sources = ["shadowgraph", "renderer"] if args.source == "both" else [args.source]
     print(f"fluorosim bench calibration: {args.runs} run(s) x {args.images} image(s), nominal profile {fl_path}, "
-          f"phantom {phantom.name}")
+          f"phantom {phantom.name}, tilts up to {args.max_tilt:g} deg")
     print(f"true machine: fx {machine.K[0, 0]:.2f} fy {machine.K[1, 1]:.2f} cx {machine.K[0, 2]:.2f} "
           f"cy {machine.K[1, 2]:.2f} dist {np.array2string(machine.dist, precision=5)}")
     status = 0
@@ -132,7 +133,7 @@ def run_benchmark(args) -> int:
         verdicts = {"passed": 0, "refused": 0, "false passes": 0}
         for run in range(args.runs):
             rng = np.random.default_rng(args.seed + 1000 * run)
-            poses = scenario.phantom_poses(args.images, rng)
+            poses = scenario.phantom_poses(args.images, rng, max_tilt_deg=args.max_tilt)
             t0 = time.perf_counter()
             images, fov_centre, fov_radius = make(phantom, fluoroscope, machine, poses, rng)
             timings["make image"].append((time.perf_counter() - t0) / len(images))
@@ -179,7 +180,7 @@ def run_benchmark(args) -> int:
               + ("  MISSED" if verdicts["false passes"] else ""))
         if verdicts["false passes"]:
             status = 1
-        print(f"[{source}] 2 of 36 blobs hidden + 3 spurious added, {sum(robustness.values())} trials: "
+        print(f"[{source}] 2 of {len(phantom.spheres)} blobs hidden + 3 spurious added, {sum(robustness.values())} trials: "
               f"{robustness['right']} identified right, {robustness['refused']} refused, {robustness['wrong']} wrong"
               + ("" if robustness["wrong"] == 0 else "  MISSED"))
         if robustness["wrong"]:

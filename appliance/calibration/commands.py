@@ -96,4 +96,9 @@ def register(commands, benches) -> None:
     b.add_argument("--source", choices=("shadowgraph", "renderer", "both"), default="both",
                    help="who makes the images: the analytic shadowgraph, the project's DRR renderer, or both")
     b.add_argument("--fluoroscope", metavar="PROFILE.yaml", help=f"nominal profile (default: configs/{DEFAULT_FLUOROSCOPE})")
+    b.add_argument("--phantom-model", metavar="MODEL.yaml",
+                   help=f"sphere phantom profile (default: configs/{DEFAULT_PHANTOM}); "
+                        "configs/calibration-phantoms/two-plane-grid-332.yaml fills the field")
+    b.add_argument("--max-tilt", type=float, default=12.0, metavar="DEG",
+                   help="largest phantom tilt of the drawn poses (degrees, default 12)")
     b.set_defaults(run=run_bench)

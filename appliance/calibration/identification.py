@@ -25,11 +25,16 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..config.calibration_phantom import CalibrationPhantomProfile
 from ..errors import FluorosimError
 from .blobs import Blobs
 from .field_of_view import FieldOfView
+
+#: Balls of the second plate that propose its parallax shift (see `_complete`): a handful
+#: is enough, as one seen ball gives the right shift.
+VOTING_BALLS = 8
 
 
 class IdentificationFailed(FluorosimError):
@@ -113,19 +118,18 @@ def _match(predicted: np.ndarray, observed: np.ndarray, gate: float) -> tuple[np
     """Mutual nearest neighbours within `gate`: (predicted index, observed index) arrays."""
     if len(predicted) == 0 or len(observed) == 0:
         return np.zeros(0, int), np.zeros(0, int)
-    d = np.linalg.norm(predicted[:, None, :] - observed[None, :, :], axis=2)
-    nearest_obs = d.argmin(axis=1)
-    nearest_pred = d.argmin(axis=0)
+    # k-d trees: a grid phantom has hundreds of balls and this runs for every hypothesis.
+    d, nearest_obs = cKDTree(observed).query(predicted)
+    _, nearest_pred = cKDTree(predicted).query(observed)
     p = np.arange(len(predicted))
-    ok = (nearest_pred[nearest_obs] == p) & (d[p, nearest_obs] < gate)
+    ok = (nearest_pred[nearest_obs] == p) & (d < gate)
     return p[ok], nearest_obs[ok]
 
 
 def _spacing(points: np.ndarray) -> float:
     """Median nearest-neighbour distance of projected balls (pixels)."""
-    d = np.linalg.norm(points[:, None] - points[None], axis=2)
-    np.fill_diagonal(d, np.inf)
-    return float(np.median(d.min(axis=1)))
+    d, _ = cKDTree(points).query(points, k=2)
+    return float(np.median(d[:, 1]))
 
 
 def _project(T: np.ndarray, points: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
@@ -357,7 +361,13 @@ def _complete(assignment: dict[int, int], H: np.ndarray, blobs: Blobs, undist: n
         free = np.setdiff1d(np.arange(len(blobs)), blb)
         gate = det.match_gate_fraction * _spacing(base) if len(other) > 1 else 10.0
         votes: list[tuple[int, np.ndarray]] = []
-        for i, ball in enumerate(other):
+        # Any one ball of the other plate that is seen proposes the true shift, so only the
+        # few predicted nearest the plate's middle (surely in the field) propose: each
+        # proposal is scored against every ball, which for a grid of hundreds of balls
+        # would otherwise cost the fourth power of their number.
+        proposers = np.argsort(np.linalg.norm(base - np.median(base, axis=0), axis=1))[:VOTING_BALLS]
+        for i in proposers:
+            ball = other[i]
             for j in free:
                 if blob_large[j] != large_model[ball]:
                     continue
