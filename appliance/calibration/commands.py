@@ -99,6 +99,8 @@ def register(commands, benches) -> None:
     b.add_argument("--phantom-model", metavar="MODEL.yaml",
                    help=f"sphere phantom profile (default: configs/{DEFAULT_PHANTOM}); "
                         "configs/calibration-phantoms/two-plane-grid-332.yaml fills the field")
+    b.add_argument("--jobs", type=int, default=1, metavar="N",
+                   help="runs made at once in N processes (default 1); each run keeps its own seed")
     b.add_argument("--max-tilt", type=float, default=12.0, metavar="DEG",
                    help="largest phantom tilt of the drawn poses (degrees, default 12)")
     b.set_defaults(run=run_bench)
