@@ -71,7 +71,10 @@ def register(commands, benches) -> None:
                     "phantom profile's acceptance bar the fluoroscope profile is rewritten atomically, the old one "
                     "kept as PROFILE.yaml.bak. Exit 0 when written, 2 when refused.")
     x.add_argument("images", nargs="+", metavar="IMAGE")
-    x.add_argument("--phantom-model", metavar="MODEL.yaml", help=f"sphere phantom profile (default: configs/{DEFAULT_PHANTOM})")
+    x.add_argument("--phantom-model", metavar="MODEL.yaml",
+                   help=f"sphere phantom profile (default: configs/{DEFAULT_PHANTOM}); to fix the principal point to a "
+                        "pixel use configs/calibration-phantoms/two-plane-grid-332.yaml, whose balls fill the field, "
+                        "with about 24 images")
     x.add_argument("--fluoroscope", required=True, metavar="PROFILE.yaml",
                    help="fluoroscope profile: its current intrinsics start the fit, and the result is written into it")
     x.add_argument("--marker-pose", action="append", metavar="POSE.yaml",
