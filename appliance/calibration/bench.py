@@ -191,17 +191,16 @@ def run_benchmark(args) -> int:
         robustness = {"right": 0, "refused": 0, "wrong": 0}
         verdicts = {"passed": 0, "refused": 0, "false passes": 0}
         runner = _Run(source, make, phantom, fluoroscope, machine, args)
+        pool = None
         if args.jobs > 1:
             # Each run draws its own seed, so runs are independent and their outcomes do not
-            # depend on how they are spread over processes.
+            # depend on how they are spread over processes; imap prints each in order as it ends.
             import multiprocessing
 
-            with multiprocessing.get_context("fork").Pool(min(args.jobs, args.runs)) as pool:
-                outcomes = pool.map(runner, range(args.runs))
-        else:
-            outcomes = map(runner, range(args.runs))
+            pool = multiprocessing.get_context("fork").Pool(min(args.jobs, args.runs))
+        outcomes = pool.imap(runner, range(args.runs)) if pool is not None else map(runner, range(args.runs))
         for outcome in outcomes:
-            print(outcome.line)
+            print(outcome.line, flush=True)
             for key, n in outcome.robustness.items():
                 robustness[key] += n
             for stage, values in outcome.timings.items():
@@ -213,6 +212,8 @@ def run_benchmark(args) -> int:
             verdicts["passed" if outcome.passed else "refused"] += 1
             if outcome.passed and outcome.beyond:
                 verdicts["false passes"] += 1
+        if pool is not None:
+            pool.close()
         if not all_figures:
             continue
         print(f"[{source}] medians over {len(all_figures)} run(s):")
