@@ -74,7 +74,7 @@ def register(commands, benches) -> None:
     x.add_argument("--phantom-model", metavar="MODEL.yaml",
                    help=f"sphere phantom profile (default: configs/{DEFAULT_PHANTOM}); to fix the principal point to a "
                         "pixel use configs/calibration-phantoms/two-plane-grid-332.yaml, whose balls fill the field, "
-                        "with about 24 images")
+                        "with about 30 images")
     x.add_argument("--fluoroscope", required=True, metavar="PROFILE.yaml",
                    help="fluoroscope profile: its current intrinsics start the fit, and the result is written into it")
     x.add_argument("--marker-pose", action="append", metavar="POSE.yaml",
