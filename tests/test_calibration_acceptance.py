@@ -18,7 +18,7 @@ from appliance.config import load_profile
 from appliance.config.calibration_phantom import CalibrationPhantomProfile
 
 REPO = Path(__file__).resolve().parents[1]
-PHANTOM = load_profile(next((REPO / "configs" / "calibration-phantoms").glob("*.yaml")), CalibrationPhantomProfile)
+PHANTOM = load_profile(REPO / "configs" / "calibration-phantoms" / "two-plane-36.yaml", CalibrationPhantomProfile)
 FX = FY = 2400.0
 
 
@@ -118,3 +118,17 @@ def test_figures_exactly_at_the_bar_pass():
     r = result(fit([view("img0"), view("img1", worst=1.5), view("img2")], sigma_pct=(0.5, 0.5)),
                spreads_mm=[3.0, 0.1, 0.1], spreads_deg=[0.1, 1.0, 0.1])
     assert r.failures == [] and r.passed
+
+
+def test_the_principal_point_refusal_counts_the_images_that_would_fix_it():
+    from appliance.calibration.xray_calibration import FIELD_FILLING_PHANTOM, principal_point_refusal
+    # 8 images at +-1.0 px against a 0.5 px bar: the one-sigma falls as 1/sqrt(images), so
+    # 8 * (1.0 / 0.5)^2 = 32, and a tenth more is 35.2 -> 36; beyond 32, the field-filling phantom.
+    line = principal_point_refusal(1.0, 0.5, 8)
+    assert line.startswith("principal point uncertain to +-1.00 px (bar 0.5 px): about 36 images like these")
+    assert "tilting the phantom does not help" in line and line.endswith(f"({FIELD_FILLING_PHANTOM})")
+    assert (REPO / FIELD_FILLING_PHANTOM).is_file() and "\n" not in line
+    # 24 images at +-0.6 px: 24 * 1.44 * 1.1 = 38.02 -> 39, within a session: no other phantom.
+    line = principal_point_refusal(0.6, 0.5, 24)
+    assert "about 39 images like these" in line and "fills the field" not in line
+    assert "the fit with decentring free failed" in principal_point_refusal(float("inf"), 0.5, 8)

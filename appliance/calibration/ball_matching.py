@@ -9,6 +9,7 @@ import itertools
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 
 def split_by_size(diameters: np.ndarray) -> tuple[np.ndarray, float]:
@@ -77,19 +78,18 @@ def match_nearest(predicted: np.ndarray, observed: np.ndarray, gate: float) -> t
     """Mutual nearest neighbours within `gate`: (predicted index, observed index) arrays."""
     if len(predicted) == 0 or len(observed) == 0:
         return np.zeros(0, int), np.zeros(0, int)
-    d = np.linalg.norm(predicted[:, None, :] - observed[None, :, :], axis=2)
-    nearest_obs = d.argmin(axis=1)
-    nearest_pred = d.argmin(axis=0)
+    # k-d trees: a grid phantom has hundreds of balls and this runs for every hypothesis.
+    d, nearest_obs = cKDTree(observed).query(predicted)
+    _, nearest_pred = cKDTree(predicted).query(observed)
     p = np.arange(len(predicted))
-    ok = (nearest_pred[nearest_obs] == p) & (d[p, nearest_obs] < gate)
+    ok = (nearest_pred[nearest_obs] == p) & (d < gate)
     return p[ok], nearest_obs[ok]
 
 
 def ball_spacing(points: np.ndarray) -> float:
     """Median nearest-neighbour distance of projected balls (pixels)."""
-    d = np.linalg.norm(points[:, None] - points[None], axis=2)
-    np.fill_diagonal(d, np.inf)
-    return float(np.median(d.min(axis=1)))
+    d, _ = cKDTree(points).query(points, k=2)
+    return float(np.median(d[:, 1]))
 
 
 def project(T: np.ndarray, points: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:

@@ -13,7 +13,10 @@ Figures are printed per run and as medians over runs, beside the issue's targets
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -105,15 +108,72 @@ def _renderer_images(phantom, fluoroscope, machine, poses, rng):
     return render_phantom_images(phantom, fluoroscope, machine, poses, rng)
 
 
+@dataclass
+class _Outcome:
+    """One run of the benchmark: the line it prints and what the summary counts."""
+
+    line: str
+    figures: dict[str, float] | None
+    passed: bool = False
+    beyond: list[str] = field(default_factory=list)
+    robustness: dict[str, int] = field(default_factory=dict)
+    timings: dict[str, list[float]] = field(default_factory=dict)
+
+
+@dataclass
+class _Run:
+    """Make one run's images from its own seed, calibrate, and compare (picklable for a pool)."""
+
+    source: str
+    make: Callable
+    phantom: CalibrationPhantomProfile
+    fluoroscope: FluoroscopeProfile
+    machine: scenario.Machine
+    args: Any
+
+    def __call__(self, run: int) -> _Outcome:
+        from .xray_calibration import principal_point_sigma_px
+
+        args, phantom, fluoroscope, machine, source = self.args, self.phantom, self.fluoroscope, self.machine, self.source
+        rng = np.random.default_rng(args.seed + 1000 * run)
+        poses = scenario.phantom_poses(args.images, rng, max_tilt_deg=args.max_tilt)
+        t0 = time.perf_counter()
+        images, fov_centre, fov_radius = self.make(phantom, fluoroscope, machine, poses, rng)
+        timings: dict[str, list[float]] = {"make image": [(time.perf_counter() - t0) / len(images)]}
+        readings = [scenario.marker_reading(machine, T, phantom, rng) for T in poses]
+        robustness = {"right": 0, "refused": 0, "wrong": 0}
+        for k in range(min(2, len(images))):
+            for key, n in damaged_identification(phantom, fluoroscope, machine, images[k], poses[k], rng, 10).items():
+                robustness[key] += n
+        result = calibrate([(f"{source}-{run}-{i}", im) for i, im in enumerate(images)], phantom, fluoroscope, readings)
+        for stage, values in result.timings_s.items():
+            timings.setdefault(stage, []).extend(values)
+        if result.fit is None:
+            return _Outcome(f"[{source}] run {run}: no fit: {'; '.join(result.failures)}", None,
+                            robustness=robustness, timings=timings)
+        f = figures(result, machine, fov_centre, fov_radius)
+        rejected = [o.reason for o in result.images if o.reason]
+        beyond = [name for name, limit, _ in TARGETS if f.get(name, 0.0) > 2 * limit]
+        verdict = ("PASSED" + (f" although beyond twice the target: {', '.join(beyond)}  FALSE PASS" if beyond else "")
+                   if result.passed else "refused: " + "; ".join(result.failures))
+        line = (f"[{source}] run {run}: " + ", ".join(f"{k} {v:.4g}" for k, v in f.items())
+                + f"; worst residual {result.fit.worst_px:.3f} px; principal point one-sigma "
+                  f"{principal_point_sigma_px(result.fit):.2f} px; p1, p2 {'held' if result.fit.fixed else 'fitted'}; "
+                  f"{len(result.fit.views)}/{len(images)} images used"
+                + (f"; rejected: {rejected}" if rejected else "") + f"; {verdict}")
+        return _Outcome(line, f, result.passed, beyond, robustness, timings)
+
+
 def run_benchmark(args) -> int:
     config = default_config_dir()
-    phantom = load_profile(config / "calibration-phantoms" / "two-plane-36.yaml", CalibrationPhantomProfile)
+    phantom_path = Path(args.phantom_model) if args.phantom_model else config / "calibration-phantoms" / "two-plane-36.yaml"
+    phantom = load_profile(phantom_path, CalibrationPhantomProfile)
     fl_path = Path(args.fluoroscope) if args.fluoroscope else config / "fluoroscopes" / "generic-ii-carm.yaml"
     fluoroscope = load_profile(fl_path, FluoroscopeProfile)
     machine = scenario.true_machine(fluoroscope)
     sources = ["shadowgraph", "renderer"] if args.source == "both" else [args.source]
     print(f"fluorosim bench calibration: {args.runs} run(s) x {args.images} image(s), nominal profile {fl_path}, "
-          f"phantom {phantom.name}")
+          f"phantom {phantom.name}, tilts up to {args.max_tilt:g} deg")
     print(f"true machine: fx {machine.K[0, 0]:.2f} fy {machine.K[1, 1]:.2f} cx {machine.K[0, 2]:.2f} "
           f"cy {machine.K[1, 2]:.2f} dist {np.array2string(machine.dist, precision=5)}")
     status = 0
@@ -130,38 +190,30 @@ def run_benchmark(args) -> int:
         timings: dict[str, list[float]] = {"make image": []}
         robustness = {"right": 0, "refused": 0, "wrong": 0}
         verdicts = {"passed": 0, "refused": 0, "false passes": 0}
-        for run in range(args.runs):
-            rng = np.random.default_rng(args.seed + 1000 * run)
-            poses = scenario.phantom_poses(args.images, rng)
-            t0 = time.perf_counter()
-            images, fov_centre, fov_radius = make(phantom, fluoroscope, machine, poses, rng)
-            timings["make image"].append((time.perf_counter() - t0) / len(images))
-            readings = [scenario.marker_reading(machine, T, phantom, rng) for T in poses]
-            for k in range(min(2, len(images))):
-                for key, n in damaged_identification(phantom, fluoroscope, machine, images[k], poses[k], rng, 10).items():
-                    robustness[key] += n
-            result = calibrate([(f"{source}-{run}-{i}", im) for i, im in enumerate(images)], phantom, fluoroscope, readings)
-            for stage, values in result.timings_s.items():
+        runner = _Run(source, make, phantom, fluoroscope, machine, args)
+        pool = None
+        if args.jobs > 1:
+            # Each run draws its own seed, so runs are independent and their outcomes do not
+            # depend on how they are spread over processes; imap prints each in order as it ends.
+            import multiprocessing
+
+            pool = multiprocessing.get_context("fork").Pool(min(args.jobs, args.runs))
+        outcomes = pool.imap(runner, range(args.runs)) if pool is not None else map(runner, range(args.runs))
+        for outcome in outcomes:
+            print(outcome.line, flush=True)
+            for key, n in outcome.robustness.items():
+                robustness[key] += n
+            for stage, values in outcome.timings.items():
                 timings.setdefault(stage, []).extend(values)
-            if result.fit is None:
-                print(f"[{source}] run {run}: no fit: {'; '.join(result.failures)}")
+            if outcome.figures is None:
                 status = 1
                 continue
-            f = figures(result, machine, fov_centre, fov_radius)
-            all_figures.append(f)
-            rejected = [o.reason for o in result.images if o.reason]
-            beyond = [name for name, limit, _ in TARGETS if f.get(name, 0.0) > 2 * limit]
-            verdicts["passed" if result.passed else "refused"] += 1
-            if result.passed and beyond:
+            all_figures.append(outcome.figures)
+            verdicts["passed" if outcome.passed else "refused"] += 1
+            if outcome.passed and outcome.beyond:
                 verdicts["false passes"] += 1
-            from .xray_calibration import principal_point_sigma_px
-            verdict = ("PASSED" + (f" although beyond twice the target: {', '.join(beyond)}  FALSE PASS" if beyond else "")
-                       if result.passed else "refused: " + "; ".join(result.failures))
-            print(f"[{source}] run {run}: " + ", ".join(f"{k} {v:.4g}" for k, v in f.items())
-                  + f"; worst residual {result.fit.worst_px:.3f} px; principal point one-sigma "
-                    f"{principal_point_sigma_px(result.fit):.2f} px; p1, p2 {'held' if result.fit.fixed else 'fitted'}; "
-                    f"{len(result.fit.views)}/{len(images)} images used"
-                  + (f"; rejected: {rejected}" if rejected else "") + f"; {verdict}")
+        if pool is not None:
+            pool.close()
         if not all_figures:
             continue
         print(f"[{source}] medians over {len(all_figures)} run(s):")
@@ -179,7 +231,7 @@ def run_benchmark(args) -> int:
               + ("  MISSED" if verdicts["false passes"] else ""))
         if verdicts["false passes"]:
             status = 1
-        print(f"[{source}] 2 of 36 blobs hidden + 3 spurious added, {sum(robustness.values())} trials: "
+        print(f"[{source}] 2 of {len(phantom.spheres)} blobs hidden + 3 spurious added, {sum(robustness.values())} trials: "
               f"{robustness['right']} identified right, {robustness['refused']} refused, {robustness['wrong']} wrong"
               + ("" if robustness["wrong"] == 0 else "  MISSED"))
         if robustness["wrong"]:

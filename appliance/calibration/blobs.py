@@ -111,7 +111,7 @@ def detect_blobs(image: np.ndarray, fov: FieldOfView, detection: Detection) -> B
 
     Whether the balls are dark (an intensity frame) or bright (a log display) is decided by
     the balls: blobs are sought both ways on the same scale-space stack, and the polarity
-    that finds more round blobs of the phantom's sizes wins. An image's histogram tails
+    whose round blobs of the phantom's sizes respond more strongly in all wins. An image's histogram tails
     cannot tell it: faint balls lose against noise, glare or a bright rim.
     """
     a = attenuation_image(image, fov, dark_balls=False)
@@ -128,7 +128,10 @@ def detect_blobs(image: np.ndarray, fov: FieldOfView, detection: Detection) -> B
     bright = _candidates(stack, sigmas, noise, inside, fov, detection, step)
     stack = np.negative(stack, out=stack)
     dark = _candidates(stack, sigmas, noise, inside, fov, detection, step)
-    dark_balls = (len(dark[0]), dark[2].sum()) >= (len(bright[0]), bright[2].sum())
+    # The polarity with the stronger blobs in all wins, not the one with more: between the
+    # balls of a dense grid the open field forms as many bright "blobs" as there are balls,
+    # each far weaker than a ball's shadow.
+    dark_balls = dark[2].sum() >= bright[2].sum()
     uv, d, strength = dark if dark_balls else bright
     # Two shadows close enough to share a centroid window or background ring (a steep tilt
     # lays one plate's ball beside the other's) would pull each other's centres: drop both.
@@ -144,14 +147,16 @@ def detect_blobs(image: np.ndarray, fov: FieldOfView, detection: Detection) -> B
 def _candidates(stack: np.ndarray, sigmas: np.ndarray, noise: np.ndarray, inside: np.ndarray, fov: FieldOfView,
                 detection: Detection, step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(uv (n, 2), diameters (n,), strengths (n,)) of the round scale-space maxima of `stack`."""
-    normalised = stack / noise[:, None, None]
-    # 3x3x3 maxima: a 3x3 dilation per scale, then compare with the scales either side.
+    # 3x3x3 maxima of the scale-normalised response itself (Lindeberg), a 3x3 dilation per
+    # scale compared with the scales either side; the noise only sets the threshold. Maxima
+    # of the response over its noise would move to the finest scales where a dense grid of
+    # balls fills the field, as the balls then lift every scale's noise estimate but the finest.
     kernel = np.ones((3, 3), np.uint8)
-    dilated = np.stack([cv2.dilate(s, kernel) for s in normalised])
-    peaks = np.zeros(normalised.shape, bool)
+    dilated = np.stack([cv2.dilate(s, kernel) for s in stack])
+    peaks = np.zeros(stack.shape, bool)
     for i in range(1, len(sigmas) - 1):
-        s = normalised[i]
-        peaks[i] = ((s > detection.threshold_noise_sigmas) & (s >= dilated[i]) & (s >= dilated[i - 1])
+        s = stack[i]
+        peaks[i] = ((s > detection.threshold_noise_sigmas * noise[i]) & (s >= dilated[i]) & (s >= dilated[i - 1])
                     & (s >= dilated[i + 1]) & inside)
     k, v, u = np.nonzero(peaks)
     strength = stack[k, v, u]
@@ -161,6 +166,9 @@ def _candidates(stack: np.ndarray, sigmas: np.ndarray, noise: np.ndarray, inside
     kept_uv: list[tuple[float, float]] = []
     kept_d: list[float] = []
     kept_s: list[float] = []
+    # Kept centres and diameters also as arrays, filled as they come: a grid phantom has
+    # hundreds of balls, and a Python loop over the kept ones per candidate costs seconds.
+    taken_uv, taken_d = np.empty((len(k), 2)), np.empty(len(k))
     for ki, vi, ui, si in zip(k, v, u, strength):
         # Parabolic peak in log(sigma) gives the size between scale samples.
         r0, r1, r2 = stack[ki - 1, vi, ui], stack[ki, vi, ui], stack[ki + 1, vi, ui]
@@ -170,13 +178,16 @@ def _candidates(stack: np.ndarray, sigmas: np.ndarray, noise: np.ndarray, inside
         diameter = SQRT8 * sigma
         if not detection.min_diameter_px <= diameter <= detection.max_diameter_px:
             continue
-        if any(np.hypot(ui - pu, vi - pv) < 0.5 * (diameter + pd) for (pu, pv), pd in zip(kept_uv, kept_d)):
+        n = len(kept_uv)
+        if n and np.any(np.hypot(taken_uv[:n, 0] - ui, taken_uv[:n, 1] - vi) < 0.5 * (diameter + taken_d[:n])):
             continue
         if not _round_enough(stack[ki], int(ui), int(vi), detection.max_axis_ratio):
             continue
         radius = diameter / 2
         if fov.distance_inside(np.array([(ui, vi)], float))[0] < 1.5 * radius + detection.fov_margin_px:
             continue
+        taken_uv[len(kept_uv)] = (ui, vi)
+        taken_d[len(kept_uv)] = diameter
         kept_uv.append((float(ui), float(vi)))
         kept_d.append(diameter)
         kept_s.append(float(si))

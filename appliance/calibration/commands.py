@@ -71,7 +71,10 @@ def register(commands, benches) -> None:
                     "phantom profile's acceptance bar the fluoroscope profile is rewritten atomically, the old one "
                     "kept as PROFILE.yaml.bak. Exit 0 when written, 2 when refused.")
     x.add_argument("images", nargs="+", metavar="IMAGE")
-    x.add_argument("--phantom-model", metavar="MODEL.yaml", help=f"sphere phantom profile (default: configs/{DEFAULT_PHANTOM})")
+    x.add_argument("--phantom-model", metavar="MODEL.yaml",
+                   help=f"sphere phantom profile (default: configs/{DEFAULT_PHANTOM}); to fix the principal point to a "
+                        "pixel use configs/calibration-phantoms/two-plane-grid-332.yaml, whose balls fill the field, "
+                        "with about 30 images")
     x.add_argument("--fluoroscope", required=True, metavar="PROFILE.yaml",
                    help="fluoroscope profile: its current intrinsics start the fit, and the result is written into it")
     x.add_argument("--marker-pose", action="append", metavar="POSE.yaml",
@@ -96,4 +99,11 @@ def register(commands, benches) -> None:
     b.add_argument("--source", choices=("shadowgraph", "renderer", "both"), default="both",
                    help="who makes the images: the analytic shadowgraph, the project's DRR renderer, or both")
     b.add_argument("--fluoroscope", metavar="PROFILE.yaml", help=f"nominal profile (default: configs/{DEFAULT_FLUOROSCOPE})")
+    b.add_argument("--phantom-model", metavar="MODEL.yaml",
+                   help=f"sphere phantom profile (default: configs/{DEFAULT_PHANTOM}); "
+                        "configs/calibration-phantoms/two-plane-grid-332.yaml fills the field")
+    b.add_argument("--jobs", type=int, default=1, metavar="N",
+                   help="runs made at once in N processes (default 1); each run keeps its own seed")
+    b.add_argument("--max-tilt", type=float, default=12.0, metavar="DEG",
+                   help="largest phantom tilt of the drawn poses (degrees, default 12)")
     b.set_defaults(run=run_bench)

@@ -70,32 +70,41 @@ class Fit:
 
 def centroid_offsets(K: np.ndarray, dist: np.ndarray, T_xray_from_phantom: np.ndarray, centres: np.ndarray,
                      radii_mm: np.ndarray, samples: int = 15) -> np.ndarray:
-    """(m, 2) centroid of each ball's distorted shadow minus the projection of its centre (pixels).
+    """(m, 2) attenuation-weighted centroid of each ball's distorted shadow minus the projection
+    of its centre (pixels).
 
-    The shadow's weight is taken as the ball's chord, sqrt(1 - (rho/R)^2) of the angular
-    offset rho; the centroid is the weighted mean of the distorted sample positions, each
-    weighted also by the local area scale of the distortion (a pixel sees a stretched patch
-    of the undistorted plane as a smaller one).
+    A sphere seen off the axis casts an ellipse whose centroid is not the projected centre,
+    and the distortion stretches its outer side more than its inner one. Both are integrated
+    exactly: the undistorted image plane around each ball is sampled on a grid wide enough
+    for the ellipse, each sample weighted by the true chord its ray cuts through the ball,
+    2 sqrt(R^2 - |C|^2 + (d.C)^2) for the unit ray d and centre C, and by the local area
+    scale of the distortion (a pixel sees a stretched patch of the undistorted plane as a
+    smaller one); the centroid is taken of the distorted sample positions.
     """
     P = centres @ T_xray_from_phantom[:3, :3].T + T_xray_from_phantom[:3, 3]
-    a = np.linspace(-1, 1, samples)
-    ax, ay = np.meshgrid(a, a)
-    inside = ax ** 2 + ay ** 2 < 1
-    ax, ay = ax[inside], ay[inside]
-    w = np.sqrt(1 - ax ** 2 - ay ** 2)
     x0, y0 = P[:, 0] / P[:, 2], P[:, 1] / P[:, 2]
-    rho = radii_mm / np.linalg.norm(P, axis=1)
-    qx = x0[:, None] + rho[:, None] * ax[None]
-    qy = y0[:, None] + rho[:, None] * ay[None]
-    eps = 1e-6
-    pts = np.stack([np.stack([qx, qy]), np.stack([qx + eps, qy]), np.stack([qx, qy + eps])])  # (3, 2, m, s)
-    flat = np.concatenate([pts[:, 0].reshape(-1, 1), pts[:, 1].reshape(-1, 1), np.ones((pts[:, 0].size, 1))], axis=1)
+    # Half-width of the silhouette in the undistorted plane, with room for its radial stretch
+    # (1 / cos^2 of the off-axis angle) and the cone's half-angle.
+    reach = 1.1 * radii_mm / P[:, 2] * (1.0 + x0 ** 2 + y0 ** 2)
+    a = (np.arange(samples) + 0.5) / samples * 2.0 - 1.0
+    ax, ay = (g.reshape(-1) for g in np.meshgrid(a, a))
+    qx = x0[:, None] + reach[:, None] * ax[None]
+    qy = y0[:, None] + reach[:, None] * ay[None]
+    norm = np.sqrt(qx ** 2 + qy ** 2 + 1.0)
+    along = (qx * P[:, 0:1] + qy * P[:, 1:2] + P[:, 2:3]) / norm
+    chord = 2.0 * np.sqrt(np.clip(radii_mm[:, None] ** 2 - (P ** 2).sum(axis=1)[:, None] + along ** 2, 0.0, None))
+    flat = np.stack([qx.reshape(-1), qy.reshape(-1), np.ones(qx.size)], axis=1)
     img, _ = cv2.projectPoints(flat, np.zeros(3), np.zeros(3), K, dist)
-    img = img.reshape(3, len(P), len(w), 2)
-    ju, jv = (img[1] - img[0]) / eps, (img[2] - img[0]) / eps
-    area = np.abs(ju[..., 0] * jv[..., 1] - ju[..., 1] * jv[..., 0])
-    weight = w[None] * area
-    centroid = (img[0] * weight[..., None]).sum(axis=1) / weight.sum(axis=1)[:, None]
+    img = img.reshape(len(P), samples, samples, 2)
+    # The samples form a regular grid in the undistorted plane, so the distortion's local
+    # area scale is the cross product of the grid's steps in the image (one projection, not
+    # three: a grid phantom sends thousands of balls through here at every fit).
+    du = np.gradient(img, axis=2)
+    dv = np.gradient(img, axis=1)
+    area = np.abs(du[..., 0] * dv[..., 1] - du[..., 1] * dv[..., 0]).reshape(len(P), -1)
+    img = img.reshape(len(P), -1, 2)
+    weight = chord * area
+    centroid = (img * weight[..., None]).sum(axis=1) / weight.sum(axis=1)[:, None]
     centre, _ = cv2.projectPoints(np.concatenate([x0[:, None], y0[:, None], np.ones((len(P), 1))], axis=1),
                                   np.zeros(3), np.zeros(3), K, dist)
     return centroid - centre.reshape(-1, 2)

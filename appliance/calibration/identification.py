@@ -40,6 +40,10 @@ from .ball_matching import (
 from .blobs import Blobs
 from .field_of_view import FieldOfView
 
+#: Balls of the second plate that propose its parallax shift (see `_complete`): a handful
+#: is enough, as one seen ball gives the right shift.
+VOTING_BALLS = 8
+
 
 class IdentificationFailed(FluorosimError):
     """The phantom could not be recognised in one image; the message says why."""
@@ -265,7 +269,13 @@ def _complete(assignment: dict[int, int], H: np.ndarray, blobs: Blobs, undist: n
         free = np.setdiff1d(np.arange(len(blobs)), blb)
         gate = det.match_gate_fraction * ball_spacing(base) if len(other) > 1 else 10.0
         votes: list[tuple[int, np.ndarray]] = []
-        for i, ball in enumerate(other):
+        # Any one ball of the other plate that is seen proposes the true shift, so only the
+        # few predicted nearest the plate's middle (surely in the field) propose: each
+        # proposal is scored against every ball, which for a grid of hundreds of balls
+        # would otherwise cost the fourth power of their number.
+        proposers = np.argsort(np.linalg.norm(base - np.median(base, axis=0), axis=1))[:VOTING_BALLS]
+        for i in proposers:
+            ball = other[i]
             for j in free:
                 if blob_large[j] != large_model[ball]:
                     continue

@@ -187,6 +187,32 @@ def principal_point_sigma_px(fit: Fit) -> float:
     return float(np.hypot(fit.sigma.get("cx", float("inf")), fit.sigma.get("cy", float("inf"))))
 
 
+#: The phantom that fills the field, named when the images at hand would need too many more.
+FIELD_FILLING_PHANTOM = "configs/calibration-phantoms/two-plane-grid-332.yaml"
+
+
+def principal_point_refusal(sigma_px: float, bar_px: float, images: int) -> str:
+    """Why the principal point is refused and what fixes it, in one line.
+
+    Through a narrow beam a shift of the principal point looks like a turn of the machine
+    except for a pattern growing as the square of the angle off the axis, which the
+    decentring terms p1, p2 partly mimic: only balls near the field's edge tell them apart,
+    and tilting the phantom adds nothing. The one-sigma then falls as one over the square
+    root of the number of such balls, so the images needed are images * (sigma / bar)^2.
+    """
+    head = f"principal point uncertain to +-{sigma_px:.2f} px (bar {bar_px} px): "
+    if not np.isfinite(sigma_px):
+        return head + ("the fit with decentring free failed; take more images with balls out to the field's edge, "
+                       f"or use a phantom that fills the field ({FIELD_FILLING_PHANTOM})")
+    # A tenth more than the square-root law asks, so the new set clears the bar and not just on average.
+    needed = int(np.ceil(images * (sigma_px / bar_px) ** 2 * 1.1))
+    advice = (f"about {needed} images like these would fix it (it narrows as one over the square root of their "
+              "number; tilting the phantom does not help, balls near the field's edge do)")
+    if needed > max(2 * images, 32):
+        advice += f"; with this phantom that is too many, use one that fills the field ({FIELD_FILLING_PHANTOM})"
+    return head + advice
+
+
 def acceptance_failures(result: CalibrationResult, phantom: CalibrationPhantomProfile) -> list[str]:
     bar = phantom.acceptance
     fit = result.fit
@@ -208,9 +234,7 @@ def acceptance_failures(result: CalibrationResult, phantom: CalibrationPhantomPr
                                 "check that its --marker-pose file belongs to this image")
     pp = principal_point_sigma_px(fit)
     if not pp <= bar.max_principal_point_uncertainty_px:
-        failures.append(f"principal point uncertain to +-{pp:.2f} px (bar {bar.max_principal_point_uncertainty_px} px): "
-                        "these images cannot tell it from decentring distortion; add images with the phantom tilted "
-                        "10-15 degrees toward more directions")
+        failures.append(principal_point_refusal(pp, bar.max_principal_point_uncertainty_px, len(fit.views)))
     for name, f in (("fx", fit.K[0, 0]), ("fy", fit.K[1, 1])):
         pct = 100.0 * fit.sigma.get(name, float("inf")) / f
         if not pct <= bar.max_focal_uncertainty_percent:
