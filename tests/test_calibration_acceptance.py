@@ -59,9 +59,12 @@ def test_an_uncertain_principal_point_is_refused():
     assert result(fit(sigma_pp_px=(0.3, 0.4))).passed
     r = result(fit(sigma_pp_px=(0.48, 0.64)))
     assert not r.passed and len(r.failures) == 1 and r.failures[0].startswith("principal point uncertain to +-0.80 px")
-    # The refusal tells the radiographer what to do about it, in those words.
-    assert r.failures[0].endswith("(bar 0.5 px): these images cannot tell it from decentring distortion; add images "
-                                  "with the phantom tilted 10-15 degrees toward more directions"), r.failures[0]
+    # The refusal tells the technician what to do about it, in those words: the one-sigma falls as
+    # one over the square root of the images, so 3 images x (0.80 / 0.5)^2, a tenth more, rounded
+    # up: 8.45 -> 9 images (tilting does not help; see the calibration section of the README).
+    assert r.failures[0].endswith("(bar 0.5 px): about 9 images like these would fix it (it narrows as one over the "
+                                  "square root of their number; tilting the phantom does not help, balls near the "
+                                  "field's edge do)"), r.failures[0]
 
 
 def test_a_fit_inside_every_bar_passes():
