@@ -3,18 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+from test_compositor import plain_overlay as overlay  # the overlay of a quiet screen, one place
 
-from appliance.display.compositor import Compositor, Overlay
+from appliance.display.compositor import Compositor
 
 W, H = 1280, 1024
-
-
-def overlay(**kw) -> Overlay:
-    values = dict(live=False, zoom=1, fov_mm=300.0, collimation_mm=None, fluoro_time_s=0.0, air_kerma_mgy=0.0,
-                  dap_gy_cm2=0.0, mode="", alarm=False, saved_flash=False, invert=False, breath_hold=False,
-                  case="", operator="", fluoroscope="", warnings=[], fps=None)
-    values.update(kw)
-    return Overlay(**values)
 
 
 def corner(frame: np.ndarray) -> np.ndarray:

@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 from ..cli import command_group
+from ..command_options import add_command
 from ..config.calibration_phantom import CalibrationPhantomProfile, MarkerPose
 from ..config.commands import default_config_dir
 from ..config.fluoroscope import FluoroscopeProfile
@@ -89,10 +90,10 @@ def register(commands, benches) -> None:
     p.add_argument("--phantom-model", metavar="MODEL.yaml", help=f"sphere phantom profile (default: configs/{DEFAULT_PHANTOM})")
     p.set_defaults(run=run_print_phantom)
 
-    b = benches.add_parser("calibration", help="accuracy and speed of X-ray calibration at known geometry",
-                           description="Make images of the sphere phantom at known poses with a known machine, "
-                                       "calibrate from them, and print the errors of fx, fy, principal point, "
-                                       "distortion, reprojection and T_xray_from_webcam, with median stage timings.")
+    b = add_command(benches, "calibration", run_bench, "accuracy and speed of X-ray calibration at known geometry",
+                    "Make images of the sphere phantom at known poses with a known machine, "
+                    "calibrate from them, and print the errors of fx, fy, principal point, "
+                    "distortion, reprojection and T_xray_from_webcam, with median stage timings.")
     b.add_argument("--images", type=int, default=8, help="images per calibration (default 8)")
     b.add_argument("--runs", type=int, default=10, help="independent calibrations, each with its own noise seed (default 10)")
     b.add_argument("--seed", type=int, default=1)
@@ -106,4 +107,3 @@ def register(commands, benches) -> None:
                    help="runs made at once in N processes (default 1); each run keeps its own seed")
     b.add_argument("--max-tilt", type=float, default=12.0, metavar="DEG",
                    help="largest phantom tilt of the drawn poses (degrees, default 12)")
-    b.set_defaults(run=run_bench)

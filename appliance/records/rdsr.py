@@ -170,12 +170,16 @@ def text_item(relationship: str, concept: tuple, text: str) -> Dataset:
     return ds
 
 
-def uid_item(relationship: str, concept: tuple, uid: str, children: list[Dataset] | None = None) -> Dataset:
-    ds = _item(relationship, "UIDREF", concept)
-    ds.UID = uid
+def _with_children(ds: Dataset, children: list[Dataset] | None) -> Dataset:
     if children:
         ds.ContentSequence = Sequence(children)
     return ds
+
+
+def uid_item(relationship: str, concept: tuple, uid: str, children: list[Dataset] | None = None) -> Dataset:
+    ds = _item(relationship, "UIDREF", concept)
+    ds.UID = uid
+    return _with_children(ds, children)
 
 
 def datetime_item(relationship: str, concept: tuple, when: dt.datetime) -> Dataset:
@@ -187,9 +191,7 @@ def datetime_item(relationship: str, concept: tuple, when: dt.datetime) -> Datas
 def pname_item(relationship: str, concept: tuple, name: str, children: list[Dataset] | None = None) -> Dataset:
     ds = _item(relationship, "PNAME", concept)
     ds.PersonName = name
-    if children:
-        ds.ContentSequence = Sequence(children)
-    return ds
+    return _with_children(ds, children)
 
 
 def utc(t_wall: float) -> dt.datetime:

@@ -10,6 +10,7 @@ import numpy as np
 from pydantic import Field
 
 from ..atomic_file import write_atomic
+from ..command_options import add_command
 from ..config.base import RigidTransform, Section, matrix
 from ..config.case import CaseProfile, Materials
 from ..config.fluoroscope import FluoroscopeProfile
@@ -171,10 +172,10 @@ def register(commands, benches) -> None:
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "gpu"), help="OpenCL device (default: a GPU if present)")
     p.set_defaults(run=run_render)
 
-    b = benches.add_parser("drr", help="DRR speed, accuracy and memory figures",
-                           description="Median ms per frame of a 512x512x136 CT at 256, 512 and 1024 pixels, mono- and "
-                                       "polychromatic; accuracy against closed-form line integrals; resident memory "
-                                       "of a prepared 10-phase 4D CT.")
+    b = add_command(benches, "drr", run_bench, "DRR speed, accuracy and memory figures",
+                    "Median ms per frame of a 512x512x136 CT at 256, 512 and 1024 pixels, mono- and "
+                    "polychromatic; accuracy against closed-form line integrals; resident memory "
+                    "of a prepared 10-phase 4D CT.")
     b.add_argument("--frames", type=int, default=7, help="frames per timing (median reported)")
     b.add_argument("--sizes", default="256,512,1024", help="image sizes to time (pixels, comma-separated)")
     b.add_argument("--phases", type=int, default=10, help="phases of the 4D CT for the memory figure")
@@ -184,7 +185,6 @@ def register(commands, benches) -> None:
                    help="the real-size CT: the adult chest (default) or the quicker synthetic torso")
     b.add_argument("--rounds", type=int, default=3, help="alternating rounds of the plastimatch side-by-side")
     b.add_argument("--device", default="auto", choices=("auto", "cpu", "gpu"))
-    b.set_defaults(run=run_bench)
 
     from .acceptance import register as register_image_bench
     register_image_bench(benches)

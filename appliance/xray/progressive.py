@@ -30,8 +30,8 @@ from collections.abc import Callable
 import numpy as np
 
 from ..config.rendering import Rendering
-from .projection_cache import ProjectionCache, box_corners_ct, detector_shift_px
-from .renderer import Frame, PreparedVolume, Renderer, View, at_resolution, zoomed_K
+from .projection_cache import ProjectionCache, pose_unchanged
+from .renderer import Frame, PreparedVolume, Renderer, View, at_resolution
 
 
 class ProgressiveRenderer:
@@ -90,13 +90,8 @@ class ProgressiveRenderer:
                 self.cache(r).clear()
 
     def _moved(self, volume: PreparedVolume, T: np.ndarray, zoom: int) -> bool:
-        if self._last_pose is None:
-            return True
-        corners = box_corners_ct(volume)
-        if corners is None:
-            return False
-        K = zoomed_K(self.full.fluoroscope, zoom)
-        return detector_shift_px(K, corners, self._last_pose, T) > self.settings.cache_pose_tolerance_px
+        return not pose_unchanged(self.full.fluoroscope, volume, zoom, self._last_pose, T,
+                                  self.settings.cache_pose_tolerance_px)
 
     def render(self, volume: PreparedVolume, T_xray_from_ct: np.ndarray, view: View,
                blend: tuple[PreparedVolume, float] | None = None,

@@ -25,6 +25,20 @@ if TYPE_CHECKING:
     import pyopencl as cl
 
 
+def pose_unchanged(fluoroscope, volume: PreparedVolume, zoom: int, T_before: np.ndarray | None,
+                   T_now: np.ndarray, tolerance_px: float) -> bool:
+    """Whether going from pose `T_before` to `T_now` (T_xray_from_ct) moves no corner of the
+    volume's content box by more than `tolerance_px` on the detector at `zoom`: the one rule for
+    "the C-arm has not moved" that the projection cache and progressive resolution share.
+    No earlier pose: moved; an empty volume: unchanged."""
+    if T_before is None:
+        return False
+    corners = box_corners_ct(volume)
+    if corners is None:
+        return True
+    return detector_shift_px(zoomed_K(fluoroscope, zoom), corners, T_before, T_now) <= tolerance_px
+
+
 @dataclass
 class CacheCounts:
     """What the cache did: casts (phases cast), of them pairs cast in one pass, hits (phases
@@ -85,13 +99,8 @@ class ProjectionCache:
     def unchanged(self, volume: PreparedVolume, T_xray_from_ct: np.ndarray, zoom: int) -> bool:
         """True when the pose moves the content box's corners by no more than the tolerance
         since the cached pose."""
-        if self._pose is None:
-            return False
-        corners = box_corners_ct(volume)
-        if corners is None:
-            return True
-        K = zoomed_K(self.renderer.fluoroscope, zoom)
-        return detector_shift_px(K, corners, self._pose, T_xray_from_ct) <= self.pose_tolerance_px
+        return pose_unchanged(self.renderer.fluoroscope, volume, zoom, self._pose, T_xray_from_ct,
+                              self.pose_tolerance_px)
 
     def _adopt(self, volume: PreparedVolume, T_xray_from_ct, zoom: int, collimation_mm, distorted: bool,
                circle) -> None:
