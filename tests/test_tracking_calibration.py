@@ -14,7 +14,7 @@ from appliance.config import PhantomProfile, WebcamProfile, load_profile
 from appliance.geometry import make_transform, rotation_about, rotation_angle_deg
 from appliance.tracking.composite import CompositeCalibration
 from appliance.tracking.markers import marker_corners
-from appliance.tracking.scene import synthetic_camera
+from appliance.tracking.scene import markers_stuck_by_hand, synthetic_camera
 from appliance.tracking.trajectory import pose_from_angles, random_poses
 from appliance.tracking.webcam_calibration import BoardSpec
 from drivers.camera_scene import RenderSettings, SceneRenderer, TexturedQuad
@@ -108,22 +108,10 @@ def profiles():
     return load_profile(PHANTOM, PhantomProfile), load_profile(WEBCAM, WebcamProfile)
 
 
-def stuck_by_hand(phantom, rng):
-    """Where the markers really are: up to 8 mm and 10 degrees off the drawing (the root as drawn)."""
-    true = {}
-    for m in phantom.markers:
-        T = m.T()
-        if m.id != phantom.root_marker_id:
-            T = T @ make_transform(rotation_about((0, 0, 1), np.radians(rng.uniform(-10, 10))),
-                                   [rng.uniform(-8, 8), rng.uniform(-8, 8), 0.0])
-        true[m.id] = T
-    return true
-
-
 def test_calibrate_phantom_command_recovers_the_layout(profiles, tmp_path, capsys):
     phantom, webcam = profiles
     rng = np.random.default_rng(5)
-    true = stuck_by_hand(phantom, rng)
+    true = markers_stuck_by_hand(phantom, rng)
     poses = random_poses(rng, 40, roll_deg=(-120, 120), tilt_deg=(-50, 50), yaw_deg=(-180, 180))
     cam = synthetic_camera(phantom, webcam, lambda t: poses[int(t)], seed=4, T_phantom_from_marker=true)
     frames = tmp_path / "frames"

@@ -21,7 +21,7 @@ from ..config.webcam import WebcamProfile
 from ..geometry import make_transform, rotation_about, rotation_angle_deg
 from .composite import CompositeCalibration
 from .markers import MarkerDetector
-from .scene import synthetic_camera
+from .scene import markers_stuck_by_hand, synthetic_camera
 from .sources import DEMO_TRAJECTORY
 from .tracker import Tracker
 from .trajectory import R_HOME, Trajectory, load_trajectory, pose_from_angles, random_poses
@@ -170,13 +170,7 @@ def bench_lag(phantom, webcam, rng) -> None:
 def bench_calibration(phantom, webcam, rng, frames: int) -> None:
     print(f"composite-marker calibration: {frames} random frames (roll +-120, tilt +-50, yaw +-180 deg, 400-700 mm) of a "
           "box whose markers sit up to 8 mm and 10 deg off the drawing; error of every T_phantom_from_marker")
-    true = {}
-    for m in phantom.markers:
-        T = m.T()
-        if m.id != phantom.root_marker_id:
-            T = T @ make_transform(rotation_about((0, 0, 1), np.radians(rng.uniform(-10, 10))),
-                                   [rng.uniform(-8, 8), rng.uniform(-8, 8), 0.0])
-        true[m.id] = T
+    true = markers_stuck_by_hand(phantom, rng)
     poses = random_poses(rng, frames, roll_deg=(-120, 120), tilt_deg=(-50, 50), yaw_deg=(-180, 180))
     cam = synthetic_camera(phantom, webcam, lambda t: poses[int(t)], seed=int(rng.integers(2**31)),
                            T_phantom_from_marker=true)
