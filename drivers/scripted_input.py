@@ -15,12 +15,12 @@ the press length of a tap (s). Events come out in time order; ties keep file ord
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable
 from pathlib import Path
 
 from .input_event import DeviceState, InputEvent
+from .jsonl import json_lines
 
 
 class ScriptProblem(ValueError):
@@ -32,11 +32,6 @@ class ScriptProblem(ValueError):
 MAX_SCRIPT_TIME_S = 86_400.0
 #: A script is a few kilobytes; a larger file is the wrong file (bytes).
 MAX_SCRIPT_BYTES = 4_000_000
-
-
-def _refuse_constant(name: str) -> float:
-    # json.loads turns NaN, Infinity and -Infinity into floats by default; none is a time.
-    raise ValueError(f"{name} is not a number of seconds")
 
 
 def _number(obj: dict, field: str, where: str, default: float | None = None) -> float:
@@ -63,17 +58,7 @@ def parse_script(text: str, display: str = "<script>",
     a name it refuses is an error rather than a key press that silently does nothing.
     """
     out: list[tuple[float, int, str, bool]] = []
-    for number, raw in enumerate(text.splitlines(), start=1):
-        line = raw.strip()
-        if not line or line.startswith("#"):
-            continue
-        where = f"{display}:{number}"
-        try:
-            obj = json.loads(line, parse_constant=_refuse_constant)
-        except json.JSONDecodeError as e:
-            raise ScriptProblem(f"{where}: not valid JSON ({e.msg})") from None
-        except (ValueError, RecursionError) as e:
-            raise ScriptProblem(f"{where}: {e}") from None
+    for where, obj in json_lines(text.splitlines(), display, ScriptProblem):
         if not isinstance(obj, dict):
             raise ScriptProblem(f"{where}: each line must be a JSON object such as {{\"t\": 1.0, \"tap\": \"zoom_2\"}}")
         kinds = [k for k in ("key", "tap", "hold") if k in obj]

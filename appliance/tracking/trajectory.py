@@ -14,12 +14,13 @@ position interpolated linearly; the path loops after the last keyframe.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
+
+from drivers.jsonl import json_lines
 
 from ..config import limits
 from ..errors import FluorosimError
@@ -74,10 +75,6 @@ class Trajectory:
         return make_transform(R, p)
 
 
-def _refuse_constant(name: str) -> float:
-    raise ValueError(f"{name} is not a number; every value of a keyframe must be finite")
-
-
 def _finite_number(k: dict, field: str, where: str, low: float, high: float, unit: str) -> float:
     value = k.get(field, 0.0)
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not low <= value <= high:
@@ -102,16 +99,7 @@ def load_trajectory(path: str | Path) -> Trajectory:
         raise FluorosimError(f"{path}: is not UTF-8 text; a trajectory is JSONL, one keyframe object per line") from None
     times: list[float] = []
     poses: list[np.ndarray] = []
-    for n, line in enumerate(lines, start=1):
-        if not line.strip() or line.lstrip().startswith("#"):
-            continue
-        where = f"{path}:{n}"
-        try:
-            k = json.loads(line, parse_constant=_refuse_constant)
-        except json.JSONDecodeError as e:
-            raise FluorosimError(f"{where}: not valid JSON ({e.msg}); write one keyframe object per line") from None
-        except (ValueError, RecursionError) as e:
-            raise FluorosimError(f"{where}: {e}") from None
+    for where, k in json_lines(lines, str(path), FluorosimError, "; write one keyframe object per line"):
         if not isinstance(k, dict) or isinstance(k.get("t"), bool) or not isinstance(k.get("t"), (int, float)):
             raise FluorosimError(f'{where}: a keyframe needs a number "t" (s), e.g. {{"t": 0, "position_mm": [0, 0, 550]}}')
         _finite_number(k, "t", where, -limits.MAX_SCRIPT_TIME_S, limits.MAX_SCRIPT_TIME_S, "s")
