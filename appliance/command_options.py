@@ -9,6 +9,11 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from .config import ApplianceProfile
 
 #: The appliance profile a command reads when none is given (relative to the working directory).
 DEFAULT_CONFIG = "configs/appliance.yaml"
@@ -36,6 +41,20 @@ def config_option(what: str, default: str = DEFAULT_CONFIG) -> Options:
         p.add_argument("--config", default=default, metavar="PATH", help=f"appliance profile with {what} (default {default})")
 
     return add
+
+
+def appliance_profile(args: argparse.Namespace, instead: str = "") -> tuple[Path, ApplianceProfile, Path]:
+    """(path, profile, data_dir) of the --config the command was given; `instead` names the
+    option that could have been given in its place (e.g. "--ledger PATH")."""
+    from .config import ApplianceProfile, load_profile, resolve
+    from .errors import FluorosimError
+
+    config = Path(args.config)
+    if not config.is_file():
+        alternative = f" or {instead}" if instead else ""
+        raise FluorosimError(f"{config}: no appliance profile there; give --config PATH{alternative}")
+    appliance = load_profile(config, ApplianceProfile)
+    return config, appliance, resolve(config, appliance.data_dir)
 
 
 def ledger_options(p: argparse.ArgumentParser) -> None:

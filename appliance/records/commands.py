@@ -8,8 +8,7 @@ import sqlite3
 import sys
 from pathlib import Path
 
-from ..command_options import add_command, date_range_options, ledger_options
-from ..config import ApplianceProfile, load_profile, resolve
+from ..command_options import add_command, appliance_profile, date_range_options, ledger_options
 from ..errors import FluorosimError
 from . import export as export_module
 from . import integrity
@@ -20,11 +19,7 @@ def ledger_path(args: argparse.Namespace) -> Path:
     """--ledger PATH, else <data_dir>/ledger.sqlite of the appliance profile."""
     if args.ledger:
         return Path(args.ledger)
-    config = Path(args.config)
-    if not config.is_file():
-        raise FluorosimError(f"{config}: no appliance profile there; give --config PATH or --ledger PATH")
-    appliance = load_profile(config, ApplianceProfile)
-    return resolve(config, appliance.data_dir) / "ledger.sqlite"
+    return appliance_profile(args, instead="--ledger PATH")[2] / "ledger.sqlite"
 
 
 def run_verify(args: argparse.Namespace) -> int:

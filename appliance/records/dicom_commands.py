@@ -8,8 +8,8 @@ import sys
 import time
 from pathlib import Path
 
-from ..command_options import add_command, config_option
-from ..config import ApplianceProfile, load_profile, resolve
+from ..command_options import add_command, appliance_profile, config_option
+from ..config import ApplianceProfile
 from ..errors import FluorosimError
 from . import dicom, dicom_network, rdsr
 from .dicom_sender import KIND, DicomSender, queue_object
@@ -19,14 +19,6 @@ from .ledger import SESSION_COLUMNS, open_readonly
 from .outbox import Outbox, pending_in
 
 
-def _profile(args: argparse.Namespace) -> tuple[Path, ApplianceProfile, Path]:
-    config = Path(args.config)
-    if not config.is_file():
-        raise FluorosimError(f"{config}: no appliance profile there; give --config PATH")
-    appliance = load_profile(config, ApplianceProfile)
-    return config, appliance, resolve(config, appliance.data_dir)
-
-
 def _destinations(config: Path, appliance: ApplianceProfile) -> None:
     if not appliance.dicom.destinations:
         raise FluorosimError(f"{config}: no destinations under dicom: in the appliance profile; add the PACS and the "
@@ -34,14 +26,14 @@ def _destinations(config: Path, appliance: ApplianceProfile) -> None:
 
 
 def run_identity(args: argparse.Namespace) -> int:
-    config, appliance, data_dir = _profile(args)
+    config, appliance, data_dir = appliance_profile(args)
     path = identity_path(config, data_dir, appliance.dicom)
     print(f"{path}: Device Observer UID {device_uid(path)}")
     return 0
 
 
 def run_echo(args: argparse.Namespace) -> int:
-    config, appliance, _ = _profile(args)
+    config, appliance, _ = appliance_profile(args)
     _destinations(config, appliance)
     failed = 0
     for dest in appliance.dicom.destinations:
@@ -85,7 +77,7 @@ def _queue_session(outbox: Outbox, appliance: ApplianceProfile, data_dir: Path, 
 
 
 def run_send(args: argparse.Namespace) -> int:
-    config, appliance, data_dir = _profile(args)
+    config, appliance, data_dir = appliance_profile(args)
     _destinations(config, appliance)
     with Outbox(data_dir / "ledger.sqlite", KIND) as outbox:
         if args.session is not None:
@@ -120,7 +112,7 @@ def _when(t: float) -> str:
 
 
 def run_queue(args: argparse.Namespace) -> int:
-    _, _, data_dir = _profile(args)
+    _, _, data_dir = appliance_profile(args)
     return print_queue(data_dir / "ledger.sqlite", KIND)
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from ..command_options import add_command, config_option, date_range_options, ledger_options
+from ..command_options import add_command, appliance_profile, config_option, date_range_options, ledger_options
 from ..errors import FluorosimError
 from ..records.commands import ledger_path
 from ..records.export import parse_when
@@ -47,19 +47,15 @@ def run_trainee(args) -> int:
 
 
 def run_lrs_send(args) -> int:
-    from ..config import ApplianceProfile, load_profile, resolve
     from ..records.outbox import Outbox
     from .xapi import KIND, XapiSender, queue_ended_sessions
 
-    config = Path(args.config)
-    if not config.is_file():
-        raise FluorosimError(f"{config}: no appliance profile there; give --config PATH")
-    appliance = load_profile(config, ApplianceProfile)
+    config, appliance, data_dir = appliance_profile(args)
     lrs = appliance.teaching.lrs
     if lrs is None:
         raise FluorosimError(f"{config}: no teaching.lrs section; add the LRS's endpoint, username, password_file "
                              "and account_home_page to send results")
-    path = resolve(config, appliance.data_dir) / "ledger.sqlite"
+    path = data_dir / "ledger.sqlite"
     conn = open_readonly(path)
     try:
         # The running appliance's send queue, in the ledger's file: a statement it sent is not sent again.
@@ -77,15 +73,10 @@ def run_lrs_send(args) -> int:
 
 
 def run_lrs_queue(args) -> int:
-    from ..config import ApplianceProfile, load_profile, resolve
     from ..records.dicom_commands import print_queue
     from .xapi import KIND
 
-    config = Path(args.config)
-    if not config.is_file():
-        raise FluorosimError(f"{config}: no appliance profile there; give --config PATH")
-    appliance = load_profile(config, ApplianceProfile)
-    return print_queue(resolve(config, appliance.data_dir) / "ledger.sqlite", KIND)
+    return print_queue(appliance_profile(args)[2] / "ledger.sqlite", KIND)
 
 
 def register(commands, benches) -> None:
