@@ -26,7 +26,7 @@ from ..console.inputs import open_badge_reader, open_inputs
 from ..console.state import Console
 from ..display.compositor import Compositor, Overlay
 from ..display.target import open_target
-from ..patient.timeline import PhaseTimeline
+from ..patient.timeline import PhaseTimeline, Timeline
 from ..tracking.tracker import Tracker
 from ..xray.progressive import ProgressiveRenderer
 from ..xray.renderer import Renderer, at_resolution
@@ -82,11 +82,11 @@ def open_tracker(cfg: ApplianceConfig) -> Tracker:
     return tracker_for(cfg)
 
 
-def open_timeline(cfg: ApplianceConfig, renderer: Renderer | ProgressiveRenderer) -> PhaseTimeline:
+def open_timeline(cfg: ApplianceConfig, renderer: Renderer | ProgressiveRenderer) -> Timeline:
     """The active case's phases, loaded and prepared for `renderer` by the timeline's own thread."""
     if cfg.case.respiration is not None:
         from ..patient.breathing_timeline import breathing_timeline
-        return breathing_timeline(cfg.case_path, cfg.case, renderer, cfg.data_dir / "cache")  # type: ignore[return-value]  # same interface
+        return breathing_timeline(cfg.case_path, cfg.case, renderer, cfg.data_dir / "cache")
     return PhaseTimeline(patient_phases(cfg), renderer, at_end=cfg.case.at_end)
 
 
@@ -95,7 +95,7 @@ class Parts:
     camera: CameraSource
     tracker: Tracker
     renderer: ProgressiveRenderer
-    timeline: PhaseTimeline
+    timeline: Timeline
     console: Console
     keypad: InputDevice
     pedal: InputDevice
@@ -122,7 +122,7 @@ class Parts:
         """Take up the case of a reloaded profile set: its phases are prepared from now on."""
         self._replace_timeline(open_timeline(cfg, self.renderer))
 
-    def _replace_timeline(self, timeline: PhaseTimeline) -> None:
+    def _replace_timeline(self, timeline: Timeline) -> None:
         old = self.timeline
         self.timeline = timeline
         self.generation += 1
@@ -146,7 +146,7 @@ class Parts:
 FIRST_PHASE_TIMEOUT_S = 300.0
 
 
-def warm_up(cfg: ApplianceConfig, renderer: ProgressiveRenderer, timeline: PhaseTimeline) -> float:
+def warm_up(cfg: ApplianceConfig, renderer: ProgressiveRenderer, timeline: Timeline) -> float:
     """Render two throw-away frames (plain and blended) so kernels and ray tables are built
     before the session starts; returns the seconds it took."""
     import time

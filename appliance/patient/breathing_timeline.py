@@ -23,6 +23,7 @@ from ..config.case import Materials, Respiration
 from ..errors import FluorosimError
 from .breathing_motion import BreathingAnatomy
 from .respiration import BreathingControl, BreathState, muscle_amplitudes
+from .timeline import Timeline
 from .volume import Volume
 
 log = logging.getLogger(__name__)
@@ -163,7 +164,7 @@ class BreathingTimeline:
         return a, b, float(w)
 
 
-def breathing_timeline(case_path, case, renderer, cache_dir=None) -> BreathingTimeline:
+def breathing_timeline(case_path, case, renderer, cache_dir=None) -> Timeline:
     """The timeline of a case with a `respiration:` section: one CT, or the built-in patient's
     VCUG stages at end-expiration (its own breathing left out, the contrast on its own clock)."""
     from ..config.loading import resolve
@@ -175,9 +176,7 @@ def breathing_timeline(case_path, case, renderer, cache_dir=None) -> BreathingTi
         from .breathing_4d import FourDBreathing
         from .timeline import PhaseTimeline
         ct_phases = [(ph.time_s, partial(load_volume, resolve(case_path, ph.volume))) for ph in case.phases]
-        # FourDBreathing offers BreathingTimeline's at/wait_ready/ready_count without sharing a
-        # base class, hence the ignore.
-        return FourDBreathing(PhaseTimeline(ct_phases, renderer, at_end="loop"), params,  # type: ignore[return-value]
+        return FourDBreathing(PhaseTimeline(ct_phases, renderer, at_end="loop"), params,
                               params.ct_end_expiration_s)
     if case.builtin is not None:
         from .builtin import SEQUENCE_S, builtin_phases, timeline

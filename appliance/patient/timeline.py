@@ -12,11 +12,30 @@ import bisect
 import logging
 import threading
 from collections.abc import Callable, Sequence
+from typing import Any, Protocol
 
 from ..errors import FluorosimError
 from ..patient.volume import Volume
 
 log = logging.getLogger(__name__)
+
+
+class Timeline(Protocol):
+    """What the daemon asks of a case's timeline: a 4D CT's phases (PhaseTimeline), or a
+    breathing model over one CT or over a 4D CT (patient/breathing_timeline.py, breathing_4d.py)."""
+
+    def at(self, t_s: float) -> Any:
+        """(phase, next phase or None, weight of the next in [0, 1)) to render at `t_s` (s)."""
+
+    def wait_ready(self, timeout_s: float | None = None, all_phases: bool = False) -> bool:
+        """Whether the first phase (or every phase) is ready, waiting up to `timeout_s`."""
+
+    @property
+    def ready_count(self) -> int:
+        """Phases prepared so far."""
+
+    def close(self) -> None:
+        """Stop the loading thread."""
 
 
 class PhaseTimeline:
