@@ -78,6 +78,10 @@ EVENT_QUEUE = 10_000
 #: then the devices this long to close (s).
 SHUTDOWN_S = 1.2
 CLOSE_DEVICES_S = 0.4
+#: A records worker still flushing after SHUTDOWN_S (a machine so loaded that 1.2 s of wall time
+#: was not enough CPU) gets this much longer before its ledger is closed: a dose record outranks
+#: the 2 s promise, and the unit's TimeoutStopSec (10 s) still covers it (s).
+RECORDS_GRACE_S = 5.0
 #: How long start-up waits for the camera's first frame before supervising anyway (s).
 CAMERA_START_S = 3.0
 
@@ -196,7 +200,10 @@ class Appliance:
         try:
             return self.supervisor.run(on_reload=self.reload, until=until, shutdown_s=SHUTDOWN_S, signals=signals)
         finally:
-            self.ledger.close()
+            if self.records.alive and not self.records.join(RECORDS_GRACE_S):
+                log.error("the records worker is still writing at exit; the ledger is left to SQLite's journal")
+            else:
+                self.ledger.close()
             # Devices and the phase loader may each take seconds to let go (a frame being
             # grabbed, a phase being prepared); the 2 s promise of SIGTERM does not wait for them.
             closer = threading.Thread(target=self.parts.close, name="fluorosim-close", daemon=True)
