@@ -46,7 +46,7 @@ def load_volume(path: str | Path, *, hu_checked: bool = True) -> Volume:
         raise FluorosimError(f"{p}: unknown volume format; use a DICOM series folder, .nii/.nii.gz, .mha/.mhd or .nrrd")
     import SimpleITK as sitk
 
-    _refuse_or_warn(str(p), (check_header(p)[0], []))  # its warnings come again from the loaded image
+    _refuse_or_warn(str(p), (check_header(p, hu_checked)[0], []))  # its warnings come again from the loaded image
     with _stderr_captured() as said:
         try:
             image = sitk.ReadImage(str(p))
