@@ -93,14 +93,22 @@ def test_verify_does_report_a_broken_unit(tmp_path):
     assert result.returncode != 0 and "is not executable" in result.stderr
 
 
+# The exposure each shipped unit reached (systemd 252); a change that raises one fails here.
+# The service keeps AF_INET (DICOM), its devices, @resources (PoCL's affinity) and W^X off
+# (OpenCL's compiler); the seal helper stays root to read its key (see the unit files).
+EXPOSURE_REACHED = {"fluorosim.service": 1.4, "fluorosim-seal.service": 0.9}
+
+
 @needs_analyze
-def test_security_exposure_is_at_most_1_5():
-    result = subprocess.run([ANALYZE, "security", "--offline=yes", "--threshold=15", str(UNIT)],
-                            capture_output=True, text=True)
+@pytest.mark.parametrize("unit", sorted(EXPOSURE_REACHED))
+def test_security_exposure_stays_at_what_was_reached(unit):
+    bar = EXPOSURE_REACHED[unit]
+    result = subprocess.run([ANALYZE, "security", "--offline=yes", f"--threshold={round(bar * 10)}",
+                             str(REPO / "systemd" / unit)], capture_output=True, text=True)
     assert result.returncode == 0, result.stdout[-2000:] + result.stderr
-    m = re.search(r"Overall exposure level for fluorosim\.service: (\d+\.\d+)", result.stdout)
+    m = re.search(rf"Overall exposure level for {re.escape(unit)}: (\d+\.\d+)", result.stdout)
     assert m, result.stdout[-500:]
-    assert float(m.group(1)) <= 1.5
+    assert float(m.group(1)) <= bar
 
 
 @needs_analyze

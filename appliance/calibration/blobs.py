@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from ..config.calibration_phantom import Detection
+from .crowding import crowded
 from .field_of_view import FieldOfView
 
 SQRT8 = 2.0 * np.sqrt(2.0)
@@ -27,18 +28,20 @@ class Blobs:
     uv: np.ndarray
     diameter_px: np.ndarray
     strength: np.ndarray
+    #: Shadows found but dropped because another lay too near to measure either (crowding.py).
+    crowded: int = 0
 
     def __len__(self) -> int:
         return len(self.uv)
 
     def subset(self, keep) -> Blobs:
-        return Blobs(self.uv[keep], self.diameter_px[keep], self.strength[keep])
+        return Blobs(self.uv[keep], self.diameter_px[keep], self.strength[keep], self.crowded)
 
     @staticmethod
     def concat(*parts: Blobs) -> Blobs:
         return Blobs(np.concatenate([p.uv for p in parts]).reshape(-1, 2),
                      np.concatenate([p.diameter_px for p in parts]),
-                     np.concatenate([p.strength for p in parts]))
+                     np.concatenate([p.strength for p in parts]), sum(p.crowded for p in parts))
 
 
 def attenuation_image(image: np.ndarray, fov: FieldOfView, dark_balls: bool) -> np.ndarray:
@@ -135,13 +138,10 @@ def detect_blobs(image: np.ndarray, fov: FieldOfView, detection: Detection) -> B
     uv, d, strength = dark if dark_balls else bright
     # Two shadows close enough to share a centroid window or background ring (a steep tilt
     # lays one plate's ball beside the other's) would pull each other's centres: drop both.
-    gap = np.linalg.norm(uv[:, None] - uv[None], axis=2)
-    np.fill_diagonal(gap, np.inf)
-    crowded = (gap < 1.15 * d[:, None] + 0.5 * d[None, :]).any(axis=1)
-    keep = ~crowded
+    keep = ~crowded(uv, d)
     img = np.asarray(image, dtype=np.float32)
     refined = np.array([_refine_centre(img, u, v, r, dark_balls) for (u, v), r in zip(uv[keep], d[keep] / 2)]).reshape(-1, 2)
-    return Blobs(refined, d[keep], strength[keep])
+    return Blobs(refined, d[keep], strength[keep], int((~keep).sum()))
 
 
 def _candidates(stack: np.ndarray, sigmas: np.ndarray, noise: np.ndarray, inside: np.ndarray, fov: FieldOfView,

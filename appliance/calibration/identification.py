@@ -38,6 +38,7 @@ from .ball_matching import (
     split_by_size,
 )
 from .blobs import Blobs
+from .crowding import crowded, crowding_advice
 from .field_of_view import FieldOfView
 
 #: Balls of the second plate that propose its parallax shift (see `_complete`): a handful
@@ -93,7 +94,7 @@ def identify(blobs: Blobs, phantom: CalibrationPhantomProfile, K0: np.ndarray, d
         model_lines[label] = members[np.argsort(centres[members, :2] @ direction)]
     if len(lines) < 2:
         raise IdentificationFailed(f"{source}: found {len(lines)} line(s) of large balls, need at least 2 of the "
-                                   f"{len(model_lines)}; check that the whole phantom is in the field")
+                                   f"{len(model_lines)}; " + _what_to_check(blobs, phantom))
 
     # Step 3: homography hypotheses from two found lines and two model lines.
     size_ok_for = {i: (blob_large == large_model[i]) for i in in_plane}
@@ -124,8 +125,10 @@ def identify(blobs: Blobs, phantom: CalibrationPhantomProfile, K0: np.ndarray, d
                         if best is None or score > best[0]:
                             best = (score, key, H)
     if best is None or best[0] < 6:
+        advice = crowding_advice(len(blobs), blobs.crowded, phantom)
         raise IdentificationFailed(f"{source}: the large-ball lines do not match the phantom's layout "
-                                   f"({'no' if best is None else best[0]} balls of the reference plate explained)")
+                                   f"({'no' if best is None else best[0]} balls of the reference plate explained)"
+                                   + (f"; {advice}" if advice else ""))
     # A plate seen from below is a mirrored homography that can explain nearly as many balls of
     # the plate as the truth; only the other plate tells them apart. So the best few distinct
     # pairings each go through the 3-D step, and the winner must explain clearly more balls.
@@ -171,12 +174,17 @@ def identify(blobs: Blobs, phantom: CalibrationPhantomProfile, K0: np.ndarray, d
     if len(viable) > 1:
         raise IdentificationFailed(f"{source}: the phantom's orientation is ambiguous (two different pairings explain "
                                    f"{len(viable[0][0].sphere_index)} and {len(viable[1][0].sphere_index)} balls); "
-                                   "check that the whole phantom is in the field")
+                                   + _what_to_check(blobs, phantom))
     found, (_, expected) = len(viable[0][0].sphere_index), viable[0][1]
     if expected and found < 0.75 * expected:
         raise IdentificationFailed(f"{source}: only {found} of the {expected} balls the best pose puts in the field "
                                    "were found; check the exposure and that nothing covers the phantom")
     return _without_overlaps(viable[0][0], phantom, K0, dist0)
+
+
+def _what_to_check(blobs: Blobs, phantom: CalibrationPhantomProfile) -> str:
+    """The advice closing a refusal: crowded shadows (a tilt) when many were dropped, else the field."""
+    return crowding_advice(len(blobs), blobs.crowded, phantom) or "check that the whole phantom is in the field"
 
 
 def _without_overlaps(found: Identification, phantom: CalibrationPhantomProfile, K0, dist0) -> Identification:
@@ -186,10 +194,7 @@ def _without_overlaps(found: Identification, phantom: CalibrationPhantomProfile,
     predicted = project(T, phantom.centres(), K0, dist0)
     depth = phantom.centres() @ T[2, :3] + T[2, 3]
     d = K0[0, 0] * phantom.diameters() / depth
-    gap = np.linalg.norm(predicted[:, None] - predicted[None], axis=2)
-    np.fill_diagonal(gap, np.inf)
-    crowded = (gap < 1.15 * d[:, None] + 0.5 * d[None, :]).any(axis=1)
-    keep = ~crowded[found.sphere_index]
+    keep = ~crowded(predicted, d)[found.sphere_index]
     return Identification(found.sphere_index[keep], found.uv[keep], found.blob_index[keep], T,
                           found.unmatched_blobs + int((~keep).sum()))
 

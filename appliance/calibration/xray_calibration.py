@@ -24,6 +24,7 @@ from ..config.calibration_phantom import CalibrationPhantomProfile
 from ..config.fluoroscope import FluoroscopeProfile
 from ..errors import FluorosimError
 from .blobs import detect_blobs
+from .crowding import crowding_advice
 from .field_of_view import FieldOfView, find_field_of_view, whole_image
 from .fit import INTRINSIC_NAMES, Fit, View, fit_views
 from .identification import identify
@@ -110,7 +111,8 @@ def calibrate(images: list[tuple[str, np.ndarray]], phantom: CalibrationPhantomP
         outcome.identified = len(found.sphere_index)
         if outcome.identified < acceptance.min_spheres_per_image:
             outcome.reason = (f"{name}: only {outcome.identified} of {len(phantom.spheres)} balls identified "
-                              f"(need {acceptance.min_spheres_per_image}); center the phantom in the field")
+                              f"(need {acceptance.min_spheres_per_image}); "
+                              + (crowding_advice(len(blobs), blobs.crowded, phantom) or "center the phantom in the field"))
             continue
         views.append(View(name, phantom.centres()[found.sphere_index], found.uv, found.sphere_index, found.T_xray_from_phantom,
                           phantom.diameters()[found.sphere_index] / 2))

@@ -2,7 +2,8 @@
 
 A profile can be valid while the input script it names holds a NaN time, the trajectory an
 infinite angle, or the CT a gap: each is checked here with the same reader the appliance
-uses, cheaply (volume headers and a byte count, not the voxels), and reported at the line
+uses, cheaply (volume headers, a NIfTI's byte count, a few slices of other volumes: see
+patient/volume_sampling.py), and reported at the line
 of the profile that names it. Volumes may also give warnings (unusual but possible).
 """
 

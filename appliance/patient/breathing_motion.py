@@ -318,13 +318,8 @@ class BreathingAnatomy:
 def load_labels(case_path: Path, params: Respiration, ct: Volume) -> np.ndarray | None:
     """The case's label map as an integer array on the CT's grid, or None when the case gives none."""
     from ..config.loading import resolve
-    from .volume_io import load_volume
+    from .label_points import label_map_on_grid
 
     if not params.label_map:
         return None
-    path = resolve(case_path, params.label_map)
-    lab = load_volume(path, hu_checked=False)   # a label map holds label ids, not HU
-    if lab.hu.shape != ct.hu.shape or not np.allclose(lab.T_ct_from_voxel, ct.T_ct_from_voxel, atol=1e-3):
-        raise FluorosimError(f"{path}: label map is not on the CT's grid ({lab.shape_xyz} voxels vs the CT's "
-                             f"{ct.shape_xyz}, or another origin/spacing); resample it onto the CT")
-    return np.asarray(lab.hu)
+    return label_map_on_grid(resolve(case_path, params.label_map), ct)

@@ -55,7 +55,7 @@ def _beam_at_home(appliance_path: Path):
 
 
 CASE_TEMPLATE = """\
-# Made by `fluorosim case place` from {ct_name}: the target {target} (LPS mm) sits at the
+# Made by `fluorosim case place` from {ct_name}: the target {target} (LPS mm){named} sits at the
 # X-ray isocentre of {appliance_name} at its demo path's home pose, seen {beam}.
 # Check the preview before a demo; move the patient by editing the last column (mm).
 title: {title}
@@ -78,15 +78,40 @@ def _yaml_string(text: str) -> str:
     return '"' + text.replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
+def _target(args, volume) -> tuple[np.ndarray, str]:
+    """--target as a point (LPS mm), and what names it (' (the centroid of ...)' or '')."""
+    if args.label_names and not args.labels:
+        raise FluorosimError("--label-names: names the labels of a label map; give the map with --labels FILE")
+    numeric = all(_is_number(p) for p in args.target.split(",")) and args.target.count(",") == 2
+    if numeric:
+        return parse_point(args.target, "--target"), ""
+    if not args.labels:
+        raise FluorosimError(f"--target {args.target!r}: give three numbers in LPS mm (--target=12.5,-30,140), or a "
+                             f"label's name together with the label map (--labels FILE)")
+    from .label_points import label_points
+
+    points = label_points(Path(args.labels), volume, Path(args.label_names) if args.label_names else None)
+    centroid, count = points.centroid(args.target)
+    return np.round(centroid, 2), f" (the centroid of label {args.target!r}, {count} voxels of {Path(points.source).name})"
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def run_place(args) -> int:
     from .placement import coverage, place
     from .placement_preview import draw_preview, write_preview
     from .volume_io import load_volume
 
     ct = Path(args.ct)
-    target = parse_point(args.target, "--target")
     appliance_path = Path(args.appliance) if args.appliance else default_config_dir() / DEFAULT_APPLIANCE
     volume = load_volume(ct)
+    target, named = _target(args, volume)
     config, geometry = _beam_at_home(appliance_path)
     from .inspection import value_at
 
@@ -105,9 +130,10 @@ def run_place(args) -> int:
         volume_ref = str(ct.resolve())
     rows = "\n".join("  - [" + ", ".join(f"{v:.6g}" if abs(v) > 1e-12 else "0" for v in row) + "]" for row in T)
     text = CASE_TEMPLATE.format(
-        ct_name=ct.name, target=", ".join(f"{v:g}" for v in target), appliance_name=appliance_path.name, beam=args.beam,
+        ct_name=ct.name, target=", ".join(f"{v:g}" for v in target), named=named, appliance_name=appliance_path.name, beam=args.beam,
         title=_yaml_string(args.title or ct.name), volume=_yaml_string(volume_ref), matrix=rows,
-        description=_yaml_string(f"Own CT {ct.name}, {args.beam} beam, target ({', '.join(f'{v:g}' for v in target)}) mm"))
+        description=_yaml_string(f"Own CT {ct.name}, {args.beam} beam, target ({', '.join(f'{v:g}' for v in target)}) mm"
+                                 + named))
     if out is None:
         print(text, end="")
     else:
@@ -115,7 +141,8 @@ def run_place(args) -> int:
             write_atomic(out, text.encode("utf-8"), backup=out.exists())
         except OSError as e:
             raise FluorosimError(f"{out}: cannot write ({e.strerror or e}); check the folder's permissions") from None
-        print(f"{out}: case profile written; target {hu} HU at the isocentre, phantom "
+        print(f"{out}: case profile written; target{named} at LPS ({', '.join(f'{v:g}' for v in target)}) mm, "
+              f"{hu} HU, at the isocentre, phantom "
               f"({', '.join(f'{v:.1f}' for v in geometry.isocentre)}) mm, {args.beam} beam")
     short = coverage(volume, T, geometry).short_mm
     names = {"head+": "toward the head", "head-": "toward the feet", "across+": "to one side", "across-": "to the other side"}
@@ -148,8 +175,16 @@ def register(commands, benches) -> None:
                     "of the appliance's fluoroscope at its demo path's home pose, with the patient's head along the "
                     "box and the beam entering PA (supine), AP (prone) or LAT (left side toward the detector). Writes "
                     "the case profile and a preview PNG.", ct_argument)
-    p.add_argument("--target", required=True, metavar="X,Y,Z",
-                   help="the point to centre, in the CT's LPS mm (write --target=-12,5,30 when it starts with a minus)")
+    p.add_argument("--target", required=True, metavar="X,Y,Z|NAME",
+                   help="the point to centre, in the CT's LPS mm (write --target=-12,5,30 when it starts with a minus), "
+                        "or with --labels the name of a label, whose centroid is centred")
+    p.add_argument("--labels", metavar="FILE",
+                   help="label map on the CT's grid (NIfTI, MHA or NRRD), or a case profile whose respiration.label_map "
+                        "and respiration.labels name it (the roles lungs, liver, spine, ribs, diaphragm); every id N "
+                        "is also called label-N")
+    p.add_argument("--label-names", metavar="TABLE",
+                   help="names of the label map's ids: one `ID NAME` a line (a 3D Slicer colour table) or an ITK-SNAP "
+                        "label description (the name quoted last)")
     p.add_argument("--beam", default="PA", choices=("PA", "AP", "LAT"), help="how the beam sees the patient (default PA)")
     p.add_argument("--out", metavar="CASE.yaml", help="write the case profile here (default: print it)")
     p.add_argument("--preview", metavar="PNG", help="preview picture (default: CASE-preview.png beside --out)")

@@ -129,8 +129,9 @@ def _scan_nifti(path: Path) -> _NiftiScan | None:
         return scan
 
 
-def check_header(path: Path) -> tuple[list[str], list[str]]:
-    """Header-level problems of a volume file (NIfTI, MetaImage, NRRD), without loading its voxels."""
+def check_header(path: Path, hu_checked: bool = True) -> tuple[list[str], list[str]]:
+    """Header-level problems of a volume file (NIfTI, MetaImage, NRRD), without loading its voxels;
+    `hu_checked=False` for a file that holds no HU (a label map): its values are not judged."""
     import SimpleITK as sitk
 
     from .volume_io import _stderr_captured
@@ -163,7 +164,7 @@ def check_header(path: Path) -> tuple[list[str], list[str]]:
         offset, have = scanned.offset, scanned.total
         if scanned.non_finite:
             return [_non_finite(scanned.non_finite, voxels)], warnings
-        if math.isfinite(scanned.low):
+        if hu_checked and math.isfinite(scanned.low):
             found_errors, found_warnings = _hu_findings(scanned.low, np.array(sorted(scanned.distinct)))
             if found_errors:
                 return found_errors, warnings

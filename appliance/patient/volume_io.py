@@ -20,6 +20,7 @@ import numpy as np
 from ..errors import FluorosimError
 from .volume import Volume
 from .volume_checks import check_header, check_hu, check_spacing
+from .volume_sampling import check_sampled_hu
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +47,7 @@ def load_volume(path: str | Path, *, hu_checked: bool = True) -> Volume:
         raise FluorosimError(f"{p}: unknown volume format; use a DICOM series folder, .nii/.nii.gz, .mha/.mhd or .nrrd")
     import SimpleITK as sitk
 
-    _refuse_or_warn(str(p), (check_header(p)[0], []))  # its warnings come again from the loaded image
+    _refuse_or_warn(str(p), (check_header(p, hu_checked)[0], []))  # its warnings come again from the loaded image
     with _stderr_captured() as said:
         try:
             image = sitk.ReadImage(str(p))
@@ -148,10 +149,15 @@ def check_volume(path: Path) -> tuple[list[str], list[str]]:
         if path.is_dir():
             headers, _, step = dicom_series_headers(path)
             errors, warnings = check_spacing([*map(float, headers[0][1].PixelSpacing), step])
+            files: list[Path] | None = [f for f, _ in headers]
         else:
             if not path.name.lower().endswith(FILE_SUFFIXES):
                 load_volume(path)  # raises the one line for an unknown or single-DICOM file
             errors, warnings = check_header(path)
+            files = None
+        if not errors and not path.name.lower().endswith((".nii", ".nii.gz")):   # a NIfTI's voxels were scanned
+            errors, more = check_sampled_hu(path, files)
+            warnings = warnings + more
     except FluorosimError as e:
         return [str(e)], []
     return [f"{path}: {m}" for m in errors], [f"{path}: {m}" for m in warnings]

@@ -47,7 +47,7 @@ from .seal import Seal, seal_from_environment
 # The ledger's schema, connections and chain live in ledger_schema.py and ledger_chain.py;
 # every command and test that reads the ledger imports them from here, with the writer.
 __all__ = ["EVENT_COLUMNS", "FULL_DISK_BYTES", "GENESIS", "MIGRATIONS", "SESSION_COLUMNS", "ChainReport", "Ledger",
-           "LedgerBusy", "event_hash", "open_readonly", "open_writer", "session_rows_problem", "verify"]
+           "LedgerBusy", "carry_from", "event_hash", "open_readonly", "open_writer", "session_rows_problem", "verify"]
 
 log = logging.getLogger(__name__)
 
@@ -250,23 +250,7 @@ class Ledger:
         return session, events
 
     def _carry_from(self, session_id: int) -> dict | None:
-        """Cumulative fluoroscopy time and alarm count a crashed session leaves to the next: its
-        own since a person last reset the timer, plus what it had carried from one before."""
-        rows = [dict(r) for r in self._conn.execute(
-            "SELECT kind, d_fluoro_time_s, detail FROM events WHERE session_id = ? ORDER BY id", (session_id,))]
-        time_s, alarms = 0.0, 0
-        for r in rows:
-            detail = json.loads(r["detail"])
-            if r["kind"] == "session_start":
-                carried = detail.get("carried") or {}
-                time_s, alarms = float(carried.get("fluoro_time_s", 0.0)), int(carried.get("alarms", 0))
-            elif r["kind"] == "alarm_reset" and detail.get("timer") == "reset":
-                time_s, alarms = 0.0, 0
-            time_s += r["d_fluoro_time_s"]
-            alarms += r["kind"] == "alarm"
-        if time_s <= 0 and alarms == 0:
-            return None
-        return {"fluoro_time_s": time_s, "alarms": alarms, "from_session": session_id}
+        return carry_from(self._conn, session_id)
 
     def carry_over(self) -> dict | None:
         """What the console continues from after a crash (21 CFR 1020.32: the cumulative timer is
@@ -284,3 +268,23 @@ class Ledger:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def carry_from(conn: sqlite3.Connection, session_id: int) -> dict | None:
+    """Cumulative fluoroscopy time and alarm count a crashed session leaves to the next: its
+    own since a person last reset the timer, plus what it had carried from one before."""
+    rows = [dict(r) for r in conn.execute(
+        "SELECT kind, d_fluoro_time_s, detail FROM events WHERE session_id = ? ORDER BY id", (session_id,))]
+    time_s, alarms = 0.0, 0
+    for r in rows:
+        detail = json.loads(r["detail"])
+        if r["kind"] == "session_start":
+            carried = detail.get("carried") or {}
+            time_s, alarms = float(carried.get("fluoro_time_s", 0.0)), int(carried.get("alarms", 0))
+        elif r["kind"] == "alarm_reset" and detail.get("timer") == "reset":
+            time_s, alarms = 0.0, 0
+        time_s += r["d_fluoro_time_s"]
+        alarms += r["kind"] == "alarm"
+    if time_s <= 0 and alarms == 0:
+        return None
+    return {"fluoro_time_s": time_s, "alarms": alarms, "from_session": session_id}
