@@ -9,6 +9,7 @@ grey range) on a synthetic adult chest CT.
 
 from __future__ import annotations
 
+import functools
 import math
 from pathlib import Path
 
@@ -161,24 +162,30 @@ def test_exposure_control_stays_within_the_dose_rate_limit(ii128):
     assert pulsed.exposure_factor * rate_pulsed < 88.0
 
 
-def spekpy_kerma(kvp: float) -> float:
-    """Air kerma per mAs at 1 m of the profile's tube at `kvp`, from spekpy itself."""
+@functools.lru_cache(maxsize=16)
+def _spek(kvp: float, filtration_mm_al: float):
+    """spekpy's own spectrum of the tube (12 degree anode, 0.5 keV steps): (energies keV,
+    fluence per keV per mAs at 1 m, air kerma uGy per mAs at 1 m). Each costs seconds."""
     import spekpy
 
     s = spekpy.Spek(kvp=kvp, th=12.0, dk=0.5)
-    s.filter("Al", II.tube.filtration_mm_al)
-    return float(s.get_kerma())
+    s.filter("Al", filtration_mm_al)
+    k, phi = s.get_spectrum()
+    return k, phi, float(s.get_kerma())
 
 
-def water_signal(kvp: float, water_mm: float) -> float:
-    """An energy-integrating detector's signal per mAs behind `water_mm` of water at `kvp`:
-    spekpy's spectrum (0.5 keV steps) through xraylib's water, summed over photons x energy."""
-    import spekpy
+def spekpy_kerma(kvp: float, fl=II) -> float:
+    """Air kerma per mAs at 1 m of the profile's tube at `kvp`, from spekpy itself."""
+    return _spek(float(kvp), float(fl.tube.filtration_mm_al))[2]
+
+
+def water_signal(kvp: float, water_mm: float, fl=II) -> float:
+    """An energy-integrating detector's signal per mAs behind `water_mm` of water at `kvp`
+    through the tube filtration of profile `fl`: spekpy's spectrum (0.5 keV steps) through
+    xraylib's water, summed over photons x energy."""
     import xraylib
 
-    s = spekpy.Spek(kvp=kvp, th=12.0, dk=0.5)
-    s.filter("Al", II.tube.filtration_mm_al)
-    k, phi = s.get_spectrum()
+    k, phi, _ = _spek(float(kvp), float(fl.tube.filtration_mm_al))
     mu = np.array([xraylib.CS_Total_CP("Water, Liquid", float(e)) for e in k]) / 10.0
     return float(np.sum(phi * k * np.exp(-mu * water_mm)))
 

@@ -79,7 +79,8 @@ def test_bad_input_exits_2_with_one_line(case, change, expect):
     d, _, _, T = case
     (d / "bad_pose.yaml").write_text("T_xray_from_ct:\n" + "".join(f"  - [{', '.join(str(2 * x) for x in row)}]\n" for row in T))
     (d / "junk.mha").write_text("ObjectType = Image\nNDims = 3\n")
-    (d / "bad_profile.yaml").write_text((d / "flat256.yaml").read_text().replace("kvp: 70", "kvp: 7000"))
+    # The tube's kV, not the curve's 70 kV point.
+    (d / "bad_profile.yaml").write_text((d / "flat256.yaml").read_text().replace("kvp: 70\n", "kvp: 7000\n", 1))
     args = {"volume": "box.nii.gz", "fluoroscope": "flat256.yaml", "pose": "pose.yaml", "output": "o.npy"}
     args.update(change)
     # In the test process: a traceback would fail the test as surely as on stderr; the real

@@ -101,7 +101,8 @@ def test_automatic_brightness_shows_thin_and_thick_patients_equally_bright():
     centre is the median attenuation there), and the tube output is exp(mu L - reference)
     within the profile's limits; with a fixed level a thicker slab is brighter by mu x L / window."""
     fixed = Renderer(profile("generic-flat-detector.yaml", abc={"enabled": False}), Materials(), device="cpu")
-    abc = Renderer(profile("generic-flat-detector.yaml", abc={"enabled": True}), Materials(), device="cpu")
+    # The control without a kV-mA curve (the shipped room has one: test_flat_detector_abc).
+    abc = Renderer(profile("generic-flat-detector.yaml", abc={"enabled": True, "curve": []}), Materials(), device="cpu")
     limits = abc.fluoroscope.abc
     ref = spekpy.Spek(kvp=70, th=12)
     ref.filter("Al", 6.0)

@@ -19,6 +19,23 @@ class Run:
     air_kerma_mgy: float = 0.0
     dap_gy_cm2: float = 0.0
     pulses: int = 0
+    # Time integrals of the technique the generator held (kV s, mA s), for the run's means.
+    kvp_s: float = 0.0
+    ma_s: float = 0.0
+
+    def hold(self, dt_s: float, kvp: float, ma: float) -> None:
+        """`dt_s` more seconds of exposure at `kvp` (kV) and `ma` (mA)."""
+        self.duration_s += dt_s
+        self.kvp_s += kvp * dt_s
+        self.ma_s += ma * dt_s
+
+    def mean_technique(self, kvp: float, ma: float) -> tuple[float, float]:
+        """(kV, mA) averaged over the run's time, as the RDSR's per-event KVP and X-Ray Tube
+        Current are (the mean over the irradiation event: the exposure control moves them
+        during a run); `kvp` and `ma`, the technique now, for a run that lasted no time."""
+        if self.duration_s <= 0:
+            return kvp, ma
+        return self.kvp_s / self.duration_s, self.ma_s / self.duration_s
 
     def schedule_next_pulse(self, rate_per_s: float) -> None:
         """The next pulse after `pulses` of them, counted from the run's start rather than the

@@ -105,7 +105,7 @@ class Console:
             return
         if self._run is not None:
             self.fluoro_time_s += dt
-            self._run.duration_s += dt
+            self._run.hold(dt, self.kvp, self.ma)
             if self.mode.pulse_rate_per_s is None:
                 kerma = self._rate() / 60.0 * dt
                 self._add_kerma(kerma)
@@ -181,7 +181,10 @@ class Console:
         self.fluoro_on = False
         if run is None:     # callers end a run only while exposing
             return
-        self._emit(out, t, "fluoro_off", run=run.run, reason=reason, **run.summary(), **self._settings())
+        # The kV and mA of a run are its time-weighted means; fluoro_on holds those it began with.
+        kvp, ma = run.mean_technique(self.kvp, self.ma)
+        self._emit(out, t, "fluoro_off", run=run.run, reason=reason, **run.summary(),
+                   **{**self._settings(), "kvp": kvp, "ma": ma})
         self._run = None
 
     def _settings(self) -> dict:
@@ -319,14 +322,15 @@ class Console:
     def set_exposure_factor(self, factor: float, now: float, kvp: float | None = None,
                             ma: float | None = None) -> list[ConsoleEvent]:
         """The automatic brightness control changed the tube output to `factor` x the reference
-        technique's air-kerma rate at `now`, at `kvp` and `ma` (None: the reference technique's):
-        dose up to `now` accrues at the old rate, after it at the new; runs record the technique."""
+        technique's air-kerma rate at `now`, at `kvp` and `ma` (None: tube.kvp, and tube.ma x
+        `factor`, the output of a control without a kV-mA curve being the tube current's): dose
+        up to `now` accrues at the old rate, after it at the new; runs record the technique."""
         out: list[ConsoleEvent] = []
         self._advance(now, out)
         self.exposure_factor = float(factor)
         tube = self.fl.tube
         self.kvp = tube.kvp if kvp is None else float(kvp)
-        self.ma = tube.ma if ma is None else float(ma)
+        self.ma = tube.ma * self.exposure_factor if ma is None else float(ma)
         return out
 
     def note(self, t: float, kind: str, **detail) -> list[ConsoleEvent]:

@@ -190,12 +190,15 @@ def _paint_abdomen(layer: Layer, rng) -> None:
                     HU_MUSCLE, *bounds([c], 310))
 
 
-def build_adult_chest(shape_zyx=(136, 512, 512), spacing_mm=(2.5, 0.8, 0.8), seed=0):
+def build_adult_chest(shape_zyx=(136, 512, 512), spacing_mm=(2.5, 0.8, 0.8), seed=0,
+                      origin_mm=None, ct_noise=True):
     """The adult chest CT on a grid of `shape_zyx` voxels of `spacing_mm` (z, y, x; mm).
 
     Returns (hu, spacing_mm, origin_mm): int16 HU indexed [z, y, x]; the spacing (z, y, x)
     as given; the LPS position (x, y, z; mm) of voxel [0, 0, 0]. The body is centred in the
-    grid; `seed` picks the vessel branching, bowel gas and CT noise.
+    grid unless `origin_mm` places voxel [0, 0, 0] (a part of the same patient on a finer
+    grid: the same seed draws the same vessels and gas); `seed` picks the vessel branching,
+    bowel gas and CT noise; `ct_noise` False leaves the CT's own noise out (the anatomy alone).
     """
     if len(shape_zyx) != 3 or min(shape_zyx) < 2:
         raise FluorosimError(f"adult chest: shape_zyx {tuple(shape_zyx)} must be three counts of at least 2 voxels")
@@ -203,6 +206,8 @@ def build_adult_chest(shape_zyx=(136, 512, 512), spacing_mm=(2.5, 0.8, 0.8), see
         raise FluorosimError(f"adult chest: spacing_mm {tuple(spacing_mm)} must be three positive sizes (mm)")
     rng = np.random.default_rng(seed)
     grid = AnisotropicGrid(shape_zyx, spacing_mm)
+    if origin_mm is not None:
+        grid.origin_mm = tuple(float(o) for o in origin_mm)
     layer = Layer(grid, HU_AIR)
     every = (-1e4, -1e4, -1e4), (1e4, 1e4, 1e4)
     _, X, Y, Z = grid.box(*every)
@@ -217,7 +222,8 @@ def build_adult_chest(shape_zyx=(136, 512, 512), spacing_mm=(2.5, 0.8, 0.8), see
     paint_ribs_and_sternum(layer)
     paint_spine(layer)
     hu = layer.value
-    hu += rng.normal(0.0, HU_NOISE, hu.shape).astype(np.float32)
+    if ct_noise:
+        hu += rng.normal(0.0, HU_NOISE, hu.shape).astype(np.float32)
     out = np.clip(np.rint(hu), -1024, 3071).astype(np.int16)
     return out, tuple(float(s) for s in spacing_mm), tuple(float(o) for o in grid.origin_mm)
 
