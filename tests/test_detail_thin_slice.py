@@ -11,7 +11,7 @@ from test_image_chain import CONFIGS
 from appliance.config.case import Materials
 from appliance.config.fluoroscope import FluoroscopeProfile
 from appliance.config.loading import load_profile
-from appliance.xray import acceptance
+from appliance.xray import acceptance, bar_pattern
 from appliance.xray.anatomy_reference import ANATOMY_HALF_MM, BODY_Y_MM, THIN_SPACING_MM, adult_chest_box
 from appliance.xray.renderer import Renderer, View, at_resolution
 
@@ -28,7 +28,7 @@ def thin_lung():
 
 def test_zoom_4_keeps_the_detail_of_a_thin_slice_ct(thin_lung):
     ii = load_profile(CONFIGS / "generic-ii-carm.yaml", FluoroscopeProfile)
-    straight = acceptance._undistorted(at_resolution(ii, 256, 256))
+    straight = bar_pattern.undistorted(at_resolution(ii, 256, 256))
     renderer = Renderer(straight, Materials(), device="cpu")
     prepared = renderer.prepare(thin_lung)
     T = acceptance.ap_pose(straight.geometry.source_to_isocentre_mm, R_LUNG)

@@ -22,11 +22,12 @@ from appliance.config.loading import load_profile
 from appliance.display.compositor import Compositor, Overlay
 from appliance.patient.adult_chest import SIZES, build_adult_chest
 from appliance.patient.volume import Volume
-from appliance.xray import acceptance
+from appliance.xray import acceptance, bar_pattern
 from appliance.xray.casting import CastCancelled
 from appliance.xray.detector import Detector, RecursiveFilter
 from appliance.xray.display_lut import soft_knee
 from appliance.xray.renderer import Renderer, View, at_resolution
+from appliance.xray.truth import photon_statistics
 from appliance.xray.truth.analytic import box_volume
 from drivers.framebuffer import open_display
 
@@ -117,7 +118,7 @@ def test_recursive_filter_step_response_is_w_to_the_k():
 
 def test_water_slab_snr_matches_photon_statistics_and_holds_across_zoom(ii128):
     """The displayed SNR of a 150 mm water slab against sqrt(N): N from the profile's air-kerma
-    rate, inverse-square law and spekpy's fluence per air kerma (acceptance.expected_slab_snr),
+    rate, inverse-square law and spekpy's fluence per air kerma (photon_statistics.expected_slab_snr),
     with the settled recursive filter and the point-spread's variance reduction."""
     r = ii128
     prepared = r.prepare(acceptance._water_slab(150.0))
@@ -133,7 +134,7 @@ def test_water_slab_snr_matches_photon_statistics_and_holds_across_zoom(ii128):
         for seed in range(4):
             frame = r.render(prepared, T, View(zoom=zoom, seed=seed))
             measured.append(1.0 / np.std(frame.signal[roi] / clean))
-        expected = acceptance.expected_slab_snr(r.fluoroscope, zoom, transmission, frame.exposure_factor,
+        expected = photon_statistics.expected_slab_snr(r.fluoroscope, zoom, transmission, frame.exposure_factor,
                                                 r.mu_water_per_mm, r.detector.psf_sigma_px(zoom), settled=True,
                                                 kvp=frame.kvp)
         assert np.median(measured) == pytest.approx(expected, rel=0.10), zoom
@@ -338,7 +339,7 @@ def test_bar_pattern_limiting_resolution_follows_the_profile_and_rises_with_zoom
     drawn = bar_pattern_volume()
     np.testing.assert_array_equal(shipped.hu, drawn.hu)
     np.testing.assert_allclose(shipped.T_ct_from_voxel, drawn.T_ct_from_voxel, atol=1e-9)
-    figures = acceptance.resolution_per_zoom(II, "cpu", zooms=(1, 4))
+    figures = bar_pattern.resolution_per_zoom(II, "cpu", zooms=(1, 4))
     for zoom, measured, stated in figures:
         assert measured == pytest.approx(stated, rel=0.2), zoom
     assert figures[1][1] > 1.5 * figures[0][1]

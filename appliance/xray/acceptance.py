@@ -31,6 +31,8 @@ from ..errors import FluorosimError
 from ..geometry import make_transform
 from ..patient.materials import mass_attenuation
 from ..patient.volume import Volume
+from .bar_pattern import resolution_per_zoom, undistorted
+from .truth.photon_statistics import expected_slab_snr
 
 if TYPE_CHECKING:
     from .renderer import Frame
@@ -91,84 +93,6 @@ def detail_correlation(display: np.ndarray, truth: np.ndarray, inside: np.ndarra
         return float("nan")
     a, b = band_pass(d)[core], band_pass(truth)[core]
     return abs(float(np.corrcoef(a, b)[0, 1]))
-
-
-def gaussian_noise_gain(sigma_px: float) -> float:
-    """Sum of squared weights of the normalised sampled Gaussian of `sigma_px` (the factor a
-    blur multiplies white noise's variance by), from its closed-form 1-D samples."""
-    if sigma_px <= 0.3:
-        return 1.0          # the detector skips blurs this small
-    r = int(math.ceil(4 * sigma_px))
-    x = np.arange(-r, r + 1, dtype=float)
-    k = np.exp(-x * x / (2 * sigma_px * sigma_px))
-    k /= k.sum()
-    return float((k * k).sum() ** 2)
-
-
-def expected_slab_snr(fl: FluoroscopeProfile, zoom: int, transmission: float, factor: float, mu_water_per_mm: float,
-                      psf_sigma_px: float, settled: bool, kvp: float | None = None) -> float:
-    """Pixel SNR that photon statistics give a uniform slab: sqrt(N) with N the photons per
-    pixel per frame (profile rate -> air kerma per frame at the reference point -> inverse
-    square to the detector -> spekpy fluence per air kerma behind the reference patient ->
-    pixel area -> slab transmission x exposure factor), N raised by (1 + w)/(1 - w) for the
-    settled recursive filter, the noise lowered by the point-spread and by glare's (1 - g).
-    `kvp`: the tube voltage the exposure control set (None: tube.kvp); spekpy's own spectrum
-    there gives the fluence per air kerma."""
-    import spekpy
-
-    mode = fl.tube.modes[0]
-    rate = fl.zoom_levels[zoom - 1].air_kerma_rate_mgy_per_min[mode.name]
-    fps = getattr(mode, "pulse_rate_per_s", None) or fl.image.frame_rate_per_s
-    d_ref = fl.geometry.source_to_isocentre_mm - fl.dose.reference_point_from_isocentre_mm
-    kerma_ugy = rate * 1000.0 / 60.0 / fps * (d_ref / fl.geometry.source_to_image_mm) ** 2
-    s = spekpy.Spek(kvp=fl.tube.kvp if kvp is None else kvp, th=12.0, dk=0.5)
-    s.filter("Al", fl.tube.filtration_mm_al)
-    s.filter("Water, Liquid", fl.abc.reference_attenuation / mu_water_per_mm)
-    per_mm2_per_ugy = s.get_flu() / s.get_kerma() / 100.0
-    fovs = [z.fov_mm for z in fl.zoom_levels]
-    pitch = fl.detector.pixel_pitch_mm * fovs[zoom - 1] / fovs[0]
-    n = kerma_ugy * per_mm2_per_ugy * pitch * pitch * transmission * factor
-    w = fl.image.recursive_weight
-    if settled:
-        n *= (1 + w) / (1 - w)
-    g = fl.image.veiling_glare
-    return math.sqrt(n) / math.sqrt(gaussian_noise_gain(psf_sigma_px)) / (1.0 - g)
-
-
-def resolution_per_zoom(fl_native: FluoroscopeProfile, device: str = "auto",
-                        zooms=(1, 2, 3, 4)) -> list[tuple[int, float, float]]:
-    """(zoom, measured limiting resolution lp/mm at the input plane, the profile's) of the bar
-    pattern laid on the intensifier's input face (15 mm in front of it), rendered noise-free at
-    the detector's native matrix in a 6 mm strip across the bars (no pincushion: straight bars)."""
-    from ..config.case import Materials
-    from .bar_pattern import bar_pattern_volume, limiting_from, modulations
-    from .casting import pixel_pitch_at_zoom_mm
-    from .detector import MTF_AT_LIMIT
-    from .renderer import Renderer, View, zoomed_K
-
-    straight = _undistorted(fl_native)
-    renderer = Renderer(straight, Materials(), device=device)
-    prepared = renderer.prepare(bar_pattern_volume())
-    sid = straight.geometry.source_to_image_mm
-    depth = sid - 15.0
-    T = make_transform(np.eye(3), [0.0, 0.0, depth])
-    out = []
-    for zoom in zooms:
-        fov = straight.zoom_levels[zoom - 1].fov_mm
-        image = renderer.render(prepared, T, View(zoom=zoom, quantity="intensity", noise=False,
-                                                  collimation_mm=(fov, 6.0))).image
-        K = zoomed_K(straight, zoom)
-        row = image[int(round(K[1, 2]))]
-        nyquist = 0.5 / pixel_pitch_at_zoom_mm(straight, zoom)
-        mods = modulations(row, lambda x, K=K: K[0, 2] + K[0, 0] * x / depth, sid / depth, nyquist)
-        out.append((zoom, limiting_from(mods, MTF_AT_LIMIT, nyquist), straight.image.limiting_resolution_lp_per_mm[zoom - 1]))
-    return out
-
-
-def _undistorted(fl: FluoroscopeProfile) -> FluoroscopeProfile:
-    """The same machine without pincushion distortion."""
-    d = fl.intrinsics.distortion.model_copy(update=dict(k1=0.0, k2=0.0, p1=0.0, p2=0.0, k3=0.0))
-    return fl.model_copy(update={"intrinsics": fl.intrinsics.model_copy(update={"distortion": d})})
 
 
 @dataclass
@@ -241,7 +165,7 @@ def run(args) -> int:
     fl_full = load_profile(args.fluoroscope, FluoroscopeProfile)
     fl = at_resolution(fl_full, args.size, args.size)
     # The detail figure compares with the undistorted line integral: the same machine without pincushion.
-    straight = _undistorted(fl)
+    straight = undistorted(fl)
     started = time.perf_counter()
     sod = fl.geometry.source_to_isocentre_mm
     zooms = [int(z) for z in args.zooms.split(",")]
