@@ -4,13 +4,15 @@ The CT is split once into three parts:
 
 - the still skeleton: the spine (labels, or bone within `spine_half_width_mm` of the
   midline behind the body's centre) and every bone piece that is not a rib;
-- the ribs: each piece of the rib labels, or without them each bone piece within
-  `rib_head_max_mm` of the spine, at least `rib_min_length_mm` long, its joint no lower
-  than `rib_below_dome_mm` under the diaphragm; a rigid body turned about its
-  costovertebral joint (the piece's point nearest the spine) by lambda about the
-  left-right axis (pump handle: the front rises) and gamma about the anteroposterior axis
-  (bucket handle: the side rises). From HU alone, ribs touching the scapula move with it
-  as one piece, and the sternum stays still: give rib labels where that matters;
+- the ribs: each piece of the rib labels, or without them each piece of the bone that
+  lines the lungs (within `rib_pleura_max_mm` of them, or within `rib_neck_mm` of the spine
+  for the necks) that comes within `rib_head_max_mm` of the spine, at least
+  `rib_min_length_mm` long, its joint no lower than `rib_below_dome_mm` under the diaphragm;
+  a rigid body turned about its costovertebral joint (the piece's point nearest the spine)
+  by lambda about the left-right axis (pump handle: the front rises) and gamma about the
+  anteroposterior axis (bucket handle: the side rises). The scapula lies outside the rib
+  cage, beyond its muscles, so where it touches an upper rib on the CT only the rib moves;
+  the sternum stays still: give rib labels where that matters;
 - soft tissue (bone replaced by `bone_fill_hu`), displaced downward by the tendon's
   descent D times a smooth weight: 1 from the lowest point of the diaphragm to the top of
   its dome, falling linearly to 0 at the lung apices (the lungs stretch) and over
@@ -71,6 +73,21 @@ def _label_mask(labels: np.ndarray | None, ids) -> np.ndarray | None:
     if labels is None or not ids:
         return None
     return np.isin(labels, np.asarray(ids, dtype=labels.dtype))
+
+
+def _distance_near(mask: np.ndarray, reach_mm: float, sampling) -> np.ndarray:
+    """float32 distance (mm) of each voxel from `mask`, computed only in the mask's bounding box
+    grown by `reach_mm` (inf beyond it, and everywhere for an empty mask)."""
+    from scipy import ndimage
+
+    out = np.full(mask.shape, np.inf, np.float32)
+    if not mask.any():
+        return out
+    lo_hi = [(int(ix.min()), int(ix.max())) for ix in np.nonzero(mask)]
+    grow = [int(math.ceil(reach_mm / s)) for s in sampling]
+    crop = tuple(slice(max(a - g, 0), min(b + g + 1, n)) for (a, b), g, n in zip(lo_hi, grow, mask.shape))
+    out[crop] = ndimage.distance_transform_edt(~mask[crop], sampling=sampling)
+    return out
 
 
 class BreathingAnatomy:
@@ -161,24 +178,26 @@ class BreathingAnatomy:
             band = (np.abs(i_x - xc) <= params.spine_half_width_mm)[None, None, :] & (j_y >= yc)[None, :, None]
             spine = bone & band
         rib_mask = _label_mask(labels, role.get("ribs"))
-        if rib_mask is None:
-            rib_mask = bone & ~spine
-            # Ribs lie between the lowest ribs (below the diaphragm's lowest point) and the apices.
-            in_thorax = (z_k >= self.dome_low_z - 80.0) & (z_k <= self.lung_top_z + 10.0)
-            rib_mask &= in_thorax[:, None, None]
-            from_labels = False
-        else:
-            from_labels = True
-        pieces, n = ndimage.label(rib_mask)
+        from_labels = rib_mask is not None
         # Distance to the spine only near it (a whole-CT distance map costs seconds on a clinical CT).
         far = None
         if spine.any():
-            reach = params.rib_head_max_mm + 2 * float(max(abs(self.dz), *sp))
-            lo_hi = [(int(ix.min()), int(ix.max())) for ix in np.nonzero(spine)]
-            grow = [int(math.ceil(reach / s)) for s in (abs(self.dz), sp[1], sp[0])]
-            crop = tuple(slice(max(a - g, 0), min(b + g + 1, n)) for (a, b), g, n in zip(lo_hi, grow, hu.shape))
-            far = np.full(hu.shape, np.inf, np.float32)
-            far[crop] = ndimage.distance_transform_edt(~spine[crop], sampling=(abs(self.dz), sp[1], sp[0]))
+            reach = (params.rib_head_max_mm if from_labels else max(params.rib_head_max_mm, params.rib_neck_mm))
+            far = _distance_near(spine, reach + 2 * float(max(abs(self.dz), *sp)), (abs(self.dz), sp[1], sp[0]))
+        if rib_mask is None:
+            rib_mask = bone & ~spine
+            # Ribs lie between the lowest ribs (below the diaphragm's lowest point) and the apices,
+            # on the lungs (their necks beside the spine): not the scapula outside the cage.
+            in_thorax = (z_k >= self.dome_low_z - 80.0) & (z_k <= self.lung_top_z + 10.0)
+            rib_mask &= in_thorax[:, None, None]
+            lining = _distance_near(lungs, params.rib_pleura_max_mm + 2 * float(max(abs(self.dz), *sp)),
+                                    (abs(self.dz), sp[1], sp[0])) <= params.rib_pleura_max_mm
+            if far is not None:
+                lining |= far <= params.rib_neck_mm
+            # Below the domes' tops no scapula lies on the cage, and the lowest ribs run below the lungs.
+            lining |= (z_k < self.dome_top_z)[:, None, None]
+            rib_mask &= lining
+        pieces, n = ndimage.label(rib_mask)
         self.ribs: list[Rib] = []
         moving = np.zeros(hu.shape, bool)
         objects = ndimage.find_objects(pieces)
