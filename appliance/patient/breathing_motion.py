@@ -4,15 +4,16 @@ The CT is split once into three parts:
 
 - the still skeleton: the spine (labels, or bone within `spine_half_width_mm` of the
   midline behind the body's centre) and every bone piece that is not a rib;
-- the ribs: each piece of the rib labels, or without them each piece of the bone that
-  lines the lungs (within `rib_pleura_max_mm` of them, or within `rib_neck_mm` of the spine
-  for the necks) that comes within `rib_head_max_mm` of the spine, at least
-  `rib_min_length_mm` long, its joint no lower than `rib_below_dome_mm` under the diaphragm;
-  a rigid body turned about its costovertebral joint (the piece's point nearest the spine)
-  by lambda about the left-right axis (pump handle: the front rises) and gamma about the
-  anteroposterior axis (bucket handle: the side rises). The scapula lies outside the rib
-  cage, beyond its muscles, so where it touches an upper rib on the CT only the rib moves;
-  the sternum stays still: give rib labels where that matters;
+- the ribs: each piece of the rib labels, or without them each bone piece within
+  `rib_head_max_mm` of the spine, at least `rib_min_length_mm` long, its joint no lower
+  than `rib_below_dome_mm` under the diaphragm; a rigid body turned about its
+  costovertebral joint (the piece's point nearest the spine) by lambda about the
+  left-right axis (pump handle: the front rises) and gamma about the anteroposterior axis
+  (bucket handle: the side rises). From HU alone a scapula touching the upper ribs would
+  move with them as one piece; with `rib_pleura_max_mm` the pieces are cut from the bone
+  that lines the lungs behind the body's centre (the scapula lies outside the cage, beyond
+  its muscles), so only the ribs move. The sternum stays still: give rib labels where that
+  matters;
 - soft tissue (bone replaced by `bone_fill_hu`), displaced downward by the tendon's
   descent D times a smooth weight: 1 from the lowest point of the diaphragm to the top of
   its dome, falling linearly to 0 at the lung apices (the lungs stretch) and over
@@ -182,21 +183,16 @@ class BreathingAnatomy:
         # Distance to the spine only near it (a whole-CT distance map costs seconds on a clinical CT).
         far = None
         if spine.any():
-            reach = (params.rib_head_max_mm if from_labels else max(params.rib_head_max_mm, params.rib_neck_mm))
+            reach = params.rib_head_max_mm if from_labels or params.rib_pleura_max_mm is None else max(
+                params.rib_head_max_mm, params.rib_neck_mm)
             far = _distance_near(spine, reach + 2 * float(max(abs(self.dz), *sp)), (abs(self.dz), sp[1], sp[0]))
         if rib_mask is None:
             rib_mask = bone & ~spine
-            # Ribs lie between the lowest ribs (below the diaphragm's lowest point) and the apices,
-            # on the lungs (their necks beside the spine): not the scapula outside the cage.
+            # Ribs lie between the lowest ribs (below the diaphragm's lowest point) and the apices.
             in_thorax = (z_k >= self.dome_low_z - 80.0) & (z_k <= self.lung_top_z + 10.0)
             rib_mask &= in_thorax[:, None, None]
-            lining = _distance_near(lungs, params.rib_pleura_max_mm + 2 * float(max(abs(self.dz), *sp)),
-                                    (abs(self.dz), sp[1], sp[0])) <= params.rib_pleura_max_mm
-            if far is not None:
-                lining |= far <= params.rib_neck_mm
-            # Below the domes' tops no scapula lies on the cage, and the lowest ribs run below the lungs.
-            lining |= (z_k < self.dome_top_z)[:, None, None]
-            rib_mask &= lining
+            if params.rib_pleura_max_mm is not None:
+                rib_mask &= self._lining(lungs, far, params, j_y >= yc, sp)
         pieces, n = ndimage.label(rib_mask)
         self.ribs: list[Rib] = []
         moving = np.zeros(hu.shape, bool)
@@ -233,6 +229,21 @@ class BreathingAnatomy:
         soft = hu.copy()
         soft[bone] = params.bone_fill_hu
         self.soft = soft
+
+    def _lining(self, lungs, far, params: Respiration, posterior_j, sp) -> np.ndarray:
+        """Where rib bone may be found from HU when the scapulae touch the ribs: within
+        rib_pleura_max_mm of the lungs or rib_neck_mm of the spine; anywhere in front of the
+        body's centre or below the domes' tops, where no scapula lies on the cage (the front of
+        the upper ribs and the lowest ribs run farther from the lungs)."""
+        assert params.rib_pleura_max_mm is not None
+        sampling = (abs(self.dz), sp[1], sp[0])
+        lining = _distance_near(lungs, params.rib_pleura_max_mm + 2 * float(max(sampling)),
+                                sampling) <= params.rib_pleura_max_mm
+        if far is not None:
+            lining |= far <= params.rib_neck_mm
+        lining |= ~np.asarray(posterior_j)[None, :, None]
+        lining |= (self.z_k < self.dome_top_z)[:, None, None]
+        return lining
 
     # -- the soft-tissue field ---------------------------------------------------------
     def weight_z(self, z):
