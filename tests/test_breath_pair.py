@@ -81,11 +81,11 @@ def test_no_pair_line_without_both_images(demo):
     assert pair_lines(cfg, fl, {"end-expiration": e}) == []
 
 
-def test_the_built_in_childs_dome_moves_diaphragm_mm_times_the_magnification(demo):
-    """The whole chain short of the display: the built-in child's end-expiration CT moved by the
-    breathing model to end-expiration and end-inspiration, cast by the OpenCL renderer (line
-    integrals, no noise) at the demo path's dome pose; the dome's edge read from the two images
-    moves diaphragm_mm x SID / SOD of the apex, within 2 %."""
+@pytest.fixture(scope="module")
+def child_renders(demo):
+    """The built-in child's end-expiration CT moved by the breathing model to 0, a half and the
+    whole breath, cast by the OpenCL renderer at the demo path's dome pose: line integrals (no
+    noise) and displayed images (the demo's chain: spectrum, noise, blur, glare, the display LUT)."""
     from appliance.patient import builtin
     from appliance.patient.breathing_motion import BreathingAnatomy
     from appliance.patient.breathing_timeline import BreathingTimeline
@@ -97,17 +97,68 @@ def test_the_built_in_childs_dome_moves_diaphragm_mm_times_the_magnification(dem
     spec = builtin.timeline()[0]
     assert (spec.stage, spec.breath) == (0, 0.0)                     # end-expiration
     ct = Volume(builder.phase(spec), builder.grid.T_ct_from_voxel)
-    params = cfg.case.respiration
-    anatomy = BreathingAnatomy(ct, params, cfg.case.materials)
+    anatomy = BreathingAnatomy(ct, cfg.case.respiration, cfg.case.materials)
     states = BreathingTimeline.__new__(BreathingTimeline)           # only its state_of: no device, no thread
-    states.params = params
-    small = fl                      # the demo's 512 matrix: the check's pixel widths are set for it
-    renderer = Renderer(small, cfg.case.materials, contrast=cfg.case.contrast, device="cpu")
-    T = small.T_xray_from_webcam() @ DOME_POSE @ matrix(cfg.case.T_phantom_from_ct)
-    images = [renderer.render(renderer.prepare(anatomy.volume_at(states.state_of(e))), T,
-                              View(quantity="line-integral", noise=False)).image for e in (0.0, 1.0)]
-    check = dome_shift(cfg, small, KeptFrame(images[0], DOME_POSE, 0.0, 1), KeptFrame(images[1], DOME_POSE, 1.0, 1),
+    states.params = cfg.case.respiration
+    renderer = Renderer(fl, cfg.case.materials, contrast=cfg.case.contrast, device="cpu")
+    T = fl.T_xray_from_webcam() @ DOME_POSE @ matrix(cfg.case.T_phantom_from_ct)
+    out = {}
+    for e in (0.0, 0.5, 1.0):
+        prepared = renderer.prepare(anatomy.volume_at(states.state_of(e)))
+        out["line-integral", e] = renderer.render(prepared, T, View(quantity="line-integral", noise=False)).image
+        out["display", e] = renderer.render(prepared, T, View(quantity="display", seed=17)).image
+    return out
+
+
+def _check(demo, child_renders, quantity, excursion):
+    cfg, fl = demo
+    check = dome_shift(cfg, fl, KeptFrame(child_renders[quantity, 0.0], DOME_POSE, 0.0, 1),
+                       KeptFrame(child_renders[quantity, excursion], DOME_POSE, excursion, 1), builtin_apex(cfg.case))
+    assert check is not None
+    return check
+
+
+def test_the_built_in_childs_dome_moves_diaphragm_mm_times_the_magnification(demo, child_renders):
+    """Line integrals: the dome's edge moves diaphragm_mm x SID / SOD of the apex, within 2 %, and
+    half the amplitude moves it half as far (the issue's 10 %; it reads within 3 %)."""
+    cfg, _ = demo
+    params = cfg.case.respiration
+    full, half = _check(demo, child_renders, "line-integral", 1.0), _check(demo, child_renders, "line-integral", 0.5)
+    assert full.descent_mm == pytest.approx(params.diaphragm_mm) and half.descent_mm == pytest.approx(params.diaphragm_mm / 2)
+    assert full.predicted_mm == pytest.approx(params.diaphragm_mm * full.magnification, rel=0.03)
+    assert full.measured_px == pytest.approx(full.predicted_px, rel=0.02)
+    assert half.measured_px == pytest.approx(half.predicted_px, rel=0.03)
+    assert half.measured_px / full.measured_px == pytest.approx(0.5, rel=0.1)
+
+
+def test_the_displayed_pair_reads_the_set_amplitude(demo, child_renders):
+    """The displayed images, as the demo's snapshots keep them: the ribs' sharp shadows (bone three
+    times as dark as soft tissue per gram at these energies) lie beside the dome's soft edge, and
+    the reading of the whole breath stays within 10 % of the pinhole's prediction (it reads
+    within 3 %). A half breath puts this pose's inspiration apex under a rib's edge; it reads
+    about 9 % long there, so only the line integrals are held to the half."""
+    full = _check(demo, child_renders, "display", 1.0)
+    assert full.measured_px == pytest.approx(full.predicted_px, rel=0.10)
+
+
+def test_a_sharp_still_edge_beside_the_dome_does_not_take_the_reading(demo):
+    """What the displayed pair used to be read by: a still, sharp, dark stripe (a rib) whose edge
+    lies just beyond the inspiration apex, over a dome whose shadow is a ramp (a curved surface seen
+    edge-on). The reading is the ramp's shift, drawn here, not the stripe's edge."""
+    cfg, fl = demo
+    zoom = 1
+    (a, m), _ = _apex_px(cfg, fl, zoom, cfg.case.respiration.diaphragm_mm)
+    along = (m - a) / np.linalg.norm(m - a)
+    rows, cols = fl.detector.rows, fl.detector.columns
+    v, u = np.mgrid[0:rows, 0:cols].astype(np.float64)
+    s = (u - a[0]) * along[0] + (v - a[1]) * along[1]
+
+    def image(at_px):
+        dome = 0.6 * np.sqrt(np.clip(s - at_px, 0.0, 60.0) / 60.0)        # the liver's chord below the apex
+        rib = np.where((s > 49.0) & (s < 75.0), 0.8, 0.0)                  # still, sharp, darker than the dome
+        return (0.2 + dome + rib).astype(np.float32)
+    drawn = 41.0
+    check = dome_shift(cfg, fl, KeptFrame(image(0.0), DOME_POSE, 0.0, zoom), KeptFrame(image(drawn), DOME_POSE, 1.0, zoom),
                        builtin_apex(cfg.case))
-    assert check is not None and check.descent_mm == pytest.approx(params.diaphragm_mm)
-    assert check.predicted_mm == pytest.approx(params.diaphragm_mm * check.magnification, rel=0.03)
-    assert check.measured_px == pytest.approx(check.predicted_px, rel=0.02)
+    assert check is not None
+    assert check.measured_px == pytest.approx(drawn, abs=0.5)

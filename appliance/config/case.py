@@ -104,6 +104,16 @@ class Respiration(Section):
         40.0, gt=0, le=300,
         description="Without rib labels: a piece reaching less far than this from its joint (a transverse process) is not "
                     "a rib (mm).")
+    rib_pleura_max_mm: float | None = Field(
+        None, gt=0, le=60,
+        description="Without rib labels, for a CT whose scapulae touch the upper ribs: behind the body's centre and above "
+                    "the domes, rib bone lies within this of the lungs (mm), or within rib_neck_mm of the spine; the "
+                    "scapula lies outside the cage beyond its muscles and stays still. Omit (the default) to take every "
+                    "bone piece that reaches the spine: the rule cuts ribs that run farther from the lungs than this.")
+    rib_neck_mm: float = Field(
+        25.0, gt=0, le=80,
+        description="With rib_pleura_max_mm: between the spine and the lungs, the ribs' necks are the bone within this of "
+                    "the spine (mm); keep it below the scapula's distance from the spine.")
     rib_below_dome_mm: float = Field(
         30.0, ge=0, le=200,
         description="Without rib labels: rib joints lie no lower than this below the diaphragm's lowest point, which "

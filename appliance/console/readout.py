@@ -65,6 +65,7 @@ class ConsoleState:
     breath_rate_steps: int = 0      # faster minus slower presses so far (the breathing model applies each step)
     breath_depth_steps: int = 0     # deeper minus shallower presses so far
     breath_changed_t: float = 0.0   # console time of the last breath hold or resume press (s): the breathing model stops there
+    breath_step_t: float = 0.0      # console time of the last faster/slower/deeper/shallower press (s): the model changes there
 
     @property
     def held(self) -> bool:

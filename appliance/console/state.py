@@ -53,7 +53,7 @@ class Console:
         self.invert = fluoroscope.display.invert
         self.window_scale, self.level_shift = 1.0, 0.0
         self.breath_hold = False
-        self.breath_changed_t = 0.0
+        self.breath_changed_t = self.breath_step_t = 0.0
         self.breath_rate_steps = self.breath_depth_steps = 0
         self._fluoro_holders: set[tuple[str, str]] = set()
         self.fluoro_on = False
@@ -286,9 +286,11 @@ class Console:
                 self._emit(out, t, "resume_breath")
         elif action in ("breath_faster", "breath_slower"):
             self.breath_rate_steps += 1 if action == "breath_faster" else -1
+            self.breath_step_t = t
             self._emit(out, t, "breath_rate", step=1 if action == "breath_faster" else -1)
         elif action in ("breath_deeper", "breath_shallower"):
             self.breath_depth_steps += 1 if action == "breath_deeper" else -1
+            self.breath_step_t = t
             self._emit(out, t, "breath_depth", step=1 if action == "breath_deeper" else -1)
         return out
 
@@ -404,4 +406,4 @@ class Console:
             runs=self.runs, kvp=self.kvp, ma=self.ma, pulses=self._pulse_count,
             window_scale=self.window_scale, level_shift=self.level_shift,
             breath_rate_steps=self.breath_rate_steps, breath_depth_steps=self.breath_depth_steps,
-            breath_changed_t=self.breath_changed_t)
+            breath_changed_t=self.breath_changed_t, breath_step_t=self.breath_step_t)

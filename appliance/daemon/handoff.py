@@ -149,3 +149,4 @@ class ShownFrame:
     banners: list[str]
     saved_flash: bool
     inspired: float | None = None          # the breath of a live image (0 end-expiration, 1 end-inspiration)
+    t_case_s: float | None = None          # the case time a live image's patient was drawn at (s)

@@ -79,7 +79,8 @@ class PhaseWorker(Worker):
             self._hold_t = None
         generation = self.parts.generation
         if control is not None and state is not None:
-            self._apply_breath_keys(control, state, t)
+            # At the press's console time too, so a busy worker does not shift the breath's phase.
+            self._apply_breath_keys(control, state, min(t, state.breath_step_t - self._case_t0))
         try:
             a, b, weight = self.parts.timeline.at(t)
         except FluorosimError:

@@ -173,7 +173,8 @@ class RenderWorker(Worker):
         if self.on_shown is not None:
             self.on_shown(ShownFrame(self.parts.display.read_back, self._image, state, tracked if live else None,
                                      live, t_shown, latency, banners, saved_flash,
-                                     phase.inspired if live and phase is not None else None))
+                                     phase.inspired if live and phase is not None else None,
+                                     phase.t_case_s if live and phase is not None else None))
         return True
 
     def _render(self, cfg: ApplianceConfig, T_xray_from_ct: np.ndarray, phase: PhaseValue,

@@ -2,9 +2,14 @@
 
 On the benchmark torso of `bench drr` (512 x 512 x 136 voxels, the seed's clinical CT size)
 it times, in one run and on one device: a plain frame of the still CT (the peer), a frame of
-the breathing patient as the daemon draws it (two precomputed depth states blended by the
-renderer), and a frame re-voxelised from the CT for each breath (the approach not taken).
-Medians of `--frames` frames each; ratios against the plain frame measured in the same run.
+the breathing patient (two precomputed depth states blended by the renderer), and a frame
+re-voxelised from the CT for each breath (the approach not taken), each cast anew as at a
+new pose; then the still CT and the breathing patient with the C-arm still, through the
+projection cache the daemon renders with (each depth state cast once, the breath blended
+in projection space), the figures `bench drr` gives as "unchanged pose, breathing +
+contrast" for a two-phase 4D CT. Medians of `--frames` frames each, wall and the process's
+CPU time (a shared machine's wall time is above an idle one's); ratios against the still CT
+measured in the same run.
 """
 
 from __future__ import annotations
@@ -14,14 +19,16 @@ import statistics
 import time
 
 
-def _median_ms(fn, frames: int) -> float:
-    fn()                                  # first call builds kernels and ray tables
-    walls = []
+def _median_ms(fn, frames: int) -> tuple[float, float]:
+    """(wall, cpu) medians in ms of `frames` calls after one untimed call (kernels, ray tables)."""
+    fn()
+    walls, cpus = [], []
     for _ in range(frames):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fn()
         walls.append(time.perf_counter() - t0)
-    return 1000.0 * statistics.median(walls)
+        cpus.append(time.process_time() - c0)
+    return 1000.0 * statistics.median(walls), 1000.0 * statistics.median(cpus)
 
 
 def run(args) -> int:
@@ -29,6 +36,7 @@ def run(args) -> int:
 
     from ..config.case import Materials, Respiration
     from ..xray.bench import flat_profile, pa_pose, synthetic_torso
+    from ..xray.projection_cache import ProjectionCache
     from ..xray.renderer import Renderer, View
     from .breathing_motion import BreathingAnatomy
     from .breathing_timeline import BreathingTimeline
@@ -84,13 +92,28 @@ def run(args) -> int:
         t0 = time.perf_counter()
         timeline.at(next(clock))
         lookups.append(time.perf_counter() - t0)
-    ms_plain = _median_ms(plain, args.frames)
-    ms_breath = _median_ms(breathing, args.frames)
-    ms_revox = _median_ms(revoxelised, max(3, args.frames // 3))
-    print(f"{'frame':<44} {'ms/frame':>9} {'vs still':>9}")
-    print(f"{'still CT (no breathing)':<44} {ms_plain:9.1f} {1.0:9.2f}")
-    print(f"{'breathing: two depth states blended':<44} {ms_breath:9.1f} {ms_breath / ms_plain:9.2f}")
-    print(f"{'breathing: CT re-voxelised each frame':<44} {ms_revox:9.1f} {ms_revox / ms_plain:9.2f}")
+    cache = ProjectionCache(renderer)
+
+    def still_cached():
+        cache.render(still, T, view)
+
+    def breathing_cached():
+        a, b, w = timeline.at(next(clock))
+        cache.render(a, T, view, blend=None if b is None else (b, w))
+
+    rows = [("still CT (no breathing)", _median_ms(plain, args.frames)),
+            ("breathing: two depth states blended", _median_ms(breathing, args.frames)),
+            ("breathing: CT re-voxelised each frame", _median_ms(revoxelised, max(3, args.frames // 3)))]
+    for a in timeline._prepared:           # each depth state cast once at this pose, as a still C-arm does
+        cache.render(a, T, view)
+    rows += [("still CT, unchanged pose (cache)", _median_ms(still_cached, 3 * args.frames)),
+             ("breathing, unchanged pose (cache)", _median_ms(breathing_cached, 3 * args.frames))]
+    wall0, cpu0 = rows[0][1]
+    print(f"{'frame':<44} {'ms/frame':>9} {'cpu ms':>8} {'vs still':>9}")
+    for name, (wall, cpu) in rows:
+        peer = rows[3][1] if "cache" in name else (wall0, cpu0)
+        print(f"{name:<44} {wall:9.1f} {cpu:8.1f} {cpu / peer[1]:9.2f}")
+    print("(ratios of CPU time; the cached rows against the cached still CT)")
     print(f"timeline lookup: median {1e6 * statistics.median(lookups):.0f} us, max {1e6 * max(lookups):.0f} us")
     print(f"OpenCL device: {renderer.device.name.strip()}")
     timeline.close()

@@ -9,8 +9,11 @@ The CT is split once into three parts:
   than `rib_below_dome_mm` under the diaphragm; a rigid body turned about its
   costovertebral joint (the piece's point nearest the spine) by lambda about the
   left-right axis (pump handle: the front rises) and gamma about the anteroposterior axis
-  (bucket handle: the side rises). From HU alone, ribs touching the scapula move with it
-  as one piece, and the sternum stays still: give rib labels where that matters;
+  (bucket handle: the side rises). From HU alone a scapula touching the upper ribs would
+  move with them as one piece; with `rib_pleura_max_mm` the pieces are cut from the bone
+  that lines the lungs behind the body's centre (the scapula lies outside the cage, beyond
+  its muscles), so only the ribs move. The sternum stays still: give rib labels where that
+  matters;
 - soft tissue (bone replaced by `bone_fill_hu`), displaced downward by the tendon's
   descent D times a smooth weight: 1 from the lowest point of the diaphragm to the top of
   its dome, falling linearly to 0 at the lung apices (the lungs stretch) and over
@@ -71,6 +74,21 @@ def _label_mask(labels: np.ndarray | None, ids) -> np.ndarray | None:
     if labels is None or not ids:
         return None
     return np.isin(labels, np.asarray(ids, dtype=labels.dtype))
+
+
+def _distance_near(mask: np.ndarray, reach_mm: float, sampling) -> np.ndarray:
+    """float32 distance (mm) of each voxel from `mask`, computed only in the mask's bounding box
+    grown by `reach_mm` (inf beyond it, and everywhere for an empty mask)."""
+    from scipy import ndimage
+
+    out = np.full(mask.shape, np.inf, np.float32)
+    if not mask.any():
+        return out
+    lo_hi = [(int(ix.min()), int(ix.max())) for ix in np.nonzero(mask)]
+    grow = [int(math.ceil(reach_mm / s)) for s in sampling]
+    crop = tuple(slice(max(a - g, 0), min(b + g + 1, n)) for (a, b), g, n in zip(lo_hi, grow, mask.shape))
+    out[crop] = ndimage.distance_transform_edt(~mask[crop], sampling=sampling)
+    return out
 
 
 class BreathingAnatomy:
@@ -161,24 +179,21 @@ class BreathingAnatomy:
             band = (np.abs(i_x - xc) <= params.spine_half_width_mm)[None, None, :] & (j_y >= yc)[None, :, None]
             spine = bone & band
         rib_mask = _label_mask(labels, role.get("ribs"))
+        from_labels = rib_mask is not None
+        # Distance to the spine only near it (a whole-CT distance map costs seconds on a clinical CT).
+        far = None
+        if spine.any():
+            reach = params.rib_head_max_mm if from_labels or params.rib_pleura_max_mm is None else max(
+                params.rib_head_max_mm, params.rib_neck_mm)
+            far = _distance_near(spine, reach + 2 * float(max(abs(self.dz), *sp)), (abs(self.dz), sp[1], sp[0]))
         if rib_mask is None:
             rib_mask = bone & ~spine
             # Ribs lie between the lowest ribs (below the diaphragm's lowest point) and the apices.
             in_thorax = (z_k >= self.dome_low_z - 80.0) & (z_k <= self.lung_top_z + 10.0)
             rib_mask &= in_thorax[:, None, None]
-            from_labels = False
-        else:
-            from_labels = True
+            if params.rib_pleura_max_mm is not None:
+                rib_mask &= self._lining(lungs, far, params, j_y >= yc, sp)
         pieces, n = ndimage.label(rib_mask)
-        # Distance to the spine only near it (a whole-CT distance map costs seconds on a clinical CT).
-        far = None
-        if spine.any():
-            reach = params.rib_head_max_mm + 2 * float(max(abs(self.dz), *sp))
-            lo_hi = [(int(ix.min()), int(ix.max())) for ix in np.nonzero(spine)]
-            grow = [int(math.ceil(reach / s)) for s in (abs(self.dz), sp[1], sp[0])]
-            crop = tuple(slice(max(a - g, 0), min(b + g + 1, n)) for (a, b), g, n in zip(lo_hi, grow, hu.shape))
-            far = np.full(hu.shape, np.inf, np.float32)
-            far[crop] = ndimage.distance_transform_edt(~spine[crop], sampling=(abs(self.dz), sp[1], sp[0]))
         self.ribs: list[Rib] = []
         moving = np.zeros(hu.shape, bool)
         objects = ndimage.find_objects(pieces)
@@ -214,6 +229,21 @@ class BreathingAnatomy:
         soft = hu.copy()
         soft[bone] = params.bone_fill_hu
         self.soft = soft
+
+    def _lining(self, lungs, far, params: Respiration, posterior_j, sp) -> np.ndarray:
+        """Where rib bone may be found from HU when the scapulae touch the ribs: within
+        rib_pleura_max_mm of the lungs or rib_neck_mm of the spine; anywhere in front of the
+        body's centre or below the domes' tops, where no scapula lies on the cage (the front of
+        the upper ribs and the lowest ribs run farther from the lungs)."""
+        assert params.rib_pleura_max_mm is not None
+        sampling = (abs(self.dz), sp[1], sp[0])
+        lining = _distance_near(lungs, params.rib_pleura_max_mm + 2 * float(max(sampling)),
+                                sampling) <= params.rib_pleura_max_mm
+        if far is not None:
+            lining |= far <= params.rib_neck_mm
+        lining |= ~np.asarray(posterior_j)[None, :, None]
+        lining |= (self.z_k < self.dome_top_z)[:, None, None]
+        return lining
 
     # -- the soft-tissue field ---------------------------------------------------------
     def weight_z(self, z):
