@@ -83,3 +83,25 @@ def test_packet_noise_is_poisson_where_lanes_of_one_packet_differ(dev):
     assert (np.rint(low) == 0).mean() == pytest.approx(math.exp(-2.0), abs=0.005)
     assert high.mean() == pytest.approx(500.0, abs=4 * math.sqrt(500.0 / high.size))
     assert high.std() == pytest.approx(math.sqrt(500.0), rel=0.02)
+
+
+@pytest.mark.parametrize("invert", [False, True])
+def test_display_knee_in_closed_form_is_the_two_hyperbolas_and_identity(invert):
+    """to_display's one-formula knee against soft_knee's three branches, far past both ends too."""
+    from types import SimpleNamespace
+
+    from appliance.xray.display_lut import soft_knee, to_display
+
+    rng = np.random.default_rng(2)
+    p = rng.uniform(-30.0, 30.0, (64, 80)).astype(np.float32)
+    edge = rng.random((64, 80)).astype(np.float32)
+    edge[:, :5] = 0.0
+    chain = SimpleNamespace(display_knee=0.15)
+    centre, width = 1.3, 2.5
+    x = (p.astype(np.float64) - centre) / width + 0.5
+    grey = soft_knee(x, 0.15).astype(np.float64)
+    truth = ((1.0 - grey) if invert else grey) * edge
+    got = to_display(p, edge > 0, edge, chain, invert, centre, width)
+    np.testing.assert_allclose(got, truth, atol=2e-6)
+    assert np.all(got[:, :5] == 0.0)
+    assert 0.0 < got[:, 5:].min() and got.max() < 1.0

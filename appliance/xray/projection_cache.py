@@ -86,7 +86,7 @@ class ProjectionCache:
         self.counts = CacheCounts()
         self._pose: np.ndarray | None = None
         self._key: tuple | None = None
-        self._lines: dict[PreparedVolume, object] = {}     # phase -> device buffer of its integrals
+        self._lines: dict[PreparedVolume, cl.Buffer] = {}     # phase -> device buffer of its integrals
         self._split: cl.Kernel | None = None    # the two-phase cast kernel, built on first use
         self._blend: cl.Kernel | None = None
 

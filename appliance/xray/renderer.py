@@ -278,8 +278,9 @@ class Renderer:
         if view.noise:
             image = self.quantum_noise(image, photons, view.seed)
         # The detector sees the exposed field: the geometric field and the edge's penumbra.
-        image = detector.spread(image, exposed, view.zoom)
-        image[~(exposed if display else mask)] = 0.0
+        image = detector.spread(image, exposed, view.zoom)      # 0 outside `exposed`
+        if not display:
+            image[~mask] = 0.0
         measured = float(np.median(image[central])) if central.any() else 0.0
         if not display:
             return Frame(image, exposure.factor, exposure.attenuation, exposure.limited, photons * measured,
