@@ -343,11 +343,15 @@ kernel void polychromatic_packet(global const float4 *lines, global const float4
 
 // Quantum noise: each pixel's relative intensity becomes a photon count drawn around
 // lam = intensity * n0 (photons expected per pixel with nothing in the beam), returned
-// relative to n0 again. Poisson by Knuth's product of uniforms below GAUSSIAN_ABOVE photons,
-// its normal approximation (Box-Muller) above, where the two agree to well under the noise.
+// relative to n0 again. Poisson by inversion of its distribution function (one uniform, the
+// terms lam^k e^-lam / k! summed until they pass it) below GAUSSIAN_ABOVE photons, its normal
+// approximation (Box-Muller) above, where the two agree to well under the noise.
 // The uniforms come from a counter-based hash of (seed, pixel, draw), so a frame's noise is
 // the same on every device and for every work-group split, and needs no stored state.
 #define GAUSSIAN_ABOVE 30.0f
+//: The inversion stops where the terms left are below this (their sum is then ~1e-7 of the
+//: distribution): float sums never quite reach 1, and a uniform above them must not run on.
+#define POISSON_TAIL 1e-7f
 inline uint hash32(uint x)     // "lowbias32" (C. Wellons): a bijection with good avalanche
 {
     x ^= x >> 16; x *= 0x7feb352dU; x ^= x >> 15; x *= 0x846ca68bU; x ^= x >> 16;
@@ -363,20 +367,25 @@ kernel void quantum_noise(global float *img, const float n0, const uint seed)
     const float lam = fmax(img[p], 0.0f) * n0;
     const uint key = hash32(hash32((uint)p) ^ seed);
     float count;
+    const float u0 = uniform_open(key, 0u);
     if (lam >= GAUSSIAN_ABOVE) {
-        const float r = sqrt(-2.0f * log(uniform_open(key, 0u)));
+        const float r = sqrt(-2.0f * log(u0));
         count = fmax(lam + sqrt(lam) * r * cos(6.2831853f * uniform_open(key, 1u)), 0.0f);
     } else {
-        const float limit = exp(-lam);
-        float prod = uniform_open(key, 0u);
+        float term = exp(-lam), sum = term;
         uint k = 0u;
-        while (prod > limit) { ++k; prod *= uniform_open(key, k); }
+        while (u0 > sum && (term > POISSON_TAIL || (float)k < lam)) {
+            ++k;
+            term *= lam / (float)k;
+            sum += term;
+        }
         count = (float)k;
     }
     img[p] = count / n0;
 }
+
 // The same noise for sixteen pixels per work-item, the same draws for the same (seed, pixel),
-// all in SIMD: the normal approximation for every lane, and Knuth's loop over the whole
+// all in SIMD: the normal approximation for every lane, and the inversion over the whole
 // packet, masked, only where a lane is below GAUSSIAN_ABOVE (the densest rays). A CPU driver
 // cannot vectorise quantum_noise's per-pixel branch and loop, so this costs a fraction of it.
 inline uint16 hash32_16(uint16 x)
@@ -407,17 +416,17 @@ kernel void quantum_noise_packet(global float *img, const float n0, const uint s
     float16 count = fmax(lam + sqrt(lam) * r * cos(6.2831853f * uniform_open16(key, (uint16)(1u))), 0.0f);
     const int16 low = lam < GAUSSIAN_ABOVE;
     if (any(low)) {
-        // Lanes above the threshold stop at once: their product (<= 1) is below 2.
-        const float16 limit = select((float16)(2.0f), exp(-lam), low);
-        float16 prod = u0;
-        uint16 k = (uint16)(0u);
-        int16 going = prod > limit;
+        // The inversion over the packet, masked: lanes above the threshold stop at once.
+        float16 term = exp(-lam), sum = term;
+        float16 k = 0.0f;
+        int16 going = low & (u0 > sum);
         while (any(going)) {
-            k = select(k, k + 1u, going);
-            prod = select(prod, prod * uniform_open16(key, k), going);
-            going = prod > limit;
+            k = select(k, k + 1.0f, going);
+            term = select(term, term * lam / k, going);
+            sum = select(sum, sum + term, going);
+            going &= (u0 > sum) & ((term > POISSON_TAIL) | (k < lam));
         }
-        count = select(count, convert_float16(k), low);
+        count = select(count, k, low);
     }
     count /= n0;
     if (whole) {
