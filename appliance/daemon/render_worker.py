@@ -29,6 +29,7 @@ from ..xray.renderer import Frame, View
 from .frame_stats import FrameStats
 from .handoff import LatestValue, PhaseValue, SavedImage, ShownFrame, ShownImage, Technique, TrackedPose
 from .parts import Parts, is_cpu
+from .pose_demand import PoseDemand
 from .reload import ProfileKeeper
 from .worker import Worker
 
@@ -98,8 +99,9 @@ class RenderWorker(Worker):
                  banners: Callable[[], list[str]], on_first_frame: Callable[[], None],
                  on_shown: Callable[[ShownFrame], None] | None = None,
                  views: LatestValue[tuple[float, dict]] | None = None,
-                 teaching: LatestValue[TeachingStatus] | None = None):
+                 teaching: LatestValue[TeachingStatus] | None = None, demand: PoseDemand | None = None):
         super().__init__("render", idle_s=0.0)
+        self.demand = demand        # told when each render begins and ends (pose_demand.py)
         self.parts, self.keeper = parts, keeper
         self.poses, self.phases, self.console_state, self.saves = poses, phases, console_state, saves
         self.shown, self.exposure_factor = shown, exposure_factor
@@ -182,6 +184,9 @@ class RenderWorker(Worker):
         view = view_for(cfg, state)
         self._request = (phase.prepared_a, T_xray_from_ct, view, blend)
         grace = WARM_UP_GRACE_S if self.stats.frames < WARM_UP_FRAMES else cfg.appliance.daemon.stall_timeout_s
+        t0 = time.monotonic()
+        if self.demand is not None:
+            self.demand.rendering(t0)
         try:
             with self.grace(grace):
                 return self.parts.renderer.render(phase.prepared_a, T_xray_from_ct, view, blend=blend)
@@ -195,6 +200,9 @@ class RenderWorker(Worker):
             # Reported once it is true: the banner says rendering is on the CPU.
             self.fault = f"{type(e).__name__}: {e}"[:FAULT_CHARS]
             return None
+        finally:
+            if self.demand is not None:
+                self.demand.rendered(t0, time.monotonic())
 
     def native_image(self, cancelled: Callable[[], bool] | None = None) -> tuple[np.ndarray, FluoroscopeProfile] | None:
         """The last live view again at the detector's native matrix, the C-arm still (the
