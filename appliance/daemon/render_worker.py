@@ -139,7 +139,15 @@ class RenderWorker(Worker):
                 and phase.generation == self.parts.generation and state.image_due(self._drawn)):
             T_xray_from_ct = (cfg.fluoroscope.T_xray_from_webcam() @ tracked.pose.T_webcam_from_phantom
                               @ np.asarray(cfg.case.T_phantom_from_ct, dtype=np.float64))
-            frame = self._render(cfg, T_xray_from_ct, phase, state)
+            # The renderer wants no pose until this frame is on screen (pose_demand.py).
+            if self.demand is not None:
+                self.demand.rendering(now)
+            frame = None
+            try:
+                frame = self._render(cfg, T_xray_from_ct, phase, state)
+            finally:
+                if frame is None and self.demand is not None:
+                    self.demand.rendered(now, time.monotonic())
             if frame is not None:
                 self._image, self._image_T, self._drawn, live = frame.image, T_xray_from_ct, state, True
                 self._send_technique(Technique(frame.exposure_factor, frame.kvp, frame.ma))
@@ -166,6 +174,8 @@ class RenderWorker(Worker):
         self.parts.display.show(self.parts.compositor.compose(self._image, overlay, now))
         t_shown = time.monotonic()
         self._last_compose = t_shown
+        if live and self.demand is not None:
+            self.demand.rendered(now, t_shown)
         latency = None
         if live and tracked is not None and self._image is not None and self._image_T is not None:
             latency = t_shown - tracked.t_frame
@@ -184,9 +194,6 @@ class RenderWorker(Worker):
         view = view_for(cfg, state)
         self._request = (phase.prepared_a, T_xray_from_ct, view, blend)
         grace = WARM_UP_GRACE_S if self.stats.frames < WARM_UP_FRAMES else cfg.appliance.daemon.stall_timeout_s
-        t0 = time.monotonic()
-        if self.demand is not None:
-            self.demand.rendering(t0)
         try:
             with self.grace(grace):
                 return self.parts.renderer.render(phase.prepared_a, T_xray_from_ct, view, blend=blend)
@@ -200,9 +207,6 @@ class RenderWorker(Worker):
             # Reported once it is true: the banner says rendering is on the CPU.
             self.fault = f"{type(e).__name__}: {e}"[:FAULT_CHARS]
             return None
-        finally:
-            if self.demand is not None:
-                self.demand.rendered(t0, time.monotonic())
 
     def native_image(self, cancelled: Callable[[], bool] | None = None) -> tuple[np.ndarray, FluoroscopeProfile] | None:
         """The last live view again at the detector's native matrix, the C-arm still (the
