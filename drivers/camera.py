@@ -309,6 +309,13 @@ class SyntheticCamera(CameraSource):
         self.renderer = SceneRenderer(K, dist, width, height, box_mm, quads, self.settings, seed)
         self.trajectory, self.clock, self.fps = trajectory, clock, fps
         self.t0: float | None = None
+        #: `wanted(draw_s)`: whether a frame drawn now, ready `draw_s` (s) from now, would be
+        #: used; None: every frame is. Drawing the box costs CPU a real webcam does not, so the
+        #: owner may skip the frames its consumer would throw away unseen.
+        self.wanted: Callable[[float], bool] | None = None
+        #: Frame times the camera did not draw because `wanted` said no (count).
+        self.frames_skipped = 0
+        self._draw_s = 0.0
 
     def render_at(self, t: float, bgr: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """(image, truth) for trajectory time `t` (s): the pose at mid-exposure, blurred over the exposure."""
@@ -327,10 +334,16 @@ class SyntheticCamera(CameraSource):
             self.t0 = self.clock()
         next_t = time.monotonic()
         while not self._stop.is_set():
-            image, truth = self.render_at(self.clock() - self.t0)
-            # Stamped on the wall clock whatever clock the path runs on: latency is wall time.
-            self._publish(image, time.monotonic(), truth)
-            self._set_state(CaptureState.OK)
+            wanted = self.wanted
+            if wanted is None or self._frame is None or wanted(self._draw_s):
+                t_draw = time.monotonic()
+                image, truth = self.render_at(self.clock() - self.t0)
+                # Stamped on the wall clock whatever clock the path runs on: latency is wall time.
+                self._publish(image, time.monotonic(), truth)
+                self._draw_s = time.monotonic() - t_draw
+                self._set_state(CaptureState.OK)
+            else:
+                self.frames_skipped += 1
             next_t += period
             self._stop.wait(max(0.0, next_t - time.monotonic()))
             next_t = max(next_t, time.monotonic() - period)

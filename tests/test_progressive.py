@@ -51,8 +51,8 @@ def test_moving_frames_use_the_moving_matrix_and_rest_refines_to_the_full_one(re
         image = pr.render(prepared, shifted(2.0 * i), view).image
         assert image.shape == (128, 128)
         assert pr.matrix == 64 or i == 0       # the very first frame has no motion before it
-    moving_casts = pr.cache(pr.moving).counts.casts
-    assert moving_casts >= 5
+    # Every moving frame is cast (at a new pose, the phases blended in the cast, past the cache).
+    assert pr.moving_casts >= 5 and pr.cache(pr.moving).counts.casts <= 1
     matrices = []
     for _ in range(10):                        # at rest for 0.4 s
         clock.t += 0.04

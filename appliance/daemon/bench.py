@@ -173,6 +173,9 @@ def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None,
             print(f"camera cost:            {camera_cost}")
         dropped = app.poses.dropped
         print(f"stale poses skipped:    {dropped} (the renderer always draws the newest)")
+        undrawn = getattr(app.parts.camera, "frames_skipped", 0)
+        print(f"frames not tracked:     {app.capture.skipped} (a newer frame came before the renderer wanted a pose)"
+              + (f"; {undrawn} not drawn by the synthetic webcam" if undrawn else ""))
         return 0
     finally:
         logs.stop()

@@ -62,6 +62,7 @@ from .input_worker import InputWorker
 from .notify import Notifier
 from .parts import Parts, open_parts, rendered_fluoroscope
 from .phase_worker import PhaseWorker
+from .pose_demand import PoseDemand
 from .records_worker import RecordsWorker
 from .reload import ProfileKeeper
 from .render_worker import RenderWorker
@@ -132,14 +133,18 @@ class Appliance:
         self.teaching_status: LatestValue[TeachingStatus] = LatestValue("teaching")       # input
         self.teaching = live_teaching_for(cfg)
 
-        self.capture = CaptureWorker(parts.camera, parts.tracker, self.poses)
+        # Poses the renderer would never draw are neither tracked nor, by the synthetic webcam, drawn.
+        self.pose_demand = PoseDemand(1.0 / cfg.appliance.devices.camera.fps)
+        if hasattr(parts.camera, "wanted"):
+            parts.camera.wanted = self.pose_demand.wanted
+        self.capture = CaptureWorker(parts.camera, parts.tracker, self.poses, self.pose_demand)
         self.phase = PhaseWorker(parts, self.console_state, self.phases, self.clock)
         self.render = RenderWorker(parts, keeper, poses=self.poses, phases=self.phases,
                                    console_state=self.console_state, saves=saves, shown=self.shown,
                                    exposure_factor=exposure_factor, banners=lambda: self.supervisor.banners(),
                                    on_first_frame=lambda: self.supervisor.first_frame.set(),
                                    on_shown=lambda frame: self._shown(frame, on_shown),
-                                   views=views, teaching=self.teaching_status)
+                                   views=views, teaching=self.teaching_status, demand=self.pose_demand)
         self.input = InputWorker(parts.console, [parts.keypad, parts.pedal], parts.alarm, self.clock,
                                  console_state=self.console_state, events=self.events,
                                  fluoroscope=self._new_fluoroscope, exposure_factor=exposure_factor,

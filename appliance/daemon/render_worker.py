@@ -29,6 +29,7 @@ from ..xray.renderer import Frame, View
 from .frame_stats import FrameStats
 from .handoff import LatestValue, PhaseValue, SavedImage, ShownFrame, ShownImage, Technique, TrackedPose
 from .parts import Parts, is_cpu
+from .pose_demand import PoseDemand
 from .reload import ProfileKeeper
 from .worker import Worker
 
@@ -98,8 +99,9 @@ class RenderWorker(Worker):
                  banners: Callable[[], list[str]], on_first_frame: Callable[[], None],
                  on_shown: Callable[[ShownFrame], None] | None = None,
                  views: LatestValue[tuple[float, dict]] | None = None,
-                 teaching: LatestValue[TeachingStatus] | None = None):
+                 teaching: LatestValue[TeachingStatus] | None = None, demand: PoseDemand | None = None):
         super().__init__("render", idle_s=0.0)
+        self.demand = demand        # told when each render begins and ends (pose_demand.py)
         self.parts, self.keeper = parts, keeper
         self.poses, self.phases, self.console_state, self.saves = poses, phases, console_state, saves
         self.shown, self.exposure_factor = shown, exposure_factor
@@ -137,7 +139,15 @@ class RenderWorker(Worker):
                 and phase.generation == self.parts.generation and state.image_due(self._drawn)):
             T_xray_from_ct = (cfg.fluoroscope.T_xray_from_webcam() @ tracked.pose.T_webcam_from_phantom
                               @ np.asarray(cfg.case.T_phantom_from_ct, dtype=np.float64))
-            frame = self._render(cfg, T_xray_from_ct, phase, state)
+            # The renderer wants no pose until this frame is on screen (pose_demand.py).
+            if self.demand is not None:
+                self.demand.rendering(now)
+            frame = None
+            try:
+                frame = self._render(cfg, T_xray_from_ct, phase, state)
+            finally:
+                if frame is None and self.demand is not None:
+                    self.demand.rendered(now, time.monotonic())
             if frame is not None:
                 self._image, self._image_T, self._drawn, live = frame.image, T_xray_from_ct, state, True
                 self._send_technique(Technique(frame.exposure_factor, frame.kvp, frame.ma))
@@ -164,6 +174,8 @@ class RenderWorker(Worker):
         self.parts.display.show(self.parts.compositor.compose(self._image, overlay, now))
         t_shown = time.monotonic()
         self._last_compose = t_shown
+        if live and self.demand is not None:
+            self.demand.rendered(now, t_shown)
         latency = None
         if live and tracked is not None and self._image is not None and self._image_T is not None:
             latency = t_shown - tracked.t_frame

@@ -67,6 +67,18 @@ ABC_SAMPLE_PIXELS = 1024
 BAND_YIELD_S = 0.002
 
 
+@dataclass(frozen=True, eq=False)
+class BlendedLines:
+    """Two phases' cast material integrals (device buffers) and the weight of the second: the
+    frame's integrals are (1 - w) a + w b. The polychromatic kernel and the exposure control's
+    sample blend them as they read them, so a frame between two cached phases costs no pass of
+    its own for the blend."""
+
+    a: cl.Buffer
+    b: cl.Buffer
+    w: float
+
+
 class CastCancelled(Exception):
     """A banded cast stopped between bands because its caller asked (see Caster.cast)."""
 
@@ -442,15 +454,22 @@ class Caster:
         lines, _ = self.cast(volume, T_xray_from_ct, zoom, collimation_mm, blend, distorted, circle)
         return self.dev.download(lines, np.empty(self.shape + (4,), dtype=np.float32))
 
-    def sample_lines(self, lines: cl.Buffer, beam: Beam) -> np.ndarray:
+    def sample_lines(self, lines: cl.Buffer | BlendedLines, beam: Beam) -> np.ndarray:
         """(n, 4) float32 material integrals of the cast `lines` at the beam's sample of its
         measuring field: what the exposure control reads (gathered on the device)."""
         n = len(beam.sample)
-        out = self.dev.scratch(n * 16)
-        self._gather(self.dev.queue, (n,), None, lines, beam.sample_buf, out)
-        return self.dev.download(out, np.empty((n, 4), dtype=np.float32))
 
-    def intensity(self, lines, tables: DetectorTables, zoom, collimation_mm, circle) -> np.ndarray:
+        def gather(buf) -> np.ndarray:
+            out = self.dev.scratch(n * 16)
+            self._gather(self.dev.queue, (n,), None, buf, beam.sample_buf, out)
+            return self.dev.download(out, np.empty((n, 4), dtype=np.float32))
+        if not isinstance(lines, BlendedLines):
+            return gather(lines)
+        a, b = gather(lines.a), gather(lines.b)
+        return a + np.float32(lines.w) * (b - a)
+
+    def intensity(self, lines: cl.Buffer | BlendedLines, tables: DetectorTables, zoom, collimation_mm,
+                  circle) -> np.ndarray:
         """(rows, cols) float32 detector signal relative to the open beam, before any blur, of the
         cast `lines` through the detector `tables`; 0 outside the beam."""
         dev = self.dev
@@ -458,11 +477,16 @@ class Caster:
         weights, mu_rho, n_e = tables.weights_buf, tables.mu_buf, len(tables.weights)
         mask_buf = self.beam(zoom, collimation_mm, circle).exposed_buf
         out_buf = dev.scratch(rows * cols * 4)
-        if self.packet:
-            self._poly_kernel(dev.queue, (-(-rows * cols // PACKET),), None, lines, mask_buf, weights, mu_rho,
-                              np.int32(n_e), np.int32(rows * cols), out_buf)
+        if isinstance(lines, BlendedLines):
+            first, second, w = lines.a, lines.b, np.float32(lines.w)
         else:
-            self._poly_kernel(dev.queue, (rows * cols,), None, lines, mask_buf, weights, mu_rho, np.int32(n_e), out_buf)
+            first, second, w = lines, lines, np.float32(0.0)
+        if self.packet:
+            self._poly_kernel(dev.queue, (-(-rows * cols // PACKET),), None, first, second, w, mask_buf, weights,
+                              mu_rho, np.int32(n_e), np.int32(rows * cols), out_buf)
+        else:
+            self._poly_kernel(dev.queue, (rows * cols,), None, first, second, w, mask_buf, weights, mu_rho,
+                              np.int32(n_e), out_buf)
         return dev.download(out_buf, np.empty((rows, cols), dtype=np.float32))
 
     def line_integral(self, volume: PreparedVolume, T_xray_from_ct, zoom: int = 1, collimation_mm=None) -> np.ndarray:

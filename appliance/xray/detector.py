@@ -91,6 +91,7 @@ class Detector:
         self.chain = fluoroscope.image
         self.mu_water_per_mm = mu_water_per_mm
         self._gains: dict = {}
+        self._fields: dict = {}      # id(mask), sigma -> (mask, field, 1 / blurred field); see _field_weights
 
     # -- photons ---------------------------------------------------------------------
     def frame_rate_per_s(self, mode: str | None) -> float:
@@ -231,19 +232,19 @@ class Detector:
     def spread(self, image: np.ndarray, mask: np.ndarray, zoom: int) -> np.ndarray:
         """The detector's own point-spread and veiling glare on a (noisy) signal, and its vignetting.
 
-        Blurs see the field as it is: outside the beam is no signal. Glare keeps the mean
+        Blurs see the field as it is: outside the beam is no signal, before and after. Glare keeps the mean
         signal and moves `veiling_glare` of it into a broad halo (computed on a coarse grid:
         the halo has no fine detail).
         """
         import cv2
 
-        out: np.ndarray = np.where(mask, image, np.float32(0)).astype(np.float32)
         sigma = self.psf_sigma_px(zoom)
+        field, inv_weight, gain = self._field_weights(mask, sigma, zoom)
+        out = cv2.multiply(np.asarray(image, dtype=np.float32), field)
         if sigma > 0.3:
             # Normalised by the blurred field, so the blur mixes no darkness into the field's
             # edge: the edge's fall-off is the aperture's own (see `edge`).
-            weight = cv2.GaussianBlur(mask.astype(np.float32), (0, 0), sigma)
-            out = cv2.GaussianBlur(out, (0, 0), sigma) / np.maximum(weight, np.float32(1e-3))
+            out = cv2.multiply(cv2.GaussianBlur(out, (0, 0), sigma), inv_weight)
         g = self.chain.veiling_glare
         if g > 0:
             halo_px = self.chain.glare_sigma_mm / pixel_pitch_at_zoom_mm(self.fl, zoom)
@@ -252,11 +253,27 @@ class Detector:
             small = cv2.resize(out, (max(1, cols // step), max(1, rows // step)), interpolation=cv2.INTER_AREA)
             small = cv2.GaussianBlur(small, (0, 0), max(halo_px / step, 0.5))
             halo = cv2.resize(small, (cols, rows), interpolation=cv2.INTER_LINEAR)
-            out = (1.0 - g) * out + g * halo
-        gain = self.gain(zoom)
-        if gain is not None:
-            out = out * gain
-        return out.astype(np.float32)
+            out = cv2.addWeighted(out, 1.0 - g, halo, g, 0.0)
+        return cv2.multiply(out, gain)
+
+    def _field_weights(self, mask: np.ndarray, sigma: float, zoom: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The field as float32 1/0, the reciprocal of its blur at `sigma` (floored at 1e-3) and
+        the vignetting times the field (no signal outside it): the same for every frame of one
+        field, so made once per mask."""
+        import cv2
+
+        key = (id(mask), round(sigma, 6), zoom)
+        held = self._fields.get(key)
+        if held is None or held[0] is not mask:
+            if len(self._fields) > 16:
+                self._fields.clear()
+            field = mask.astype(np.float32)
+            inv = field
+            if sigma > 0.3:
+                inv = (1.0 / np.maximum(cv2.GaussianBlur(field, (0, 0), sigma), np.float32(1e-3))).astype(np.float32)
+            gain = self.gain(zoom)
+            held = self._fields[key] = (mask, field, inv, field if gain is None else (field * gain).astype(np.float32))
+        return held[1], held[2], held[3]
 
     def edge(self, mask: np.ndarray, zoom: int) -> np.ndarray:
         """(rows, cols) float32 weight in [0, 1] of the field's edge at `zoom` (casting.field_edge

@@ -14,8 +14,6 @@ it). The compositor and the saved images take the result as it is.
 
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 
 from ..config.image_chain import ImageChain
@@ -65,33 +63,25 @@ def auto_window(p: np.ndarray, field: np.ndarray, measuring: np.ndarray, latitud
 def to_display(p: np.ndarray, field: np.ndarray, edge: np.ndarray, chain: ImageChain, invert: bool,
                centre: float, width: float) -> np.ndarray:
     """(rows, cols) float32 grey in [0, 1] of the log signal `p` through window (centre, width),
-    the soft knee and the polarity, faded by `edge` (1 inside the field, 0 outside)."""
-    # Through a table of the knee, polarity included, 1/2048 of the window per entry, read by
-    # index with linear interpolation between entries (np.interp's search per pixel cost more
-    # than the rest of the display chain).
-    table = _knee_table(chain.display_knee, invert)
-    x = p - np.float32(centre - (0.5 - KNEE_TABLE_LOW) * width)
-    x *= np.float32(KNEE_TABLE_STEPS / width)
-    np.clip(x, 0, len(table) - 1.001, out=x)
-    index = x.astype(np.int32)
-    x -= index
-    grey = table[index]
-    grey += x * (table[index + 1] - grey)
-    grey *= edge
-    grey[~field] = 0.0
-    return grey
+    the soft knee and the polarity, faded by `edge` (1 inside the field, 0 outside: black
+    outside `field`, which `edge` must be 0 beyond)."""
+    import cv2
 
-
-#: The knee table spans window positions KNEE_TABLE_LOW .. KNEE_TABLE_HIGH (0 = the window's
-#: bottom, 1 = its top) in steps of 1 / KNEE_TABLE_STEPS; beyond, the soft knee is within a
-#: few grey levels of its end anyway.
-KNEE_TABLE_LOW, KNEE_TABLE_HIGH, KNEE_TABLE_STEPS = -4.0, 5.0, 2048
-
-
-@functools.lru_cache(maxsize=8)
-def _knee_table(knee: float, invert: bool) -> np.ndarray:
-    n = int(round((KNEE_TABLE_HIGH - KNEE_TABLE_LOW) * KNEE_TABLE_STEPS)) + 1
-    grey = soft_knee(np.linspace(KNEE_TABLE_LOW, KNEE_TABLE_HIGH, n, dtype=np.float64), knee)
-    table = ((1.0 - grey) if invert else grey).astype(np.float32)
-    table.setflags(write=False)      # shared by every frame
-    return table
+    del field       # `edge` is 0 wherever the field is not
+    k = float(chain.display_knee)
+    # x: the window position (0 its bottom, 1 its top). The soft knee in closed form, a few
+    # whole-frame OpenCV passes (a table read per pixel, or np.where's three branches, cost
+    # several times more): with c = x clipped to [k, 1 - k] and s = x - c the distance past
+    # the knee, grey = c + k s / (k + |s|), which is soft_knee's two hyperbolas and identity.
+    x = cv2.addWeighted(p, 1.0 / width, p, 0.0, 0.5 - centre / width)
+    if k <= 0:
+        grey = np.clip(x, np.float32(0.0), np.float32(1.0))
+    else:
+        c = np.clip(x, np.float32(k), np.float32(1.0 - k))
+        s = cv2.subtract(x, c)
+        den = np.abs(s)
+        den += np.float32(k)
+        grey = cv2.add(c, cv2.divide(s, den, scale=k))
+    if invert:
+        np.subtract(np.float32(1.0), grey, out=grey)
+    return cv2.multiply(grey, edge)

@@ -284,13 +284,15 @@ kernel void joseph_packet(global const short *vol,
 // Energy-integrating detector: I/I0 = sum_e w_e exp(-sum_m mu_rho[e][m] * L_m), with L in
 // g/cm^3 * mm (hence the 0.1 to g/cm^2) and w_e = N0(E) E normalised to sum 1. Pixels
 // outside the mask read 0 (no signal).
-kernel void polychromatic(global const float4 *lines, global const uchar *mask,
+// `lines_b` with weight w_b > 0 blends two phases' integrals first (see polychromatic_packet).
+kernel void polychromatic(global const float4 *lines, global const float4 *lines_b, const float w_b,
+                          global const uchar *mask,
                           constant float *weights, constant float4 *mu_rho, const int n_e,
                           global float *out)
 {
     const int p = get_global_id(0);
     if (!mask[p]) { out[p] = 0.0f; return; }
-    const float4 L = lines[p] * 0.1f;
+    const float4 L = (w_b > 0.0f ? mix(lines[p], lines_b[p], w_b) : lines[p]) * 0.1f;
     float sum = 0.0f;
     for (int e = 0; e < n_e; ++e)
         sum += weights[e] * exp(-dot(mu_rho[e], L));
@@ -298,33 +300,58 @@ kernel void polychromatic(global const float4 *lines, global const uchar *mask,
 }
 
 // The same sum for sixteen pixels per work-item, so a CPU evaluates exp() in SIMD.
-kernel void polychromatic_packet(global const float4 *lines, global const uchar *mask,
+// `lines_b` with weight w_b > 0: the pixel's integrals are (1 - w_b) lines + w_b lines_b, the
+// projection cache's blend of two phases (exact: a line integral is linear in the density),
+// without a pass of its own.
+kernel void polychromatic_packet(global const float4 *lines, global const float4 *lines_b, const float w_b,
+                                 global const uchar *mask,
                                  constant float *weights, constant float4 *mu_rho, const int n_e,
                                  const int n_pixels, global float *out)
 {
     const int p0 = get_global_id(0) * LANES;
-    float16 La, Ls, Lb, Lc;
-    for (int l = 0; l < LANES; ++l) {
-        const float4 L = lines[min(p0 + l, n_pixels - 1)] * 0.1f;
-        La[l] = L.x; Ls[l] = L.y; Lb[l] = L.z; Lc[l] = L.w;
+    const bool whole = p0 + LANES <= n_pixels;
+    int16 on;
+    if (whole) {
+        on = convert_int16(vload16(0, mask + p0)) != 0;
+    } else {
+        for (int l = 0; l < LANES; ++l)
+            on[l] = p0 + l < n_pixels && mask[p0 + l] ? -1 : 0;
     }
     float16 sum = 0.0f;
-    for (int e = 0; e < n_e; ++e) {
-        const float4 m = mu_rho[e];
-        sum += weights[e] * exp(-(m.x * La + m.y * Ls + m.z * Lb + m.w * Lc));
+    if (any(on)) {      // a packet wholly outside the beam reads nothing
+        float16 La, Ls, Lb, Lc;
+        for (int l = 0; l < LANES; ++l) {
+            const int q = min(p0 + l, n_pixels - 1);
+            float4 L = lines[q];
+            if (w_b > 0.0f) L = mix(L, lines_b[q], w_b);
+            L *= 0.1f;
+            La[l] = L.x; Ls[l] = L.y; Lb[l] = L.z; Lc[l] = L.w;
+        }
+        for (int e = 0; e < n_e; ++e) {
+            const float4 m = mu_rho[e];
+            sum += weights[e] * exp(-(m.x * La + m.y * Ls + m.z * Lb + m.w * Lc));
+        }
+        sum = select((float16)(0.0f), sum, on);
     }
-    for (int l = 0; l < LANES; ++l)
-        if (p0 + l < n_pixels)
-            out[p0 + l] = mask[p0 + l] ? sum[l] : 0.0f;
+    if (whole) {
+        vstore16(sum, 0, out + p0);
+    } else {
+        for (int l = 0; l < LANES; ++l)
+            if (p0 + l < n_pixels) out[p0 + l] = sum[l];
+    }
 }
 
 // Quantum noise: each pixel's relative intensity becomes a photon count drawn around
 // lam = intensity * n0 (photons expected per pixel with nothing in the beam), returned
-// relative to n0 again. Poisson by Knuth's product of uniforms below GAUSSIAN_ABOVE photons,
-// its normal approximation (Box-Muller) above, where the two agree to well under the noise.
+// relative to n0 again. Poisson by inversion of its distribution function (one uniform, the
+// terms lam^k e^-lam / k! summed until they pass it) below GAUSSIAN_ABOVE photons, its normal
+// approximation (Box-Muller) above, where the two agree to well under the noise.
 // The uniforms come from a counter-based hash of (seed, pixel, draw), so a frame's noise is
 // the same on every device and for every work-group split, and needs no stored state.
 #define GAUSSIAN_ABOVE 30.0f
+//: The inversion stops where the terms left are below this (their sum is then ~1e-7 of the
+//: distribution): float sums never quite reach 1, and a uniform above them must not run on.
+#define POISSON_TAIL 1e-7f
 inline uint hash32(uint x)     // "lowbias32" (C. Wellons): a bijection with good avalanche
 {
     x ^= x >> 16; x *= 0x7feb352dU; x ^= x >> 15; x *= 0x846ca68bU; x ^= x >> 16;
@@ -340,18 +367,76 @@ kernel void quantum_noise(global float *img, const float n0, const uint seed)
     const float lam = fmax(img[p], 0.0f) * n0;
     const uint key = hash32(hash32((uint)p) ^ seed);
     float count;
+    const float u0 = uniform_open(key, 0u);
     if (lam >= GAUSSIAN_ABOVE) {
-        const float r = sqrt(-2.0f * log(uniform_open(key, 0u)));
+        const float r = sqrt(-2.0f * log(u0));
         count = fmax(lam + sqrt(lam) * r * cos(6.2831853f * uniform_open(key, 1u)), 0.0f);
     } else {
-        const float limit = exp(-lam);
-        float prod = uniform_open(key, 0u);
+        float term = exp(-lam), sum = term;
         uint k = 0u;
-        while (prod > limit) { ++k; prod *= uniform_open(key, k); }
+        while (u0 > sum && (term > POISSON_TAIL || (float)k < lam)) {
+            ++k;
+            term *= lam / (float)k;
+            sum += term;
+        }
         count = (float)k;
     }
     img[p] = count / n0;
 }
+
+// The same noise for sixteen pixels per work-item, the same draws for the same (seed, pixel),
+// all in SIMD: the normal approximation for every lane, and the inversion over the whole
+// packet, masked, only where a lane is below GAUSSIAN_ABOVE (the densest rays). A CPU driver
+// cannot vectorise quantum_noise's per-pixel branch and loop, so this costs a fraction of it.
+inline uint16 hash32_16(uint16 x)
+{
+    x ^= x >> 16; x *= 0x7feb352dU; x ^= x >> 15; x *= 0x846ca68bU; x ^= x >> 16;
+    return x;
+}
+inline float16 uniform_open16(uint16 key, uint16 draw)
+{
+    return convert_float16((hash32_16(key + draw * 0x9e3779b9U) >> 8) + 1u) * (1.0f / 16777216.0f);
+}
+kernel void quantum_noise_packet(global float *img, const float n0, const uint seed, const int n_pixels)
+{
+    const int p0 = get_global_id(0) * LANES;
+    const bool whole = p0 + LANES <= n_pixels;
+    float16 lam;
+    if (whole) {
+        lam = vload16(0, img + p0);
+    } else {
+        for (int l = 0; l < LANES; ++l)
+            lam[l] = img[min(p0 + l, n_pixels - 1)];
+    }
+    lam = fmax(lam, 0.0f) * n0;
+    const uint16 pix = (uint16)((uint)p0) + (uint16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    const uint16 key = hash32_16(hash32_16(pix) ^ seed);
+    const float16 u0 = uniform_open16(key, (uint16)(0u));
+    const float16 r = sqrt(-2.0f * log(u0));
+    float16 count = fmax(lam + sqrt(lam) * r * cos(6.2831853f * uniform_open16(key, (uint16)(1u))), 0.0f);
+    const int16 low = lam < GAUSSIAN_ABOVE;
+    if (any(low)) {
+        // The inversion over the packet, masked: lanes above the threshold stop at once.
+        float16 term = exp(-lam), sum = term;
+        float16 k = 0.0f;
+        int16 going = low & (u0 > sum);
+        while (any(going)) {
+            k = select(k, k + 1.0f, going);
+            term = select(term, term * lam / k, going);
+            sum = select(sum, sum + term, going);
+            going &= (u0 > sum) & ((term > POISSON_TAIL) | (k < lam));
+        }
+        count = select(count, k, low);
+    }
+    count /= n0;
+    if (whole) {
+        vstore16(count, 0, img + p0);
+    } else {
+        for (int l = 0; l < LANES; ++l)
+            if (p0 + l < n_pixels) img[p0 + l] = count[l];
+    }
+}
+
 // Exact path lengths (Siddon, incremental as Amanatides and Woo): the integral of
 // max(0, 1 + HU/1000) along the ray, in mm; multiplied by mu_water it is the line integral
 // of mu = mu_water (1 + HU/1000) clipped at 0. Voxels are constant, not interpolated.

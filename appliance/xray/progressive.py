@@ -59,6 +59,8 @@ class ProgressiveRenderer:
         #: When the full matrix was first shown after the last motion (s, `clock`), and how long
         #: after the pose came to rest that was: the "native matrix within 500 ms" figure.
         self.refined_after_s: list[float] = []
+        #: Moving frames cast straight through the renderer, past the cache (count).
+        self.moving_casts = 0
 
     def __getattr__(self, name):
         # Everything but rendering (prepare, device, fluoroscope, photons_per_pixel, ...) is the
@@ -101,7 +103,8 @@ class ProgressiveRenderer:
 
         now = self.clock()
         T = np.asarray(T_xray_from_ct, dtype=np.float64)
-        if self._moved(volume, T, view.zoom):
+        moved = self._moved(volume, T, view.zoom)
+        if moved:
             self._last_motion = now
             self._last_pose = T
         resting = now - self._last_motion >= self.settings.settle_s
@@ -110,7 +113,14 @@ class ProgressiveRenderer:
             # The recursive filter goes on across the switch: its state, resampled to the new
             # matrix, is what the first frame of that matrix is blended into.
             use.lag.carry_over(self._last_used.lag, use.shape)
-        frame = self.cache(use).render(volume, T, view, blend, concentration_factor)
+        if use is self.moving and moved and (blend is None or volume.same_grid(blend[0])):
+            # A new pose every frame: the next frame will not reuse what this one casts, so the two
+            # phases are blended in the cast (one pass over both, as Renderer.render does) rather
+            # than each cast into the cache.
+            frame = use.render(volume, T, view, blend, concentration_factor=concentration_factor)
+            self.moving_casts += 1
+        else:
+            frame = self.cache(use).render(volume, T, view, blend, concentration_factor)
         image = frame.image
         rows, cols = self.full.shape
         if image.shape != (rows, cols):

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .casting import BlendedLines
 from .renderer import PACKET, Frame, PreparedVolume, Renderer, View, zoomed_K
 
 if TYPE_CHECKING:
@@ -85,7 +86,7 @@ class ProjectionCache:
         self.counts = CacheCounts()
         self._pose: np.ndarray | None = None
         self._key: tuple | None = None
-        self._lines: dict[PreparedVolume, object] = {}     # phase -> device buffer of its integrals
+        self._lines: dict[PreparedVolume, cl.Buffer] = {}     # phase -> device buffer of its integrals
         self._split: cl.Kernel | None = None    # the two-phase cast kernel, built on first use
         self._blend: cl.Kernel | None = None
 
@@ -150,8 +151,9 @@ class ProjectionCache:
                     dev.upload(box), caster._mat_buf, np.int32(cols), out_a, out_b)
         return out_a, out_b
 
-    def _cached_cast(self, volume, T, zoom, collimation_mm, blend, distorted, circle):
-        """`Caster.cast`'s stand-in: (device buffer of the frame's material integrals, beam mask)."""
+    def _cached_cast(self, volume, T, zoom, collimation_mm, blend, distorted, circle, fused: bool = True):
+        """`Caster.cast`'s stand-in: (the frame's material integrals, beam mask): a device buffer,
+        or with `fused` between two phases the two phases' buffers as `BlendedLines`."""
         r = self.renderer
         dev = r.dev
         self._adopt(volume, T, zoom, collimation_mm, distorted, circle)
@@ -161,6 +163,9 @@ class ProjectionCache:
         mask = r.caster.beam(zoom, collimation_mm, circle).exposed
         if len(phases) == 1:
             return self._lines[volume], mask
+        if fused:
+            # The detector's kernel and the exposure control's sample blend as they read.
+            return BlendedLines(self._lines[volume], self._lines[blend[0]], float(blend[1])), mask
         if self._blend is None:
             self._blend = dev.kernel("blend_lines")
         rows, cols = r.shape
@@ -190,7 +195,7 @@ class ProjectionCache:
         r._check(volume, *(() if blend is None else (blend[0],)))
         with r._lock:
             lines, _ = self._cached_cast(volume, T_xray_from_ct, view.zoom, view.collimation_mm, blend, True,
-                                         r._circle(None))
+                                         r._circle(None), fused=False)
             return r.dev.download(lines, np.empty(r.shape + (4,), dtype=np.float32))
 
     def clear(self) -> None:

@@ -93,7 +93,7 @@ class Renderer:
         self.dev = ClDevice(device)
         self.device = self.dev.device
         self._lock: threading.Lock = self.dev.lock
-        self._noise = self.dev.kernel("quantum_noise")
+        self._noise = self.dev.kernel("quantum_noise_packet" if self.dev.is_cpu else "quantum_noise")
         self._seeds = np.random.default_rng()        # a fresh noise pattern each frame unless View.seed
         self.caster = Caster(self.dev, fluoroscope, materials, contrast, packet)
         self.packet = self.caster.packet
@@ -180,7 +180,11 @@ class Renderer:
         seed = int(self._seeds.integers(2 ** 32)) if seed is None else int(seed) & 0xFFFFFFFF
         with self._lock:
             buf = self.dev.upload(out, writable=True)
-            self._noise(self.dev.queue, (out.size,), None, buf, np.float32(photons_open_field), np.uint32(seed))
+            args = (buf, np.float32(photons_open_field), np.uint32(seed))
+            if self.dev.is_cpu:
+                self._noise(self.dev.queue, (-(-out.size // PACKET),), None, *args, np.int32(out.size))
+            else:
+                self._noise(self.dev.queue, (out.size,), None, *args)
             self.dev.download(buf, out)
         return out
 
@@ -274,8 +278,9 @@ class Renderer:
         if view.noise:
             image = self.quantum_noise(image, photons, view.seed)
         # The detector sees the exposed field: the geometric field and the edge's penumbra.
-        image = detector.spread(image, exposed, view.zoom)
-        image[~(exposed if display else mask)] = 0.0
+        image = detector.spread(image, exposed, view.zoom)      # 0 outside `exposed`
+        if not display:
+            image[~mask] = 0.0
         measured = float(np.median(image[central])) if central.any() else 0.0
         if not display:
             return Frame(image, exposure.factor, exposure.attenuation, exposure.limited, photons * measured,
