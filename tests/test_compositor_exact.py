@@ -1,0 +1,191 @@
+"""The blades, their dimming and the banners, pixel for pixel.
+
+Ground truth: the blade opening worked by hand (a 512 px square showing 300 mm, so 150 x 75 mm
+opens columns 128..383 and rows 192..319), dimming to 3/10 of each grey level in integers,
+two-pixel blade lines of grey 150 along each edge; a banner is a filled box as wide as its
+widest line plus a margin each side, one line pitch (OpenCV's own text height and depth of
+"Xg" plus half a margin) a line, and the next banner starts a third of a margin below it.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from appliance.display.compositor import Compositor, Overlay
+from appliance.display.text import AMBER, BLACK, FONT, GREEN, RED, WHITE, wrap_text
+
+SIDE = 512
+EDGE_GREY = 150
+
+
+def grey_ramp() -> tuple[np.ndarray, np.ndarray]:
+    """A SIDE x SIDE image holding every grey level in every region, and its 8-bit values."""
+    levels = (np.arange(SIDE * SIDE).reshape(SIDE, SIDE) * 7) % 256
+    return (levels / 255.0).astype(np.float32), levels
+
+
+def expected_square(levels: np.ndarray, opening: tuple[int, int, int, int]) -> np.ndarray:
+    left, top, right, bottom = opening
+    rows, cols = np.mgrid[0:SIDE, 0:SIDE]
+    inside = (cols >= left) & (cols < right) & (rows >= top) & (rows < bottom)
+    out = np.where(inside, levels, (3 * levels) // 10)
+    band = (rows >= top) & (rows < bottom)
+    span = (cols >= left) & (cols < right)
+    if left > 0:
+        out[band & ((cols == left - 1) | (cols == left) | (cols == right - 1) | (cols == right))] = EDGE_GREY
+    if top > 0:
+        out[span & ((rows == top - 1) | (rows == top) | (rows == bottom - 1) | (rows == bottom))] = EDGE_GREY
+    return out.astype(np.uint8)
+
+
+@pytest.mark.parametrize("collimation_mm, opening", [
+    ((150.0, 75.0), (128, 192, 384, 320)),        # both pairs in
+    ((900.0, 75.0), (0, 192, 512, 320)),          # the horizontal pair wide open: no vertical lines
+    ((150.0, 900.0), (128, 0, 384, 512)),         # the vertical pair wide open: no horizontal lines
+    ((298.8, 298.8), (1, 1, 511, 511)),           # a pixel in from every side: the lines reach the square's edge
+    ((0.0, 0.0), (256, 256, 256, 256)),           # shut: all dimmed, the lines meet in the middle
+    (None, (0, 0, 512, 512)),                     # no collimation
+])
+def test_blades_dim_outside_the_opening_and_draw_two_pixel_edges(collimation_mm, opening):
+    comp = Compositor(640, SIDE, circular_fov=False)
+    image, levels = grey_ramp()
+    square = comp._image_square(image, Overlay(fov_mm=300.0, collimation_mm=collimation_mm))
+    expected = expected_square(levels, opening)
+    wrong = np.argwhere(square != expected)
+    assert wrong.size == 0, (len(wrong), wrong[:5].tolist(), [(int(square[tuple(p)]), int(expected[tuple(p)]))
+                                                             for p in wrong[:5]])
+
+
+def test_the_circle_masks_the_collimated_square():
+    comp = Compositor(640, SIDE)
+    image, levels = grey_ramp()
+    square = comp._image_square(image, Overlay(fov_mm=300.0, collimation_mm=(150.0, 75.0)))
+    rows, cols = np.mgrid[0:SIDE, 0:SIDE]
+    c = (SIDE - 1) / 2
+    inside = (cols - c) ** 2 + (rows - c) ** 2 <= (SIDE / 2) ** 2
+    assert np.array_equal(square, np.where(inside, expected_square(levels, (128, 192, 384, 320)), 0))
+
+
+def banner_box(comp: Compositor, text: str) -> tuple[list[str], int, int, int, int]:
+    """Lines, width, height, text height above the baseline and the line pitch, by the rule above."""
+    lines = wrap_text(text, round(comp.side * 0.9) - 2 * comp.margin, comp.scale, comp.thickness)
+    (_, h), base = cv2.getTextSize("Xg", FONT, comp.scale, comp.thickness)
+    pitch = h + base + comp.margin // 2
+    width = max(cv2.getTextSize(line, FONT, comp.scale, comp.thickness)[0][0] for line in lines) + 2 * comp.margin
+    return lines, width, pitch * len(lines) + comp.margin // 2, h, pitch
+
+
+def drawn_banner(comp: Compositor, text: str, top: int, fill, color) -> np.ndarray:
+    """The banner drawn from the rule with OpenCV's primitives: the box, then each line at its pitch."""
+    frame = np.zeros((comp.height, comp.width, 3), np.uint8)
+    lines, w, h_box, h, pitch = banner_box(comp, text)
+    x = (comp.width - w) // 2
+    frame[top:top + h_box + 1, x:x + w + 1] = fill
+    for i, line in enumerate(lines):
+        cv2.putText(frame, line, (x + comp.margin, top + comp.margin // 2 + h + i * pitch), FONT, comp.scale, color,
+                    comp.thickness, cv2.LINE_AA)
+    return frame
+
+
+@pytest.mark.parametrize("size", [(640, 512), (1920, 1080)])
+def test_a_banner_is_its_box_and_its_lines_exactly(size):
+    comp = Compositor(*size)
+    text = ("camera lost: the webcam at usb-0000:00:14.0-2 stopped sending frames; check its cable and that "
+            "no other program holds the device")
+    lines, w, h_box, _, _ = banner_box(comp, text)
+    assert len(lines) >= 2
+    frame = np.zeros((comp.height, comp.width, 3), np.uint8)
+    below = comp._banner(frame, text, 100, AMBER, BLACK)
+    assert np.array_equal(frame, drawn_banner(comp, text, 100, AMBER, BLACK))
+    assert below == 100 + h_box + comp.margin // 3
+    # From the bottom: the box ends at the given row, and the next one goes a third of a margin above.
+    frame[...] = 0
+    above = comp._banner(frame, "PRESS ALARM RESET", 400, RED, WHITE, from_bottom=True)
+    _, _, h_box, _, _ = banner_box(comp, "PRESS ALARM RESET")
+    assert np.array_equal(frame, drawn_banner(comp, "PRESS ALARM RESET", 400 - h_box, RED, WHITE))
+    assert above == 400 - h_box - comp.margin // 3
+
+
+def boxes(frame: np.ndarray, fill) -> list[tuple[int, int, int, int]]:
+    """(top, bottom, left, right) of each run of rows holding the fill colour, inclusive."""
+    mask = np.all(frame == fill, axis=2)
+    rows = mask.any(axis=1)
+    out, r = [], 0
+    while r < len(rows):
+        if rows[r]:
+            end = r
+            while end + 1 < len(rows) and rows[end + 1]:
+                end += 1
+            cols = np.flatnonzero(mask[r:end + 1].any(axis=0))
+            out.append((r, end, int(cols[0]), int(cols[-1])))
+            r = end + 1
+        else:
+            r += 1
+    return out
+
+
+def expected_boxes(comp: Compositor, texts: list[str], top: int) -> list[tuple[int, int, int, int]]:
+    out = []
+    for text in texts:
+        _, w, h_box, _, _ = banner_box(comp, text)
+        x = (comp.width - w) // 2
+        out.append((top, top + h_box, x, x + w))
+        top += h_box + comp.margin // 3
+    return out
+
+
+def test_warnings_stack_from_below_the_corner_text_short_ones_in_capitals_the_fourth_counts_the_rest():
+    comp = Compositor(640, SIDE)
+    dark = np.zeros((64, 64), np.float32)
+    first = comp.margin + 3 * comp.line                     # below the three lines of corner text
+    long = "the pedal at /dev/serial/by-id/usb-FTDI was unplugged; plug it back in"   # 40 characters or more: as written
+    frame = comp.compose(dark, Overlay(warnings=["camera lost", long]), now=0.75)
+    assert boxes(frame, AMBER) == expected_boxes(comp, ["CAMERA LOST", long], first)
+    seven = [f"warning {k}" for k in range(7)]
+    frame = comp.compose(dark, Overlay(warnings=seven), now=0.75)
+    shown = ["WARNING 0", "WARNING 1", "WARNING 2", "... AND 4 MORE WARNINGS"]
+    assert boxes(frame, AMBER) == expected_boxes(comp, shown, first)
+    # Exactly four are all shown; the text of each is the one drawn by the rule.
+    four = seven[:4]
+    frame = comp.compose(dark, Overlay(warnings=four), now=0.75)
+    assert boxes(frame, AMBER) == expected_boxes(comp, [w.upper() for w in four], first)
+    drawn = drawn_banner(comp, "WARNING 3", expected_boxes(comp, [w.upper() for w in four], first)[3][0], AMBER, BLACK)
+    t, b, l, r = boxes(drawn, AMBER)[0]
+    assert np.array_equal(frame[t:b + 1, l:r + 1], drawn[t:b + 1, l:r + 1])
+    # 39 characters is short, 40 is not.
+    assert len("x" * 39) < 40
+    frame = comp.compose(dark, Overlay(warnings=["x" * 39, "y" * 40]), now=0.75)
+    assert boxes(frame, AMBER) == expected_boxes(comp, ["X" * 39, "y" * 40], first)
+
+
+def test_saved_and_cue_banners_go_below_the_warnings_and_never_above_a_fifth_of_the_screen():
+    comp = Compositor(640, SIDE)
+    dark = np.zeros((64, 64), np.float32)
+    fifth = round(SIDE * 0.2)
+    # No warnings: the saved banner at a fifth of the height, the cue right below it.
+    frame = comp.compose(dark, Overlay(saved_flash=True, cue="task met: lateral view"), now=0.75)
+    assert boxes(frame, GREEN) == expected_boxes(comp, ["IMAGE SAVED", "TASK MET: LATERAL VIEW"], fifth)
+    # A cue that is not met is amber; without a saved banner it takes the saved banner's place.
+    frame = comp.compose(dark, Overlay(cue="not yet: the spine is not centred"), now=0.75)
+    assert boxes(frame, AMBER) == expected_boxes(comp, ["NOT YET: THE SPINE IS NOT CENTRED"], fifth)
+    # Four warnings reach below a fifth: the saved banner follows them.
+    warnings = [f"warning {k}" for k in range(4)]
+    stacked = expected_boxes(comp, [w.upper() for w in warnings] + ["IMAGE SAVED"], comp.margin + 3 * comp.line)
+    assert stacked[3][1] > fifth
+    frame = comp.compose(dark, Overlay(warnings=warnings, saved_flash=True), now=0.75)
+    assert boxes(frame, GREEN) == stacked[4:]
+
+
+def test_the_alarm_banner_sits_on_the_bottom_text_lines_and_reads_the_clock():
+    comp = Compositor(640, SIDE)
+    overlay = Overlay(alarm=True, fluoro_time_s=301.0, alarm_since=0.0)
+    frame = comp.compose(np.zeros((64, 64), np.float32), overlay, now=0.25)
+    text = "FLUOROSCOPY TIME ALARM  05:01  -  PRESS ALARM RESET"
+    bottom = SIDE - comp.margin - 3 * comp.line
+    _, w, h_box, _, _ = banner_box(comp, text)
+    x = (comp.width - w) // 2
+    assert boxes(frame, RED) == [(bottom - h_box, bottom, x, x + w)]
+    drawn = drawn_banner(comp, text, bottom - h_box, RED, WHITE)
+    assert np.array_equal(frame[bottom - h_box:bottom + 1, x:x + w + 1], drawn[bottom - h_box:bottom + 1, x:x + w + 1])
