@@ -263,3 +263,45 @@ def test_the_corner_text_outline_shows_on_a_full_size_monitor(size):
     core, outline = static_text_masks(comp, TITLE)
     assert comp.thickness >= 2
     assert ((outline > 200) & (core == 0)).sum() > 100, "an outline wider than the text"
+
+
+def test_the_live_and_hold_markers_sit_on_their_boxes():
+    comp = Compositor(640, SIDE)
+    dark = np.zeros((64, 64), np.float32)
+    for live, fill in ((True, (255, 214, 0)), (False, (60, 60, 60))):
+        (marker,) = [t for t in comp.text_layout(Overlay(live=live), now=0.0) if t.text in ("LIVE", "HOLD")]
+        assert marker.text == ("LIVE" if live else "HOLD")
+        x0, y0, x1, y1 = marker.box
+        frame = comp.compose(dark, Overlay(live=live), now=0.0)
+        corner = np.zeros(frame.shape[:2], bool)
+        corner[SIDE // 2:, 320:] = True                       # the bottom-right quarter (grey text edges elsewhere)
+        rows, cols = np.nonzero(np.all(frame == fill, axis=2) & corner)
+        # A filled box half a margin wider than the text's box each side, as tall as it.
+        assert (cols.min(), cols.max()) == (x0 - comp.margin // 2, x1 + comp.margin // 2)
+        assert (rows.min(), rows.max()) == (y0, y1)
+
+
+def test_the_saved_ring_is_centred_on_the_field_two_strokes_inside_its_edge():
+    comp = Compositor(640, SIDE)
+    dark = np.zeros((64, 64), np.float32)
+    plain = comp.compose(dark, Overlay(), now=0.0)
+    flash = comp.compose(dark, Overlay(saved_flash=True), now=0.0)
+    # The field's circle: centre (320, 256) (pixel centres 319.5, 255.5 rounded half to even),
+    # radius 256; the ring 254 px out (two 1 px strokes in), three strokes wide.
+    expected = plain.copy()
+    cv2.circle(expected, (320, 256), 254, WHITE, 3, cv2.LINE_AA)
+    keep = np.ones(plain.shape[:2], bool)
+    for x0, y0, x1, y1 in (t.box for t in comp.text_layout(Overlay(saved_flash=True), now=0.0)):
+        keep[max(y0 - 4, 0):y1 + 4, max(x0 - 4, 0):x1 + 4] = False
+    banner = [b for b in boxes(flash, GREEN)]
+    assert len(banner) == 1
+    keep[banner[0][0] - 1:banner[0][1] + 2, :] = False       # the IMAGE SAVED banner's rows
+    assert keep.sum() > 0.8 * keep.size
+    assert np.array_equal(flash[keep], expected[keep])
+
+
+def test_without_a_time_the_alarm_flashes_on_the_monotonic_clock():
+    import time
+    comp = Compositor(640, SIDE)
+    frame = comp.compose(np.zeros((64, 64), np.float32), Overlay(alarm=True, alarm_since=time.monotonic()))
+    assert np.all(frame == RED, axis=2).sum() > 1000         # lit in the first half second of its onset
