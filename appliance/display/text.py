@@ -132,7 +132,7 @@ def wrap_text(text: str, max_w: int, scale: float, thickness: int, font: int = F
             # The estimate assumes letters of average width: move it to as much as fits.
             while cut > MIN_CUT_CHARS and width(candidate[:cut]) > max_w:
                 cut -= 1
-            while width(candidate[:cut + 1]) <= max_w:
+            while cut < len(candidate) and width(candidate[:cut + 1]) <= max_w:
                 cut += 1
             lines.append(candidate[:cut])
             candidate = candidate[cut:]
