@@ -308,3 +308,37 @@ def test_without_a_time_the_alarm_flashes_on_the_monotonic_clock():
     comp = Compositor(640, SIDE)
     frame = comp.compose(np.zeros((64, 64), np.float32), Overlay(alarm=True, alarm_since=time.monotonic()))
     assert np.all(frame == RED, axis=2).sum() > 1000         # lit in the first half second of its onset
+
+
+def test_a_tall_detector_is_centred_and_its_blades_use_its_displayed_width():
+    comp = Compositor(640, SIDE, circular_fov=False)
+    # 64 rows x 32 columns: 512 px high, 256 px wide, columns 128..383 of the square.
+    square = comp._image_square(np.ones((64, 32), np.float32), Overlay(fov_mm=300.0, collimation_mm=(150.0, 100.0)))
+    lit = np.flatnonzero(square[256] > 0)
+    assert (lit.min(), lit.max()) == (128, 383)
+    # 256 px span 300 mm: 150 mm is 128 px across, 100 mm 85.3 px down (edges 192..320, 213..299).
+    dim = (3 * 255) // 10
+    assert square[256, 200] == 255 and square[256, 185] == dim and square[256, 315] == 255 and square[256, 325] == dim
+    assert square[220, 256] == 255 and square[205, 256] == dim and square[295, 256] == 255 and square[305, 256] == dim
+
+
+def test_a_wide_detector_of_any_aspect_is_letterboxed_in_the_middle():
+    comp = Compositor(640, SIDE, circular_fov=False)
+    square = comp._image_square(np.ones((48, 64), np.float32), Overlay())    # 384 px high: rows 64..447
+    lit = np.flatnonzero(square[:, 256] > 0)
+    assert (lit.min(), lit.max()) == (64, 447)
+
+
+def test_a_larger_image_is_averaged_down_and_a_smaller_one_interpolated_up():
+    comp = Compositor(640, SIDE, circular_fov=False)
+    # One-pixel columns, black and white, three to a screen pixel: an area average shows 1/3 or 2/3
+    # grey; sampling would show black and white.
+    stripes = (np.arange(3 * SIDE) % 2).astype(np.float32)[None, :].repeat(3 * SIDE, axis=0)
+    square = comp._image_square(stripes, Overlay())
+    assert set(np.unique(square[256, 8:-8])) <= {85, 170}
+    # Two pixels, black and white, up to 512: a linear ramp across the middle half, flat at the ends.
+    square = comp._image_square(np.array([[0.0, 1.0]], np.float32).repeat(2, axis=0), Overlay())
+    row = square[256].astype(int)
+    assert row[0] == 0 and row[-1] == 255 and (np.diff(row) >= 0).all()
+    middle = row[128:384]
+    assert np.abs(middle - (np.arange(128, 384) + 0.5 - 128) * 255 / 256).max() <= 1.5
