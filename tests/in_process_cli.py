@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import io
 import os
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,11 +24,13 @@ class Result:
     stderr: str
 
 
-def fluorosim(*args, cwd: Path) -> Result:
-    """Run the command with `cwd` as the working directory; stdout and stderr captured."""
+def fluorosim(*args, cwd: Path, stdin: str = "") -> Result:
+    """Run the command with `cwd` as the working directory, `stdin` as what a person types (an empty
+    stdin, as `subprocess.run(input="")` gives: end of file at once); stdout and stderr captured."""
     out, err = io.StringIO(), io.StringIO()
-    here = os.getcwd()
+    here, typed = os.getcwd(), sys.stdin
     os.chdir(cwd)
+    sys.stdin = io.StringIO(stdin)
     try:
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             try:
@@ -36,4 +39,5 @@ def fluorosim(*args, cwd: Path) -> Result:
                 code = e.code if isinstance(e.code, int) else 2
     finally:
         os.chdir(here)
+        sys.stdin = typed
     return Result(code, out.getvalue(), err.getvalue())

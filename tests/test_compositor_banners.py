@@ -47,6 +47,12 @@ def test_a_word_longer_than_a_line_is_cut_into_pieces_that_fit():
     assert all(width(c, line) <= max_w for line in lines), lines
     pieces = [line for line in lines if line not in ("pedal",) and not line.endswith("gone")]
     assert len(pieces) >= 2 and all(len(p) >= 8 for p in pieces)
+    # Wherever the line ends, each cut piece fits and is as long as fits (unless it is the shortest cut).
+    for max_w in range(100, 420, 15):
+        lines = wrap(c, word, max_w)
+        assert "".join(lines) == word and all(width(c, line) <= max_w for line in lines), (max_w, lines)
+        for piece, rest in zip(lines, lines[1:]):
+            assert len(piece) == 8 or width(c, piece + rest[0]) > max_w, (max_w, piece)
     # Text exactly as wide as the line still fits on it, a word or a cut piece alike.
     assert wrap(c, "tracking lost", width(c, "tracking lost")) == ["tracking lost"]
     assert wrap(c, "ABCDEFGHIJ", width(c, "ABCDEFGHIJ")) == ["ABCDEFGHIJ"]

@@ -7,7 +7,6 @@ import resource
 import shutil
 import signal
 import subprocess
-import sys
 from pathlib import Path
 
 import pydicom
@@ -261,11 +260,6 @@ def test_unwritable_target_gives_one_clear_error(ledger_file, tmp_path):
     assert list(out.iterdir()) == []
 
 
-def run_cli(*args):
-    """The real `fluorosim` command in a child process."""
-    return subprocess.run([sys.executable, "-m", "appliance", *args], capture_output=True, text=True, cwd=REPO)
-
-
 def cli(capsys, *args):
     """The same command line in this process (argument parsing, error handling, exit status)."""
     from appliance.cli import main
@@ -275,8 +269,8 @@ def cli(capsys, *args):
 
 
 def test_cli_verify_export_and_bad_input(ledger_file, tmp_path, capsys):
-    ok = run_cli("logs", "verify", "--ledger", str(ledger_file))
-    assert ok.returncode == 0 and "chain intact" in ok.stdout
+    code, stdout, _ = cli(capsys, "logs", "verify", "--ledger", str(ledger_file))
+    assert code == 0 and "chain intact" in stdout
     out = tmp_path / "cli"
     code, stdout, err = cli(capsys, "logs", "export", "--ledger", str(ledger_file), "--since", "2023-11-14T00:00Z",
                             "--until", "2023-11-16T00:00Z", "--format", "csv", "--out", str(out))

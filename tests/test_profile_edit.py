@@ -8,8 +8,10 @@ import sys
 import textwrap
 import time
 from pathlib import Path
+from unittest import mock
 
 import pytest
+from in_process_cli import Result, fluorosim
 
 from appliance.atomic_file import write_atomic
 from appliance.config import FluoroscopeProfile, load_profile
@@ -36,10 +38,11 @@ def editor_script(tmp_path: Path, *edits: tuple[str, str]) -> str:
     return f"{sys.executable} {script}"
 
 
-def run_edit(path: Path, editor: str, answers: str = "") -> subprocess.CompletedProcess:
-    env = dict(os.environ, EDITOR=editor, VISUAL="")
-    return subprocess.run([sys.executable, "-m", "appliance", "profile", "edit", str(path)], cwd=REPO, env=env,
-                          input=answers, capture_output=True, text=True, timeout=60)
+def run_edit(path: Path, editor: str, answers: str = "") -> Result:
+    """`fluorosim profile edit PATH` in this process (the editor is still a real child process), with
+    `answers` typed at its prompt: what is under test is the command, not a new interpreter."""
+    with mock.patch.dict(os.environ, EDITOR=editor, VISUAL=""):
+        return fluorosim("profile", "edit", path, cwd=REPO, stdin=answers)
 
 
 def test_valid_edit_replaces_file_and_keeps_backup(config_copy, tmp_path):

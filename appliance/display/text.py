@@ -129,6 +129,11 @@ def wrap_text(text: str, max_w: int, scale: float, thickness: int, font: int = F
             candidate = word
         while width(candidate) > max_w and len(candidate) > MIN_CUT_CHARS:
             cut = max(MIN_CUT_CHARS, len(candidate) * max_w // width(candidate))
+            # The estimate assumes letters of average width: move it to as much as fits.
+            while cut > MIN_CUT_CHARS and width(candidate[:cut]) > max_w:
+                cut -= 1
+            while cut < len(candidate) and width(candidate[:cut + 1]) <= max_w:
+                cut += 1
             lines.append(candidate[:cut])
             candidate = candidate[cut:]
         current = candidate
