@@ -17,7 +17,7 @@ from ruamel.yaml import YAML
 
 from appliance.config.fluoroscope import FluoroscopeProfile
 from appliance.config.loading import load_profile
-from appliance.xray.casting import at_resolution
+from appliance.xray.pixel_geometry import at_resolution
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -28,7 +28,7 @@ TARGETS = (
     "appliance.display.compositor.*",
     "appliance.records.rdsr.*",
     "appliance.calibration.xray_calibration.x_acceptance_failures__mutmut_*",
-    *(f"appliance.xray.casting.x_{name}__mutmut_*" for name in (
+    *(f"appliance.xray.pixel_geometry.x_{name}__mutmut_*" for name in (
         "at_resolution", "zoomed_K", "pixel_pitch_at_zoom_mm", "ray_directions", "field_radius_px", "field_mask",
         "measuring_field")),
 )

@@ -21,7 +21,7 @@ from ruamel.yaml import YAML
 from appliance.config.fluoroscope import FluoroscopeProfile
 from appliance.config.loading import load_profile
 from appliance.errors import FluorosimError
-from appliance.xray.casting import (
+from appliance.xray.pixel_geometry import (
     at_resolution,
     field_mask,
     field_radius_px,

@@ -146,8 +146,8 @@ def resolution_per_zoom(fl_native: FluoroscopeProfile, device: str = "auto",
     pattern laid on the intensifier's input face (15 mm in front of it), rendered noise-free at
     the detector's native matrix in a 6 mm strip across the bars (no pincushion: straight bars)."""
     from ..config.case import Materials
-    from .casting import pixel_pitch_at_zoom_mm
     from .detector import MTF_AT_LIMIT
+    from .pixel_geometry import pixel_pitch_at_zoom_mm
     from .renderer import Renderer, View, zoomed_K
 
     straight = undistorted(fl_native)

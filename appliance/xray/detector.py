@@ -21,7 +21,8 @@ from ..config.fluoroscope import FluoroscopeProfile
 from ..console.dose import reference_distance_mm
 from ..patient.materials import ANODE_ANGLE_DEG, Spectrum, tube_spectrum, water_mu_per_mm
 from ..patient.spekpy_beam import beam
-from .casting import DetectorTables, field_edge, field_radius_px, penumbra_px, pixel_pitch_at_zoom_mm
+from .casting import DetectorTables
+from .pixel_geometry import field_edge, field_radius_px, penumbra_px, pixel_pitch_at_zoom_mm
 
 #: MTF of the detector at its stated limiting resolution: the contrast at which the bars of
 #: a resolution pattern can no longer be told apart.

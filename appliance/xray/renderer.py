@@ -23,23 +23,11 @@ from ..config.case import Contrast, Materials
 from ..config.fluoroscope import FluoroscopeProfile
 from ..errors import FluorosimError
 from ..patient.volume import Volume
-from .casting import (
-    EMPTY_MAX_HU,
-    ENERGY_BINS,
-    PACKET,
-    PAD,
-    Caster,
-    PreparedVolume,
-    at_resolution,
-    field_mask,
-    measuring_field,
-    pixel_pitch_at_zoom_mm,
-    ray_directions,
-    zoomed_K,
-)
+from .casting import EMPTY_MAX_HU, ENERGY_BINS, PACKET, PAD, Caster, PreparedVolume
 from .detector import Detector, Exposure, RecursiveFilter, settled_noise_gain
 from .device import ClDevice, pick_device
 from .display_lut import auto_window, to_display, unsharp
+from .pixel_geometry import at_resolution, field_mask, measuring_field, pixel_pitch_at_zoom_mm, ray_directions, zoomed_K
 
 __all__ = ["EMPTY_MAX_HU", "ENERGY_BINS", "PACKET", "PAD", "QUANTITIES", "Frame", "PreparedVolume", "Renderer", "View",
            "at_resolution", "field_mask", "measuring_field", "pick_device", "ray_directions", "zoomed_K"]
