@@ -70,9 +70,10 @@ def test_the_technique_the_exposure_control_sets_is_the_runs_and_its_dose_rate_a
     s = console.snapshot()
     assert (s.kvp, s.ma) == (90.0, 3.0) and s.air_kerma_rate_mgy_per_min == pytest.approx(16.0)
     off = [e for e in console.handle(InputEvent(70.0, "pedal", PEDAL, False)) if e.kind == "fluoro_off"]
-    # 30 s at 8 mGy/min, then 30 s at twice that: 4 + 8 mGy; the run records the technique at its end.
+    # 30 s at 8 mGy/min, then 30 s at twice that: 4 + 8 mGy; the run records the time-weighted
+    # means of its technique: (30 x 75 + 30 x 90) / 60 = 82.5 kV, (30 x 2 + 30 x 3) / 60 = 2.5 mA.
     assert len(off) == 1 and off[0].air_kerma_mgy == pytest.approx(12.0, rel=1e-9)
-    assert (off[0].detail["kvp"], off[0].detail["ma"]) == (90.0, 3.0)
+    assert (off[0].detail["kvp"], off[0].detail["ma"]) == (pytest.approx(82.5), pytest.approx(2.5))
     # Without a technique, the reference one's kV and mA again; the factor alone sets the rate.
     console.set_exposure_factor(0.5, 80.0)
     assert (console.snapshot().kvp, console.snapshot().ma) == (75, 2.0)
