@@ -74,12 +74,13 @@ def test_the_technique_the_exposure_control_sets_is_the_runs_and_its_dose_rate_a
     # means of its technique: (30 x 75 + 30 x 90) / 60 = 82.5 kV, (30 x 2 + 30 x 3) / 60 = 2.5 mA.
     assert len(off) == 1 and off[0].air_kerma_mgy == pytest.approx(12.0, rel=1e-9)
     assert (off[0].detail["kvp"], off[0].detail["ma"]) == (pytest.approx(82.5), pytest.approx(2.5))
-    # Without a technique, the reference one's kV and mA again; the factor alone sets the rate.
+    # Without a technique, the reference kV, and the factor alone scales the tube current
+    # (2.0 mA x 0.5) and the rate.
     console.set_exposure_factor(0.5, 80.0)
-    assert (console.snapshot().kvp, console.snapshot().ma) == (75, 2.0)
+    assert (console.snapshot().kvp, console.snapshot().ma) == (75, pytest.approx(1.0))
     on = [e for e in console.handle(InputEvent(90.0, "pedal", PEDAL, True)) if e.kind == "fluoro_on"]
     assert on[0].detail["air_kerma_rate_mgy_per_min"] == pytest.approx(4.0)
-    assert (on[0].detail["kvp"], on[0].detail["ma"]) == (75, 2.0)
+    assert (on[0].detail["kvp"], on[0].detail["ma"]) == (75, pytest.approx(1.0))
     # Only the one given is replaced.
     console.set_exposure_factor(1.0, 95.0, kvp=60)
     assert (console.snapshot().kvp, console.snapshot().ma) == (60.0, 2.0)
