@@ -30,6 +30,7 @@ process with a key file it may read; with neither, events are hash-chained only 
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import hmac
 import json
@@ -238,7 +239,12 @@ def serve(sock: socket.socket, seal: KeySeal, ledger_path: Path, *, once: bool =
     The ledger the helper reads is the one it was started with, never one a client names.
     """
     while True:
-        conn_sock, _ = sock.accept()
+        try:
+            conn_sock, _ = sock.accept()
+        except OSError as e:
+            if e.errno in (errno.EBADF, errno.EINVAL):
+                return      # the listening socket was closed: the helper is stopping
+            raise
         with conn_sock:
             conn_sock.settimeout(HELPER_TIMEOUT_S)
             try:
