@@ -21,13 +21,9 @@ from appliance.xray.pixel_geometry import at_resolution
 
 REPO = Path(__file__).resolve().parents[1]
 
-CASE_YAML = """title: Test cylinder
-phases:
-  - {volume: cylinder-0.mha, time_s: 0}
-  - {volume: cylinder-1.mha, time_s: 2}
-at_end: loop
-# Where the nominal webcam-to-X-ray transform puts the beam's axis with the box straight below.
-T_phantom_from_ct:
+#: The test cases' placement and materials: where the nominal webcam-to-X-ray transform puts the
+#: beam's axis with the box straight below, and the HU thresholds of a CT of water and bone.
+CASE_PLACEMENT = """T_phantom_from_ct:
   - [1, 0, 0, -150]
   - [0, 1, 0, 0]
   - [0, 0, 1, 0]
@@ -36,6 +32,13 @@ materials:
   air_max_hu: -800
   bone_min_hu: 300
 """
+
+CASE_YAML = """title: Test cylinder
+phases:
+  - {volume: cylinder-0.mha, time_s: 0}
+  - {volume: cylinder-1.mha, time_s: 2}
+at_end: loop
+""" + CASE_PLACEMENT
 
 
 def write_cylinder(path: Path, rod_offset_mm: float = 0.0) -> None:

@@ -22,7 +22,7 @@ import time
 import numpy as np
 import pytest
 import SimpleITK as sitk
-from appliance_setup import make_appliance
+from appliance_setup import CASE_PLACEMENT, make_appliance
 from ruamel.yaml import YAML
 from test_screen_e2e import still_trajectory
 
@@ -40,15 +40,7 @@ CASE = """title: Breathing 4D CT
 phases:
 {phases}
 at_end: loop
-T_phantom_from_ct:
-  - [1, 0, 0, -150]
-  - [0, 1, 0, 0]
-  - [0, 0, 1, 0]
-  - [0, 0, 0, 1]
-materials:
-  air_max_hu: -800
-  bone_min_hu: 300
-respiration:
+""" + CASE_PLACEMENT + """respiration:
   rate_per_min: {rate}
   rate_step_per_min: {step}
   ct_end_expiration_s: {t_ee}

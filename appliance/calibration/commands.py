@@ -83,15 +83,14 @@ def register(commands, benches) -> None:
     x.add_argument("--dry-run", action="store_true", help="report only; never write the profile")
     x.set_defaults(run=run_calibrate_xray)
 
-    p = commands.add_parser("print-calibration-phantom", help="workshop drawing of the sphere phantom (PDF, PNG, CSV)",
-                            description="Draw the sphere phantom with every ball's position, diameter and line, the "
-                                        "plates and the marker, dimensioned in mm at 1:1 on A4, as OUT.pdf (the plan, "
-                                        "then the ball table), OUT.png (the first page) and OUT.csv (the ball table, "
-                                        "for a CNC drill). A plate too large for one A4 page gets an overview page "
-                                        "that says its scale, then the plan at 1:1 in overlapping tiles.")
+    p = add_command(commands, "print-calibration-phantom", run_print_phantom, "workshop drawing of the sphere phantom (PDF, PNG, CSV)",
+                    "Draw the sphere phantom with every ball's position, diameter and line, the "
+                    "plates and the marker, dimensioned in mm at 1:1 on A4, as OUT.pdf (the plan, "
+                    "then the ball table), OUT.png (the first page) and OUT.csv (the ball table, "
+                    "for a CNC drill). A plate too large for one A4 page gets an overview page "
+                    "that says its scale, then the plan at 1:1 in overlapping tiles.")
     p.add_argument("out", metavar="OUT", help="output path; .pdf, .png and .csv are written beside each other")
     p.add_argument("--phantom-model", metavar="MODEL.yaml", help=f"sphere phantom profile (default: configs/{DEFAULT_PHANTOM})")
-    p.set_defaults(run=run_print_phantom)
 
     b = add_command(benches, "calibration", run_bench, "accuracy and speed of X-ray calibration at known geometry",
                     "Make images of the sphere phantom at known poses with a known machine, "

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from ..command_options import add_command
 from ..config.commands import default_config_dir
 
 
@@ -42,33 +43,31 @@ def run_bench_e2e(args) -> int:
 
 
 def register(commands, benches) -> None:
-    p = commands.add_parser("run", help="run the appliance (what the systemd service starts)",
-                            description="Run the appliance: camera, tracking, rendering, console and ledger under a "
-                                        "supervisor that speaks sd_notify. SIGHUP reloads the profiles (a bad edit "
-                                        "keeps the last good ones and says why on screen); SIGTERM ends the session "
-                                        "and exits within 2 s.")
+    p = add_command(commands, "run", run_run, "run the appliance (what the systemd service starts)",
+                    "Run the appliance: camera, tracking, rendering, console and ledger under a "
+                    "supervisor that speaks sd_notify. SIGHUP reloads the profiles (a bad edit "
+                    "keeps the last good ones and says why on screen); SIGTERM ends the session "
+                    "and exits within 2 s.")
     p.add_argument("--config", default=_default("appliance.yaml"), metavar="PATH",
                    help="appliance profile (default: configs/appliance.yaml)")
     p.add_argument("--verbose", action="store_true", help="log debug messages too")
-    p.set_defaults(run=run_run)
 
-    d = commands.add_parser("demo", help="show the whole appliance working on the built-in patient",
-                            description="Run the real appliance with a synthetic camera moving the intensifier over "
-                                        "the box, a scripted keypad and pedal session under an accelerated clock, and "
-                                        "a file framebuffer; then write snapshots, a contact sheet and the dose logs "
-                                        "under the demo's data_dir and print a summary.")
+    d = add_command(commands, "demo", run_demo, "show the whole appliance working on the built-in patient",
+                    "Run the real appliance with a synthetic camera moving the intensifier over "
+                    "the box, a scripted keypad and pedal session under an accelerated clock, and "
+                    "a file framebuffer; then write snapshots, a contact sheet and the dose logs "
+                    "under the demo's data_dir and print a summary.")
     d.add_argument("--case", metavar="PATH", help="case profile to use instead of the built-in patient "
                                                  "(configs/cases/X.yaml, which may point at your own CT)")
     d.add_argument("--config", default=_default("appliance-demo.yaml"), metavar="PATH",
                    help="the demo's appliance profile (default: configs/appliance-demo.yaml)")
     d.add_argument("--seconds", type=float, default=None, metavar="S",
                    help="stop after this many wall-clock seconds (default: when the scripted session ends)")
-    d.set_defaults(run=run_demo)
 
-    b = benches.add_parser("e2e", help="frames per second on screen, motion-to-photon latency, memory growth",
-                           description="Run the appliance with the synthetic camera, fluoroscopy held on and the file "
-                                       "framebuffer; report frames per second on screen, camera-frame-to-framebuffer "
-                                       "latency (median, p99) and resident memory growth.")
+    b = add_command(benches, "e2e", run_bench_e2e, "frames per second on screen, motion-to-photon latency, memory growth",
+                    "Run the appliance with the synthetic camera, fluoroscopy held on and the file "
+                    "framebuffer; report frames per second on screen, camera-frame-to-framebuffer "
+                    "latency (median, p99) and resident memory growth.")
     b.add_argument("--config", default=_default("appliance-bench.yaml"), metavar="PATH",
                    help="appliance profile to run (default: configs/appliance-bench.yaml)")
     b.add_argument("--minutes", type=float, default=0.5, help="how long to run (min; default 0.5; 10 for the memory figure)")
@@ -78,4 +77,3 @@ def register(commands, benches) -> None:
                                                    "the data folder's cache)")
     b.add_argument("--still", type=float, metavar="SECONDS",
                    help="a cheap camera: the synthetic webcam's frame at this trajectory time, looped from a file")
-    b.set_defaults(run=run_bench_e2e)
