@@ -101,7 +101,7 @@ def test_display_knee_in_closed_form_is_the_two_hyperbolas_and_identity(invert):
     x = (p.astype(np.float64) - centre) / width + 0.5
     grey = soft_knee(x, 0.15).astype(np.float64)
     truth = ((1.0 - grey) if invert else grey) * edge
-    got = to_display(p, edge > 0, edge, chain, invert, centre, width)
+    got = to_display(p, edge, chain, invert, centre, width)
     np.testing.assert_allclose(got, truth, atol=2e-6)
     assert np.all(got[:, :5] == 0.0)
     assert 0.0 < got[:, 5:].min() and got.max() < 1.0

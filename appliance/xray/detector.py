@@ -92,7 +92,7 @@ class Detector:
         self.chain = fluoroscope.image
         self.mu_water_per_mm = mu_water_per_mm
         self._gains: dict = {}
-        self._fields: dict = {}      # id(mask), sigma -> (mask, field, 1 / blurred field); see _field_weights
+        self._fields: dict = {}      # (id(mask), sigma, zoom) -> (mask, field, 1 / blurred field, vignetting x field)
 
     # -- photons ---------------------------------------------------------------------
     def frame_rate_per_s(self, mode: str | None) -> float:

@@ -60,14 +60,13 @@ def auto_window(p: np.ndarray, field: np.ndarray, measuring: np.ndarray, latitud
     return min(max(centre, hi - width / 2.0), lo + width / 2.0), width
 
 
-def to_display(p: np.ndarray, field: np.ndarray, edge: np.ndarray, chain: ImageChain, invert: bool,
+def to_display(p: np.ndarray, edge: np.ndarray, chain: ImageChain, invert: bool,
                centre: float, width: float) -> np.ndarray:
     """(rows, cols) float32 grey in [0, 1] of the log signal `p` through window (centre, width),
-    the soft knee and the polarity, faded by `edge` (1 inside the field, 0 outside: black
-    outside `field`, which `edge` must be 0 beyond)."""
+    the soft knee and the polarity, faded by `edge` (1 inside the field, 0 outside it, so the
+    screen is black beyond the exposed field)."""
     import cv2
 
-    del field       # `edge` is 0 wherever the field is not
     k = float(chain.display_knee)
     # x: the window position (0 its bottom, 1 its top). The soft knee in closed form, a few
     # whole-frame OpenCV passes (a table read per pixel, or np.where's three branches, cost

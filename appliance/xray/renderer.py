@@ -287,6 +287,6 @@ class Renderer:
         width *= view.window_scale
         centre += view.level_shift * width
         edge = self._edge(view.zoom, view.collimation_mm, circle, mask)
-        out = to_display(p, exposed, edge, chain, view.invert, centre, width)
+        out = to_display(p, edge, chain, view.invert, centre, width)
         return Frame(out, exposure.factor, exposure.attenuation, exposure.limited, photons * measured, (centre, width), image,
                      exposure.kvp, exposure.ma)
