@@ -86,7 +86,7 @@ class Ledger:
             self._head = last["hash"] if last else GENESIS
             self._mac_head = (last["mac"] if last else None) or ""
             self.recovered: list[int] = self._recover()
-            self._carried = self._carry_from(self.recovered[-1]) if self.recovered else None
+            self._carried = carry_from(self._conn, self.recovered[-1]) if self.recovered else None
         except BaseException:
             self.close()
             raise
@@ -248,9 +248,6 @@ class Ledger:
         events = [dict(r) for r in self._conn.execute(
             f"SELECT {', '.join(EVENT_COLUMNS)} FROM events WHERE session_id = ? ORDER BY id", (session_id,))]
         return session, events
-
-    def _carry_from(self, session_id: int) -> dict | None:
-        return carry_from(self._conn, session_id)
 
     def carry_over(self) -> dict | None:
         """What the console continues from after a crash (21 CFR 1020.32: the cumulative timer is
