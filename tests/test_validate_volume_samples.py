@@ -31,7 +31,16 @@ def label_map(shape=(12, 14, 16)):
     return ((ct > -500).astype(np.int16) + (ct > 500)).astype(np.int16)
 
 
+def truncated(path, arr):
+    """A MetaImage whose voxel file was cut to half its length (a copy that stopped early)."""
+    name = write_file(path, arr)
+    raw = path.with_suffix(".raw")
+    raw.write_bytes(raw.read_bytes()[: raw.stat().st_size // 2])
+    return name
+
+
 VOLUMES = {
+    "truncated-mhd-raw": (lambda d: truncated(d / "v.mhd", ct_like()), "check the file is complete"),
     "label-map-mha": (lambda d: write_file(d / "v.mha", label_map().astype(np.uint8)), "label map or mask"),
     "offset-mha-compressed": (lambda d: write_file(d / "v.mha", (ct_like() + 2048).astype(np.int16), compressed=True),
                               "rescale intercept"),

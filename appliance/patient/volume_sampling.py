@@ -82,15 +82,24 @@ def _whole(path: Path, files: list[Path] | None) -> np.ndarray:
 def check_sampled_hu(path: Path, files: list[Path] | None = None) -> tuple[list[str], list[str]]:
     """(errors, warnings) about the values of the volume at `path` (a MetaImage/NRRD file, or a
     DICOM series folder whose slice files, in order, are `files`), as the load's check_hu would
-    give them, without the file name. Unreadable voxels give nothing here: the load says why."""
+    give them, without the file name. Voxels the sample cannot read are read whole, as the load
+    reads them; voxels that cannot be read at all (a truncated file) are refused as the load would."""
     from .volume_io import _stderr_captured
 
-    with _stderr_captured():
+    failure: Exception | None = None
+    with _stderr_captured() as said:
         try:
             sample = _file_slices(path) if files is None else _series_slices(files)
-            errors, warnings = check_hu(sample)
-            if not errors and not warnings:
-                return [], []
-            return check_hu(_whole(path, files))
         except (RuntimeError, OSError, ValueError):
-            return [], []
+            sample = None       # some readers extract no slice alone: the whole read decides
+        try:
+            if sample is not None:
+                errors, warnings = check_hu(sample)
+                if not errors and not warnings:
+                    return [], []
+            return check_hu(_whole(path, files))
+        except (RuntimeError, OSError, ValueError) as e:
+            failure = e
+    told = said() or str(failure).strip().splitlines() or ["unreadable voxels"]
+    reason = told[0] if said() else told[-1]      # ITK's own line, else the exception's last
+    return [f"cannot read this volume's voxels ({reason[:160]}); check the file is complete and not corrupt"], []
