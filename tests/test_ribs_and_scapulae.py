@@ -2,7 +2,8 @@
 
 Ground truth: synthetic_rib_cage draws each rib's axis and each scapula's extent in closed form;
 the rigid law is the seed's two rotations about the costovertebral joint (scipy's rotations
-here, not the code's matrices).
+here, not the code's matrices). Both ways of telling ribs from scapulae are tested: the default
+(bone standing taller than a rib is a plate) and that with the lung-lining rule added.
 """
 
 import numpy as np
@@ -21,13 +22,14 @@ def cage():
     return rc.rib_cage()
 
 
-#: The case's setting for a CT whose scapulae touch the ribs: rib bone lines the lungs within 10 mm.
-PARAMS = Respiration(rib_pleura_max_mm=10.0)
+#: The default, and the default with the lung-lining rule (rib bone lines the lungs within 10 mm).
+PARAMS = Respiration()
+RULES = {"plates": PARAMS, "plates+lining": Respiration(rib_pleura_max_mm=10.0)}
 
 
-@pytest.fixture(scope="module")
-def anatomy(cage):
-    return BreathingAnatomy(cage[0], PARAMS, Materials())
+@pytest.fixture(scope="module", params=sorted(RULES))
+def anatomy(cage, request):
+    return BreathingAnatomy(cage[0], RULES[request.param], Materials())
 
 
 def _rib_cover(anatomy) -> np.ndarray:
@@ -39,10 +41,10 @@ def _rib_cover(anatomy) -> np.ndarray:
 
 
 def test_on_the_ct_the_scapula_and_the_upper_ribs_are_one_piece_of_bone(cage):
-    """The case being tested: a threshold and connected components alone (the default, without
-    rib_pleura_max_mm) move the scapula with both upper ribs of its side, as one rigid body."""
+    """The case being tested: a threshold and connected components alone (rib_max_height_mm
+    null, no rib_pleura_max_mm) move the scapula with both upper ribs of its side, as one rigid body."""
     ct, parts = cage
-    plain = BreathingAnatomy(ct, Respiration(), Materials())
+    plain = BreathingAnatomy(ct, Respiration(rib_max_height_mm=None), Materials())
     held = _rib_cover(plain)
     assert held[parts["scapulae"]].mean() > 0.9 and len(plain.ribs) == 2 + 2
     pieces, _ = ndimage.label((ct.hu >= Materials().bone_min_hu) & ~parts["spine"])

@@ -108,12 +108,23 @@ class Respiration(Section):
         None, gt=0, le=60,
         description="Without rib labels, for a CT whose scapulae touch the upper ribs: behind the body's centre and above "
                     "the domes, rib bone lies within this of the lungs (mm), or within rib_neck_mm of the spine; the "
-                    "scapula lies outside the cage beyond its muscles and stays still. Omit (the default) to take every "
-                    "bone piece that reaches the spine: the rule cuts ribs that run farther from the lungs than this.")
+                    "scapula lies outside the cage beyond its muscles and stays still. Omit (the default): rib_max_height_mm "
+                    "alone tells the ribs from the scapulae; this rule cuts ribs that run farther from the lungs than this.")
     rib_neck_mm: float = Field(
         25.0, gt=0, le=80,
         description="With rib_pleura_max_mm: between the spine and the lungs, the ribs' necks are the bone within this of "
                     "the spine (mm); keep it below the scapula's distance from the spine.")
+    rib_max_height_mm: float | None = Field(
+        15.0, gt=0, le=200,
+        description="Without rib labels: bone standing in unbroken vertical runs taller than this (mm) is a plate, a "
+                    "scapula or the sternum, and stays still; a rib, a thin tube running round the chest, is lower "
+                    "(its height over the cosine of its slope). This cuts a scapula that touches the upper ribs off "
+                    "them. Keep it above the ribs' height and below the scapulae's; omit (null) to take every bone "
+                    "piece that reaches the spine.")
+    rib_plate_widen_mm: float = Field(
+        3.0, ge=0, le=20,
+        description="With rib_max_height_mm: bone is widened by this in each axial slice before its vertical runs are "
+                    "measured, so a thin plate that leans or curves still stands tall (mm).")
     rib_below_dome_mm: float = Field(
         30.0, ge=0, le=200,
         description="Without rib labels: rib joints lie no lower than this below the diaphragm's lowest point, which "

@@ -10,10 +10,14 @@ The CT is split once into three parts:
   costovertebral joint (the piece's point nearest the spine) by lambda about the
   left-right axis (pump handle: the front rises) and gamma about the anteroposterior axis
   (bucket handle: the side rises). From HU alone a scapula touching the upper ribs would
-  move with them as one piece; with `rib_pleura_max_mm` the pieces are cut from the bone
-  that lines the lungs behind the body's centre (the scapula lies outside the cage, beyond
-  its muscles), so only the ribs move. The sternum stays still: give rib labels where that
-  matters;
+  move with them as one piece, so bone that stands taller than `rib_max_height_mm` in
+  unbroken vertical lines is taken out first: a rib is a thin tube running round the
+  chest, no taller than its own height over the cosine of its slope, while a scapula (and
+  the sternum) is a plate standing tens of millimetres tall. A plate that leans or curves
+  still stands tall once the bone is widened by `rib_plate_widen_mm` in each axial slice
+  for the measurement. With `rib_pleura_max_mm` the pieces are also cut to the bone that
+  lines the lungs behind the body's centre. The sternum stays still: give rib labels where
+  that matters;
 - soft tissue (bone replaced by `bone_fill_hu`), displaced downward by the tendon's
   descent D times a smooth weight: 1 from the lowest point of the diaphragm to the top of
   its dome, falling linearly to 0 at the lung apices (the lungs stretch) and over
@@ -88,6 +92,52 @@ def _distance_near(mask: np.ndarray, reach_mm: float, sampling) -> np.ndarray:
     grow = [int(math.ceil(reach_mm / s)) for s in sampling]
     crop = tuple(slice(max(a - g, 0), min(b + g + 1, n)) for (a, b), g, n in zip(lo_hi, grow, mask.shape))
     out[crop] = ndimage.distance_transform_edt(~mask[crop], sampling=sampling)
+    return out
+
+
+def vertical_run_mm(mask: np.ndarray, dz_mm: float) -> np.ndarray:
+    """float32 height (mm) of the unbroken vertical run (along the grid's k axis) of `mask`
+    through each voxel of it; 0 outside the mask. Counted in column slabs to bound memory."""
+    nz = mask.shape[0]
+    out = np.zeros(mask.shape, np.float32)
+    k = np.arange(nz, dtype=np.int32)[:, None]
+    flat = mask.reshape(nz, -1)
+    res = out.reshape(nz, -1)
+    step = max(1, (1 << 22) // max(nz, 1))
+    for c0 in range(0, flat.shape[1], step):
+        m = flat[:, c0:c0 + step]
+        if not m.any():
+            continue
+        # The last gap at or above each voxel and the first gap at or below it bound its run.
+        start = np.maximum.accumulate(np.where(m, -1, k), axis=0)
+        stop = np.minimum.accumulate(np.where(m, nz, k)[::-1], axis=0)[::-1]
+        res[:, c0:c0 + step] = np.where(m, (stop - start - 1) * abs(dz_mm), 0.0)
+    return out
+
+
+def plates(bone: np.ndarray, dz_mm: float, spacing_xy, max_height_mm: float, widen_mm: float) -> np.ndarray:
+    """The voxels of `bone` that belong to a plate standing taller than `max_height_mm` (a
+    scapula, the sternum): bone widened by `widen_mm` in each axial slice, so that a thin plate
+    leaning a little still stands in unbroken vertical runs, whose runs are taller than the
+    limit, shrunk back by the same widening (a rib beside the plate keeps its voxels)."""
+    from scipy import ndimage
+
+    box = ndimage.find_objects(bone.astype(np.int8))
+    out = np.zeros(bone.shape, bool)
+    if not box or box[0] is None:
+        return out
+    grow = [int(round(widen_mm / s)) for s in (spacing_xy[1], spacing_xy[0])]
+    sl = (box[0][0],) + tuple(slice(max(b.start - g, 0), min(b.stop + g, n))
+                              for b, g, n in zip(box[0][1:], grow, bone.shape[1:]))
+    wide = bone[sl].view(np.uint8)
+    for axis, g in zip((1, 2), grow):
+        if g > 0:
+            wide = ndimage.maximum_filter1d(wide, 2 * g + 1, axis=axis)
+    tall = (vertical_run_mm(wide.astype(bool), dz_mm) > max_height_mm).view(np.uint8)
+    for axis, g in zip((1, 2), grow):
+        if g > 0:
+            tall = ndimage.minimum_filter1d(tall, 2 * g + 1, axis=axis)
+    out[sl] = tall.astype(bool) & bone[sl]
     return out
 
 
@@ -191,6 +241,8 @@ class BreathingAnatomy:
             # Ribs lie between the lowest ribs (below the diaphragm's lowest point) and the apices.
             in_thorax = (z_k >= self.dome_low_z - 80.0) & (z_k <= self.lung_top_z + 10.0)
             rib_mask &= in_thorax[:, None, None]
+            if params.rib_max_height_mm is not None:
+                rib_mask &= ~plates(rib_mask, self.dz, sp, params.rib_max_height_mm, params.rib_plate_widen_mm)
             if params.rib_pleura_max_mm is not None:
                 rib_mask &= self._lining(lungs, far, params, j_y >= yc, sp)
         pieces, n = ndimage.label(rib_mask)
