@@ -138,3 +138,48 @@ def test_unwritable_folder_is_one_line(tmp_path, capsys):
 def test_bad_grid_is_refused():
     with pytest.raises(FluorosimError, match="spacing_mm"):
         build_adult_chest((10, 10, 10), (1.0, 0.0, 1.0))
+
+
+def test_breathing_tells_the_ribs_from_the_scapulae(chest):
+    """respiration's default (bone standing taller than a rib is a plate): the scapulae are cut,
+    no rib beside the spine is, and no scapula voxel rides on a rib. The ribs and scapulae are
+    painted here from adult_skeleton's own rib paths and scapula ellipsoids."""
+    from appliance.config.case import Materials, Respiration
+    from appliance.patient.adult_body import AnisotropicGrid
+    from appliance.patient.adult_skeleton import _rib_path, _vertebrae, spine_y
+    from appliance.patient.breathing_motion import BreathingAnatomy, plates
+    from appliance.patient.shapes import Layer, ellipsoid, paint_tube, rotation
+    from appliance.patient.volume import Volume
+
+    hu, sp, origin = chest
+    grid = AnisotropicGrid(hu.shape, sp)
+    grid.origin_mm = origin
+    painted = Layer(grid, opaque=False)
+    for level, v in enumerate(_vertebrae()[:12]):
+        pts, _ = _rib_path(level, v[1], float(spine_y(v[1])))
+        for s in (-1, 1):
+            paint_tube(painted, pts * [-s, 1, 1], 4.0 if level in (0, 10, 11) else 5.0, 1000.0)
+    _, X, Y, Z = grid.box((-1e4,) * 3, (1e4,) * 3)
+    scapulae = np.zeros(hu.shape, bool)
+    for s in (-1, 1):        # adult_skeleton's scapula: centre, semi-axes and turn
+        R = rotation("y", -s * 10) @ rotation("z", -s * 28)
+        scapulae |= ellipsoid(X, Y, Z, (s * 100.0, 92.0, 95.0), (45.0, 4.0, 70.0), R) < 2.0
+    T = np.diag([sp[2], sp[1], sp[0], 1.0])
+    T[:3, 3] = origin
+    ct = Volume(hu, T, source="adult chest")
+    bone = hu >= Materials().bone_min_hu
+    ribs, scapulae = bone & (painted.alpha > 0.3) & ~scapulae, bone & scapulae
+    p = Respiration()
+    cut = plates(np.asarray(ct.hu) >= Materials().bone_min_hu, float(ct.T_ct_from_voxel[2, 2]), ct.spacing_mm,
+                 p.rib_max_height_mm, p.rib_plate_widen_mm)
+    assert ribs.sum() > 5000 and scapulae.sum() > 1000
+    # Beside the spine the vertebrae stand tall (the breathing split takes the spine out first).
+    x = ct.T_ct_from_voxel[0, 3] + ct.T_ct_from_voxel[0, 0] * np.arange(ct.hu.shape[2])
+    beside = (np.abs(x) > p.spine_half_width_mm + p.rib_plate_widen_mm + ct.spacing_mm[0])[None, None, :]
+    assert not cut[ribs & beside].any()
+    assert cut[scapulae].mean() > 0.95
+    anatomy = BreathingAnatomy(ct, p, Materials())
+    held = np.zeros(anatomy.shape, bool)
+    for rib in anatomy.ribs:
+        held[rib.box] |= rib.alpha > 0
+    assert not held[scapulae].any()

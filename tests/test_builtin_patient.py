@@ -354,6 +354,23 @@ def test_controllable_breathing_on_the_builtin_patient(cache, volumes):
     lower = [r for r in anatomy.ribs if 0.0 < r.head_ct[2] < 90.0]
     assert sorted(r.side for r in lower) == [-1] * 6 + [1] * 6
     assert all(20.0 <= abs(r.head_ct[0]) <= 36.0 for r in lower)
+    # All twelve ribs each side, each its own piece, and no voxel of the scapulae (drawn by
+    # child_skeleton right on the upper ribs) on any: their plates stand taller than a rib.
+    from appliance.patient import child_skeleton
+    from appliance.patient.builtin import grid
+    from appliance.patient.shapes import Layer
+    heads = sorted((r.side, r.head_ct[2]) for r in anatomy.ribs)
+    levels = [v.z for v in child_skeleton.vertebrae() if v.name in {f"T{i}" for i in range(1, 13)}]
+    for side in (-1, 1):
+        zs = [z for s, z in heads if s == side]
+        assert len(zs) == 12 and all(min(abs(z - zv) for z in zs) < 5.0 for zv in levels)
+    girdle = Layer(grid(), opaque=False)
+    child_skeleton._paint_shoulder_girdle(girdle)
+    scapulae = (girdle.alpha > 0.5) & (np.asarray(rest.hu) >= case.materials.bone_min_hu)
+    held = np.zeros(anatomy.shape, bool)
+    for rib in anatomy.ribs:
+        held[rib.box] |= rib.alpha > 0
+    assert scapulae.sum() > 5000 and not held[scapulae].any()
 
     def lung_base_z(hu):
         ijk = np.rint(np.linalg.solve(rest.T_ct_from_voxel, [RIGHT_DOME[0], RIGHT_DOME[1], 0.0, 1.0])).astype(int)
