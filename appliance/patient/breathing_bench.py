@@ -59,9 +59,9 @@ def run(args) -> int:
     split_s, split_cpu_s = time.perf_counter() - t0, time.process_time() - c0
     # The peer: the same split without the plate rule (respiration.rib_max_height_mm), so its cost reads apart.
     c0 = time.process_time()
-    peer = BreathingAnatomy(ct, params.model_copy(update={"rib_max_height_mm": None}), materials)
+    without_plates = BreathingAnatomy(ct, params.model_copy(update={"rib_max_height_mm": None}), materials)
     plain_cpu_s = time.process_time() - c0
-    del peer
+    del without_plates
     control = BreathingControl(params)
     states = [control.at(t) for t in np.linspace(0.0, 4.0, 9)]
     build = []
