@@ -9,6 +9,7 @@ with the run's hand-made air kerma (1.5 mGy) and the saved image's file on disk.
 
 from __future__ import annotations
 
+import dataclasses
 import queue
 import types
 from pathlib import Path
@@ -143,3 +144,24 @@ def test_dose_events_reach_the_ledger_while_an_image_is_saved(tmp_path):
     worker.stop()
     worker.teardown()
     ledger.close()
+
+
+def test_bench_save_measures_the_three_conditions(capsys):
+    """`fluorosim bench save` end to end on a small detector (96 px native, 32 px live): each
+    condition's row with a live rate, and a save duration for the two saves."""
+    from appliance.cli import build_parser
+    from appliance.config.loading import load_appliance
+    from appliance.daemon.save_bench import run_save_bench
+
+    args = build_parser().parse_args(["bench", "save", "--matrix", "64", "--repeats", "2"])
+    assert (args.matrix, args.repeats, args.device) == (64, 2, "cpu") and callable(args.run)
+    cfg = load_appliance(REPO / "configs/appliance.yaml")
+    fixed = cfg.fluoroscope.model_copy(update={"abc": cfg.fluoroscope.abc.model_copy(update={"enabled": False})})
+    small = dataclasses.replace(cfg, fluoroscope=at_resolution(fixed, 96, 96))   # one spectrum's tables
+    assert run_save_bench(small, 32, 0.3, "cpu", repeats=1) == 0
+    out = capsys.readouterr().out
+    rows = {line[:38].strip(): line[38:].split() for line in out.splitlines()
+            if line.startswith(("live alone", "save as before", "save paced"))}
+    assert set(rows) == {"live alone", "save as before: 16 bands, share 1", "save paced: 64 bands, share 0.5"}
+    assert len(rows["live alone"]) == 4 and all(len(v) == 6 for k, v in rows.items() if k != "live alone")
+    assert all(float(v[4]) > 0 for k, v in rows.items() if k != "live alone")     # each save took some time
