@@ -133,7 +133,10 @@ def test_continuous_fluoroscopy_records_progress_each_second_with_its_run():
     c = Console(FLAT, KEYMAP, t0=0.0)
     c.handle(act(0.5, "pedal"))
     ev = c.tick(3.0)
-    assert [(e.t_monotonic, e.detail) for e in ev if e.kind == "exposure"] == [(1.5, {"run": 1}), (2.5, {"run": 1})]
+    # Each with the run's technique integrated so far: 1 s and 2 s at the panel's 70 kV 3 mA.
+    assert [(e.t_monotonic, e.detail) for e in ev if e.kind == "exposure"] == [
+        (1.5, {"run": 1, "kvp_s": pytest.approx(70.0), "ma_s": pytest.approx(3.0)}),
+        (2.5, {"run": 1, "kvp_s": pytest.approx(140.0), "ma_s": pytest.approx(6.0)})]
     drawn = c.snapshot()
     c.tick(3.1)
     s = c.snapshot()

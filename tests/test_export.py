@@ -31,8 +31,8 @@ DAY2 = DAY1 + 86400.0
 SCALE = (600.0 / 1100.0) ** 2
 RUNS = [  # (duration s, kerma mGy, field area at the reference point cm^2)
     (10.0, 6.0 * 10 / 60, 30.0 * 30.0 * SCALE),          # zoom 1 (300 mm), continuous 6 mGy/min, open
-    (20.0, 8.0 * 20 / 60, 20.0 * 19.0 * SCALE),          # zoom 2 (220 mm), continuous 8, blades 200 x 190 mm
-    (3.0, 45 * 4.0 / 60 / 15, 20.0 * 19.0 * SCALE),      # pulsed-15 at zoom 2: 4 mGy/min, pulses at k/15 s, k = 0..44
+    (20.0, 11.16 * 20 / 60, 20.0 * 19.0 * SCALE),        # zoom 2 (220 mm), continuous 11.16, blades 200 x 190 mm
+    (3.0, 45 * 5.58 / 60 / 15, 20.0 * 19.0 * SCALE),     # pulsed-15 at zoom 2: 5.58 mGy/min, pulses at k/15 s, k = 0..44
 ]
 TOTAL_TIME = sum(r[0] for r in RUNS)
 TOTAL_KERMA = sum(r[1] for r in RUNS)

@@ -4,6 +4,9 @@ irradiation event), worked by hand from a known schedule of the exposure control
 
 from __future__ import annotations
 
+import json
+import os
+
 import pytest
 from test_console import II, KEYMAP, press, release
 from test_export import DAY1, name
@@ -88,3 +91,65 @@ def test_without_a_kv_curve_the_tube_current_follows_the_exposure_factor():
     assert off.detail["kvp"] == pytest.approx(75.0)
     assert off.detail["ma"] == pytest.approx((4.0 * 2.0 + 4.0 * 5.0) / 8.0, rel=1e-9)
     assert console.snapshot().ma == pytest.approx(5.0)
+
+
+def _crash(ledger: Ledger) -> None:
+    """The process dies: the ledger's file is left as it was, no run or session closed."""
+    ledger._conn.close()
+    ledger._conn = None
+    os.close(ledger._lock_fd)
+
+
+def _recovered_run(path, events) -> dict:
+    ledger = Ledger(path, seal=None)
+    ledger.start_session("Dr Trainee", "Adult chest", II.name, t_wall=DAY1, t_monotonic=0.0)
+    ledger.record(events)
+    _crash(ledger)
+    with Ledger(path, seal=None) as ledger:          # the restart: recovery closes the run and the session
+        assert ledger.recovered == [1]
+        _, rows = ledger.session_rows(1)
+    (off,) = [json.loads(r["detail"]) for r in rows if r["kind"] == "fluoro_off"]
+    assert off["reason"] == "recovered"
+    return off
+
+
+def test_a_run_a_crash_cut_off_gets_its_mean_technique_up_to_its_last_progress_record(tmp_path):
+    """The schedule above, the process dying at 9.7 s with the pedal still down: progress records
+    each second from 2 s, the last at 9 s. Up to it, 8 s: 2.5 s at 75 kV 2 mA, 4 s at 88 kV
+    2.8 mA, 1.5 s at 104 kV 3.7 mA."""
+    console = Console(II, KEYMAP, t0=0.0)
+    events = console.handle(press(1.0, "pedal"))
+    t = 1.0
+    for when, kvp, ma in SCHEDULE:
+        while t < when:
+            t = min(t + 0.04, when)
+            events += console.tick(t)
+        events += console.set_exposure_factor(1.0, when, kvp, ma)
+    while t < 9.7:
+        t = min(t + 0.04, 9.7)
+        events += console.tick(t)
+    off = _recovered_run(tmp_path / "ledger.sqlite", events)
+    assert off["kvp"] == pytest.approx((2.5 * 75.0 + 4.0 * 88.0 + 1.5 * 104.0) / 8.0, rel=1e-9)   # 86.9375 kV
+    assert off["ma"] == pytest.approx((2.5 * 2.0 + 4.0 * 2.8 + 1.5 * 3.7) / 8.0, rel=1e-9)        # 2.71875 mA
+    assert off["duration_s"] == pytest.approx(8.0)
+
+
+def test_a_pulsed_run_a_crash_cut_off_is_weighted_up_to_its_last_pulse(tmp_path):
+    """Pulsed-15 from 1 s, 82 kV 2.4 mA from 1.6 s, dying at 2.05 s: the last pulse at
+    1 + 15/15 = 2 s, so 0.6 s at 75 kV 2 mA and 0.4 s at 82 kV 2.4 mA."""
+    console = Console(II, KEYMAP, t0=0.0)
+    console.handle(press(0.0, "mode_next"))
+    events = console.handle(press(1.0, "pedal"))
+    events += console.tick(1.5)
+    events += console.set_exposure_factor(1.4, 1.6, 82.0, 2.4)
+    events += console.tick(2.05)
+    off = _recovered_run(tmp_path / "ledger.sqlite", events)
+    assert off["kvp"] == pytest.approx((0.6 * 75.0 + 0.4 * 82.0) / 1.0, rel=1e-9)
+    assert off["ma"] == pytest.approx((0.6 * 2.0 + 0.4 * 2.4) / 1.0, rel=1e-9)
+
+
+def test_a_run_cut_off_before_its_first_progress_record_keeps_the_technique_it_began_with(tmp_path):
+    console = Console(II, KEYMAP, t0=0.0)
+    events = console.handle(press(1.0, "pedal")) + console.tick(1.5)
+    off = _recovered_run(tmp_path / "ledger.sqlite", events)
+    assert (off["kvp"], off["ma"]) == (75.0, 2.0)

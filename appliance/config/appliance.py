@@ -81,6 +81,11 @@ class Daemon(Section):
                                        "simulated seconds it runs past the last image on screen before it waits for the "
                                        "next, so a slow renderer lengthens the session instead of skipping through it "
                                        "unseen; none: never waits (s, simulated).")
+    save_bands: int = Field(64, ge=1, le=1024, description="A saved image's native re-render on a CPU device is cast "
+                            "in this many bands of rows, live frames going in between (count).")
+    save_device_share: float = Field(0.5, gt=0, le=1, description="While live frames come, that re-render takes at most "
+                                     "this share of the time between its bands, the live view the rest (fraction; "
+                                     "1: back to back).")
     log_max_mb: float = Field(10.0, gt=0, description="Size at which the log file in data_dir/logs is rotated (MiB).")
     log_backups: int = Field(5, ge=0, le=100, description="Rotated log files kept.")
 

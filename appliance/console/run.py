@@ -37,6 +37,12 @@ class Run:
             return kvp, ma
         return self.kvp_s / self.duration_s, self.ma_s / self.duration_s
 
+    def technique_so_far(self) -> dict:
+        """What each progress record and pulse records of the run's technique: its time integrals
+        up to that instant (kV s, mA s), from which a run a crash cut off gets its means
+        (recovered_technique)."""
+        return {"kvp_s": self.kvp_s, "ma_s": self.ma_s}
+
     def schedule_next_pulse(self, rate_per_s: float) -> None:
         """The next pulse after `pulses` of them, counted from the run's start rather than the
         last pulse, so summed periods do not drift."""
@@ -46,3 +52,16 @@ class Run:
         """What `fluoro_off` records of the run (s, mGy, Gy cm^2)."""
         return {"start_t": self.start_t, "duration_s": self.duration_s, "air_kerma_mgy": self.air_kerma_mgy,
                 "dap_gy_cm2": self.dap_gy_cm2, "pulses": self.pulses}
+
+
+def recovered_technique(started: dict, events: list[dict]) -> dict:
+    """The kV and mA of a run a crash cut off, from its committed events (ledger rows: kind,
+    d_fluoro_time_s, detail as a dict) after its `fluoro_on` (`started`, the technique it began
+    with): the time-weighted means up to its last progress record or pulse, as fluoro_off would
+    have recorded them; the technique it began with if none was committed."""
+    elapsed, means = 0.0, {"kvp": started.get("kvp"), "ma": started.get("ma")}
+    for e in events:
+        elapsed += e["d_fluoro_time_s"]
+        if "kvp_s" in e["detail"] and elapsed > 0:
+            means = {"kvp": e["detail"]["kvp_s"] / elapsed, "ma": e["detail"]["ma_s"] / elapsed}
+    return means

@@ -124,7 +124,7 @@ class Console:
         run.pulses += 1
         self._pulse_count += 1
         self.has_image = True
-        self._emit(out, t, "pulse", run=run.run, n=run.pulses)
+        self._emit(out, t, "pulse", run=run.run, n=run.pulses, **run.technique_so_far())
         run.schedule_next_pulse(rate)
 
     def _advance(self, t: float, out: list) -> None:
@@ -152,7 +152,7 @@ class Console:
             if what == 0 and rate is not None:
                 self._pulse(out, tn, run, rate)
             elif what == 1:
-                self._emit(out, tn, "exposure", run=run.run)
+                self._emit(out, tn, "exposure", run=run.run, **run.technique_so_far())
                 run.next_progress_t += self.progress_period_s
             else:
                 # Land exactly on the threshold: 21 CFR counts the alarm at 5:00, not a float near it.

@@ -1,4 +1,4 @@
-"""`fluorosim run`, `fluorosim demo` and `fluorosim bench e2e`."""
+"""`fluorosim run`, `fluorosim demo`, `fluorosim bench e2e` and `fluorosim bench save`."""
 
 from __future__ import annotations
 
@@ -42,6 +42,13 @@ def run_bench_e2e(args) -> int:
                    case=Path(args.case) if args.case else None, ct=args.ct, still_s=args.still)
 
 
+def run_bench_save(args) -> int:
+    from ..config.loading import load_appliance
+    from .save_bench import run_save_bench
+    return run_save_bench(load_appliance(args.config or _default("appliance.yaml")), args.matrix, args.seconds, args.device,
+                          args.repeats)
+
+
 def register(commands, benches) -> None:
     p = add_command(commands, "run", run_run, "run the appliance (what the systemd service starts)",
                     "Run the appliance: camera, tracking, rendering, console and ledger under a "
@@ -77,3 +84,15 @@ def register(commands, benches) -> None:
                                                    "the data folder's cache)")
     b.add_argument("--still", type=float, metavar="SECONDS",
                    help="a cheap camera: the synthetic webcam's frame at this trajectory time, looped from a file")
+
+    s = add_command(benches, "save", run_bench_save, "the live frame rate while a saved image is re-rendered",
+                    "Render the live view in a loop on the built-in child, and meanwhile a saved image at "
+                    "the detector's native matrix, as the appliance does on a CPU device: report the median "
+                    "live frame period alone, during a save with its bands back to back and during one paced "
+                    "as the profile's daemon.save_bands and daemon.save_device_share say, each save's "
+                    "duration and the longest a dose event waits for the ledger meanwhile.")
+    s.add_argument("--config", metavar="PATH", help="appliance profile (default: configs/appliance.yaml)")
+    s.add_argument("--matrix", type=int, default=256, help="live matrix (px; default 256, a CPU appliance's)")
+    s.add_argument("--seconds", type=float, default=3.0, help="how long the live view runs alone (s; default 3)")
+    s.add_argument("--device", choices=("auto", "cpu", "gpu"), default="cpu", help="OpenCL device (default cpu)")
+    s.add_argument("--repeats", type=int, default=3, help="runs of each condition, interleaved (default 3)")

@@ -63,6 +63,8 @@ class RecordsWorker(Worker):
         #: (png, dicom) of every image saved this session.
         self.saved: list[tuple[Path, Path]] = []
         self._unwritten: list[Recorded] = []
+        self._saves_due: list[ConsoleState] = []     # save presses recorded, their images not yet written
+        self._saving = False                         # an image is being saved (its re-render records events)
         self._outbox: Outbox | None = None
         self._xapi_outbox: Outbox | None = None
         self._last_report: bytes | None = None
@@ -169,14 +171,20 @@ class RecordsWorker(Worker):
             return False
         self._unwritten = []
         self.problem = None
-        for item in batch:
-            if item.event.kind == "save" and item.save_state is not None:
+        self._saves_due += [item.save_state for item in batch if item.event.kind == "save" and item.save_state is not None]
+        if self._saving:
+            return True     # recorded between the bands of an image being saved: its turn comes after
+        self._saving = True
+        try:
+            while self._saves_due:
                 try:
-                    self._save_image(item.save_state)
+                    self._save_image(self._saves_due.pop(0))
                 except FluorosimError as e:
                     # The save itself is in the ledger; only the picture is missing.
                     log.error("image not saved: %s", e)
                     self.problem = str(e)
+        finally:
+            self._saving = False
         return True
 
     def _save_image(self, state: ConsoleState) -> None:
@@ -215,7 +223,18 @@ class RecordsWorker(Worker):
                          f"image {state.save_count} of session {self.session_id}", self.session_id)
 
     def _beat_unless_stopping(self) -> bool:
+        """Asked between the bands of a native re-render (and while it is paced): beat, and write
+        the events that came in meanwhile, so the dose ledger never waits for a saved image."""
         self.beat()
+        if self.session_id is not None and not self._unwritten:
+            waiting: list[Recorded] = []
+            while len(waiting) < BATCH_EVENTS:
+                try:
+                    waiting.append(self.events.get_nowait())
+                except queue.Empty:
+                    break
+            if waiting:
+                self._record(waiting)
         return self.stopping
 
     def _send_now(self, report: bytes | None, statements: int) -> None:

@@ -11,7 +11,6 @@ renderer makes the image; the compositor lays the overlays over it.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from collections.abc import Callable
@@ -28,6 +27,7 @@ from ..teaching.views import view_detail
 from ..xray.renderer import Frame, View
 from .frame_stats import FrameStats
 from .handoff import LatestValue, PhaseValue, SavedImage, ShownFrame, ShownImage, Technique, TrackedPose
+from .native_save import LIVE_GAP_S, native_frame
 from .parts import Parts, is_cpu
 from .pose_demand import PoseDemand
 from .reload import ProfileKeeper
@@ -47,10 +47,6 @@ CONSOLE_WAIT_S = 0.1
 POSE_WAIT_S = 0.02
 #: Renderer faults are kept to this many characters for the screen's banner.
 FAULT_CHARS = 120
-#: A saved image's native re-render on a CPU device is cast in this many bands of rows: at the
-#: shipped 1024 matrix one band costs about what a live frame does, so a live frame waits at
-#: most one band.
-NATIVE_SAVE_BANDS = 16
 
 
 def view_for(cfg: ApplianceConfig, state: ConsoleState) -> View:
@@ -214,19 +210,20 @@ class RenderWorker(Worker):
         recursive filter settled): a saved image as the unit stores it, 16-bit. With the
         profile read out at that matrix, for the saved image's pixel spacing. None before any
         live frame. On a CPU device a native frame takes a second or more: it is cast in bands
-        of rows, so the live frames go on between them (a few tens of ms late each) instead of
-        the screen freezing while the image is saved; `cancelled()` true between bands ends it
-        with CastCancelled (the records worker stopping)."""
+        of rows, paced to its share of the time while live frames come (native_save.py), so the
+        live view keeps most of its rate; `cancelled()` is asked between bands and every slice
+        of the pacing, and true ends it with CastCancelled (the records worker stopping)."""
         request = self._request
-        renderer = self.parts.renderer
-        fl = self.keeper.current.fluoroscope
         if request is None:
             return None
-        volume, T, view, blend = request
-        native = renderer.at_matrix(fl.detector.columns, fl.detector.rows)
-        frame = native.render(volume, T, dataclasses.replace(view, temporal="settled"), blend=blend,
-                              bands=NATIVE_SAVE_BANDS if is_cpu(renderer) else None, cancelled=cancelled)
-        return np.rint(np.clip(frame.image, 0.0, 1.0) * 65535.0).astype(np.uint16), native.fluoroscope
+        cfg = self.keeper.current
+        shown = self.stats.shown_at
+
+        def live() -> bool:
+            return bool(shown) and time.monotonic() - shown[-1] < LIVE_GAP_S
+        native, _ = native_frame(self.parts.renderer, request, cfg.fluoroscope, cfg.appliance.daemon,
+                                 is_cpu(self.parts.renderer), cancelled, live)
+        return native
 
     def _send_technique(self, technique: Technique) -> None:
         """The console doses at the technique the renderer's brightness control set (and records

@@ -6,6 +6,7 @@ The compositor decides what goes where; this module only knows fonts and pixels.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -91,27 +92,77 @@ class TextLine:
         return (self.org[0] - pad, self.org[1] - h - pad, self.org[0] + w + pad, self.org[1] + base + pad)
 
 
-def _outline_thickness(thickness: int) -> int:
-    return thickness + 2 * max(1, thickness // 2 + 1)
+def outline_border(thickness: int) -> int:
+    """Width of the dark outline round text drawn `thickness` px thick (pixels each side)."""
+    return max(1, thickness // 2 + 1)
+
+
+def _disc(radius: int) -> np.ndarray:
+    """A disc of `radius` px as a structuring element: the outline is the same width every way."""
+    r = np.arange(-radius, radius + 1)
+    return ((r[:, None] ** 2 + r[None, :] ** 2) <= radius * radius).astype(np.uint8)
+
+
+def _put(mask: np.ndarray, t: TextLine, origin: tuple[int, int]) -> None:
+    """The coverage (0-255) of `t` and its superscript, drawn into `mask` whose pixel (0, 0)
+    is the screen's pixel `origin`."""
+    ox, oy = origin
+    cv2.putText(mask, t.text, (t.org[0] - ox, t.org[1] - oy), t.font, t.scale, 255, t.thickness, cv2.LINE_AA)
+    if t.sup:
+        (w, h), _ = cv2.getTextSize(t.text, t.font, t.scale, t.thickness)
+        org = (t.org[0] + w - ox, t.org[1] - round(h * 0.4) - oy)
+        cv2.putText(mask, t.sup, org, t.font, t.scale * SUP_SCALE, 255, t.thickness, cv2.LINE_AA)
+
+
+def _blend(roi: np.ndarray, coverage: np.ndarray, color: Color) -> None:
+    """Paint `color` over `roi` in place, in proportion to `coverage` (0-255), in OpenCV's
+    saturating 8-bit arithmetic (this runs for every line of text on every frame)."""
+    inverse = cv2.bitwise_not(coverage)                        # 255 - coverage
+    if roi.ndim == 3:
+        coverage, inverse = cv2.cvtColor(coverage, cv2.COLOR_GRAY2RGB), cv2.cvtColor(inverse, cv2.COLOR_GRAY2RGB)
+    scalar = (*color, 0) if isinstance(color, tuple) else (color, 0, 0, 0)
+    keep = cv2.multiply(roi, inverse, scale=1 / 255)
+    # (OpenCV takes a colour as a Scalar here; its type stubs know only arrays)
+    paint = cv2.multiply(coverage, scalar, scale=1 / 255)  # type: ignore[call-overload]
+    cv2.add(keep, paint, dst=roi)
 
 
 def draw_text(frame: np.ndarray, t: TextLine, outline_color: Color = BLACK) -> None:
-    """Draw `t` with a dark outline, which keeps text legible where it crosses the image."""
-    cv2.putText(frame, t.text, t.org, t.font, t.scale, outline_color, _outline_thickness(t.thickness), cv2.LINE_AA)
-    cv2.putText(frame, t.text, t.org, t.font, t.scale, t.color, t.thickness, cv2.LINE_AA)
-    draw_sup(frame, t, outline_color)
+    """Draw `t` with a dark outline, which keeps text legible where it crosses the image.
 
-
-def draw_sup(frame: np.ndarray, t: TextLine, outline_color: Color | None = None) -> None:
-    """Draw the superscript of `t` (if any) after its text, outlined unless `outline_color` is None."""
-    if not t.sup:
+    The outline is the text's own coverage dilated by a disc of outline_border(thickness) px,
+    not the text drawn again with a thicker stroke: OpenCV draws Hershey text no bolder than
+    about 2 px whatever the thickness asked, and widens the letters' advance with it, so a
+    thicker stroke lay under the text on big screens and drifted off it along the line."""
+    drawn = _coverages(t.text, t.org, t.scale, t.font, t.thickness, t.sup, frame.shape[:2])
+    if drawn is None:
         return
-    (w, h), _ = cv2.getTextSize(t.text, t.font, t.scale, t.thickness)
-    org = (t.org[0] + w, t.org[1] - round(h * 0.4))
-    scale = t.scale * SUP_SCALE
-    if outline_color is not None:
-        cv2.putText(frame, t.sup, org, t.font, scale, outline_color, _outline_thickness(t.thickness), cv2.LINE_AA)
-    cv2.putText(frame, t.sup, org, t.font, scale, t.color, t.thickness, cv2.LINE_AA)
+    x0, y0, core, outline = drawn
+    roi = frame[y0:y0 + core.shape[0], x0:x0 + core.shape[1]]
+    _blend(roi, outline, outline_color)
+    _blend(roi, core, t.color)
+
+
+@functools.lru_cache(maxsize=128)
+def _coverages(text: str, org: tuple[int, int], scale: float, font: int, thickness: int, sup: str,
+               shape: tuple[int, ...]) -> tuple[int, int, np.ndarray, np.ndarray] | None:
+    """Where a line of text goes on a screen of `shape` and its coverages (0-255) there: its
+    own and its outline's. Kept for the lines that read the same from frame to frame."""
+    t = TextLine(text, org, scale, 255, font, thickness, sup)
+    border = outline_border(thickness)
+    x0, y0, x1, y1 = t.box
+    reach = border + thickness + 2            # anti-aliased stroke edges can pass the box
+    x0, y0 = max(x0 - reach, 0), max(y0 - reach, 0)
+    x1, y1 = min(x1 + reach, shape[1]), min(y1 + reach, shape[0])
+    if x1 <= x0 or y1 <= y0:
+        return None
+    core = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    _put(core, t, (x0, y0))
+    # Dilated from where the stroke covers at least half a pixel (its geometric edge), so the
+    # ring is fully dark for the whole border beyond the stroke and soft only at its own edge.
+    outline = cv2.dilate(cv2.add(core, core), _disc(border))       # the sum saturates at 255
+    core.flags.writeable = outline.flags.writeable = False
+    return x0, y0, core, outline
 
 
 def wrap_text(text: str, max_w: int, scale: float, thickness: int, font: int = FONT) -> list[str]:

@@ -29,6 +29,7 @@ from collections.abc import Callable, Sequence
 from functools import partial
 from pathlib import Path
 
+from ..console.run import recovered_technique
 from ..console.state import ConsoleEvent
 from ..errors import FluorosimError
 from .ledger_chain import GENESIS, ChainReport, canonical_detail, event_hash, session_rows_problem, verify
@@ -200,7 +201,8 @@ class Ledger:
             # The exposure was cut off: close it with what its committed events account for.
             on = json.loads(open_run["detail"])
             within = [e for e in events if e["id"] > open_run["id"]]
-            detail = {**on, "reason": reason, "start_t": open_run["t_monotonic"], "start_wall": open_run["t_wall"],
+            technique = recovered_technique(on, [{**e, "detail": json.loads(e["detail"])} for e in within])
+            detail = {**on, **technique, "reason": reason, "start_t": open_run["t_monotonic"], "start_wall": open_run["t_wall"],
                       "duration_s": sum(e["d_fluoro_time_s"] for e in within),
                       "air_kerma_mgy": sum(e["d_air_kerma_mgy"] for e in within),
                       "dap_gy_cm2": sum(e["d_dap_gy_cm2"] for e in within),
