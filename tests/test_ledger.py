@@ -259,3 +259,17 @@ def test_unreadable_or_newer_ledger_gives_one_clear_error(tmp_path):
         Ledger(newer)
     with pytest.raises(FluorosimError, match="newer than this fluorosim knows"):
         open_readonly(newer)
+
+
+def test_a_damaged_ledger_is_called_damaged_not_a_permissions_problem(tmp_path):
+    """A ledger cut short (a copy that stopped, a disk that failed) is not a permissions problem."""
+    whole = tmp_path / "whole.sqlite"
+    with Ledger(whole) as led:
+        led.start_session("Dr A", "case", "C-arm", t_wall=1_700_000_000.0, t_monotonic=0.0)
+        led.end_session(t_wall=1_700_000_010.0)
+    cut = tmp_path / "cut.sqlite"
+    cut.write_bytes(whole.read_bytes()[:3000])       # the header and part of the first page
+    with pytest.raises(FluorosimError) as e:
+        open_readonly(cut)
+    message = str(e.value)
+    assert "damaged or is not a ledger" in message and "permissions" not in message and "\n" not in message

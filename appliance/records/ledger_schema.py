@@ -26,6 +26,12 @@ def _why(path: Path, e: Exception) -> str:
         free = None
     if free is not None and free < FULL_DISK_BYTES:
         return f"the disk is full ({free // 1024} KiB free); free space in {path.parent}"
+    # SQLITE_NOTADB and SQLITE_CORRUPT (a file cut short, overwritten, or not SQLite at all) are
+    # what the file holds, not who may read it; they arrive as DatabaseError, permissions as
+    # OperationalError.
+    if isinstance(e, sqlite3.DatabaseError) and not isinstance(e, sqlite3.OperationalError):
+        return (f"{e}: the file is damaged or is not a ledger; keep it for the record and restore the ledger "
+                "from its backup")
     return f"{e}; check the file and its folder's permissions"
 
 MIGRATIONS = (
