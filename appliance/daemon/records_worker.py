@@ -180,12 +180,13 @@ class RecordsWorker(Worker):
         return True
 
     def _save_image(self, state: ConsoleState) -> None:
+        cfg = self.keeper.current
+        self._check_reserve(cfg.data_dir, cfg.appliance.daemon.records_reserve_mb)
         shown, _ = self.shown.get()
         if shown is None:
             log.warning("save pressed before any image was shown; nothing saved")
             return
         image = shown.image
-        cfg = self.keeper.current
         assert self.session_id is not None   # setup() opened it before any event is recorded
         # The image joins its session's study and names the run it shows (records.study).
         study, event_uid = saved_image_context(*self.ledger.session_rows(self.session_id), state.save_count)
@@ -213,6 +214,21 @@ class RecordsWorker(Worker):
                 raise FluorosimError(f"{dicom}: cannot read the saved image back to queue it ({e.strerror or e})") from None
             queue_object(self._outbox, cfg.appliance.dicom, data, "image",
                          f"image {state.save_count} of session {self.session_id}", self.session_id)
+
+    @staticmethod
+    def _check_reserve(data_dir: Path, reserve_mb: float) -> None:
+        """Refuse a saved image that would take the space the ledger needs: on a nearly full disk a
+        freed few MiB went to the next picture, and the held dose events then found none."""
+        import shutil
+
+        try:
+            free_mb = shutil.disk_usage(data_dir).free / 2**20
+        except OSError:
+            return      # the save itself then says what is wrong with the folder
+        if free_mb < reserve_mb:
+            raise FluorosimError(f"{data_dir}: {free_mb:.1f} MiB free, under the {reserve_mb:g} MiB kept for the dose "
+                                 "ledger (daemon.records_reserve_mb); the save is in the ledger, the picture is not "
+                                 "written; free disk space")
 
     def _beat_unless_stopping(self) -> bool:
         self.beat()
@@ -317,7 +333,11 @@ class RecordsWorker(Worker):
         if not self.stopping:
             return  # crashed: the supervisor restarts this worker and the session goes on
         if self._unwritten:
-            log.error("%d console event(s) could not be written at shutdown: %s", len(self._unwritten), self.problem)
+            # The journal is then the only record: give the session's totals as the console had them.
+            last = self._unwritten[-1].event
+            log.error("%d console event(s) could not be written at shutdown (session totals then: fluoroscopy %.1f s, "
+                      "air kerma %.3f mGy, DAP %.4f Gy cm2): %s", len(self._unwritten), last.fluoro_time_s,
+                      last.air_kerma_mgy, last.dap_gy_cm2, self.problem)
         try:
             self.ledger.end_session(time.time())
         except FluorosimError as e:
