@@ -20,6 +20,7 @@ from ..records import rdsr
 from ..records.deferred_ledger import DeferredLedger
 from ..records.dicom import encode as encode_dicom
 from ..records.dicom_sender import KIND, DicomSender, queue_object, sop_instance_uid
+from ..records.disk_reserve import check_reserve
 from ..records.identity import device_uid, equipment_of, identity_path
 from ..records.ledger import Ledger, open_readonly
 from ..records.outbox import Outbox
@@ -181,7 +182,8 @@ class RecordsWorker(Worker):
 
     def _save_image(self, state: ConsoleState) -> None:
         cfg = self.keeper.current
-        self._check_reserve(cfg.data_dir, cfg.appliance.daemon.records_reserve_mb)
+        check_reserve(cfg.data_dir, cfg.appliance.daemon.records_reserve_mb,
+                      "the picture (its save is in the ledger) was")
         shown, _ = self.shown.get()
         if shown is None:
             log.warning("save pressed before any image was shown; nothing saved")
@@ -214,21 +216,6 @@ class RecordsWorker(Worker):
                 raise FluorosimError(f"{dicom}: cannot read the saved image back to queue it ({e.strerror or e})") from None
             queue_object(self._outbox, cfg.appliance.dicom, data, "image",
                          f"image {state.save_count} of session {self.session_id}", self.session_id)
-
-    @staticmethod
-    def _check_reserve(data_dir: Path, reserve_mb: float) -> None:
-        """Refuse a saved image that would take the space the ledger needs: on a nearly full disk a
-        freed few MiB went to the next picture, and the held dose events then found none."""
-        import shutil
-
-        try:
-            free_mb = shutil.disk_usage(data_dir).free / 2**20
-        except OSError:
-            return      # the save itself then says what is wrong with the folder
-        if free_mb < reserve_mb:
-            raise FluorosimError(f"{data_dir}: {free_mb:.1f} MiB free, under the {reserve_mb:g} MiB kept for the dose "
-                                 "ledger (daemon.records_reserve_mb); the save is in the ledger, the picture is not "
-                                 "written; free disk space")
 
     def _beat_unless_stopping(self) -> bool:
         self.beat()
