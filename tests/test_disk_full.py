@@ -161,6 +161,9 @@ def test_a_saved_image_leaves_the_ledger_its_reserve(full_disk, caplog):
         events.put(Recorded(ev, save))
     worker.step()
     assert "records_reserve_mb" in (worker.problem or "") and worker.saved == []
+    from appliance.daemon.health import records_check
+    banner = records_check(lambda: worker.problem).check().banner
+    assert banner.startswith("image not saved (the save is in the ledger)") and "kept in memory" not in banner
     assert not (full_disk / "images").exists() or not any((full_disk / "images").iterdir())
     assert [r for r in caplog.records if "image not saved" in r.getMessage()]
     worker.stop()

@@ -41,6 +41,8 @@ RECORDS_RETRY_S = 1.0
 EVENT_WAIT_S = 0.05
 #: At most this many events go into one ledger transaction.
 BATCH_EVENTS = 256
+#: How a missing picture starts the records problem, so the banner does not say the events wait.
+IMAGE_NOT_SAVED = "image not saved (the save is in the ledger): "
 
 
 class RecordsWorker(Worker):
@@ -177,13 +179,12 @@ class RecordsWorker(Worker):
                 except FluorosimError as e:
                     # The save itself is in the ledger; only the picture is missing.
                     log.error("image not saved: %s", e)
-                    self.problem = str(e)
+                    self.problem = f"{IMAGE_NOT_SAVED}{e}"
         return True
 
     def _save_image(self, state: ConsoleState) -> None:
         cfg = self.keeper.current
-        check_reserve(cfg.data_dir, cfg.appliance.daemon.records_reserve_mb,
-                      "the picture (its save is in the ledger) was")
+        check_reserve(cfg.data_dir, cfg.appliance.daemon.records_reserve_mb, "the picture was")
         shown, _ = self.shown.get()
         if shown is None:
             log.warning("save pressed before any image was shown; nothing saved")
