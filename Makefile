@@ -12,8 +12,10 @@ BIN    := $(VENV)/bin
 # alsa-utils gives aplay, which sounds the fluoroscopy-time alarm; dcmtk gives dsrdump and
 # dcentvfy, which check a session's dose report and images together, and orthanc is the real
 # PACS the DICOM sending tests store into, on loopback in a network namespace of their own
-# (iproute2 brings its lo up); openssl makes the certificates of the DICOM-over-TLS test.
-APT_PACKAGES := libsystemd-dev pkg-config dicom3tools systemd python3-venv gcc linux-libc-dev alsa-utils dcmtk orthanc iproute2 openssl
+# (iproute2 brings its lo up); openssl makes the certificates of the DICOM-over-TLS test;
+# grub-common gives Debian's grub.d scripts, grub-mkpasswd-pbkdf2 and grub-script-check, which
+# make and parse the locked boot menu provisioning writes.
+APT_PACKAGES := libsystemd-dev pkg-config dicom3tools systemd python3-venv gcc linux-libc-dev alsa-utils dcmtk orthanc iproute2 openssl grub-common
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 .PHONY: demo test lint setup system-packages bench mutation clean

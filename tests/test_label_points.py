@@ -131,3 +131,33 @@ def test_refusals_of_bad_label_input(ct_and_labels, tmp_path, capsys):
     # Numbers still win over names when a label map is given.
     point = ",".join(f"{v:g}" for v in CENTROID_LPS)
     assert main(["case", "place", ct, "--target=" + point, "--labels", labels]) == 0
+
+
+def test_a_label_map_exported_as_a_dicom_series(tmp_path, capsys):
+    """CT and label map as two DICOM image series on the same slices, as a PACS or a segmentation
+    tool exports them: the label's centroid comes from the series' own geometry."""
+    from test_volume_io import write_series
+
+    # Slices at z = 100 + 2.5 k mm, first pixel at x -50, y -40 mm, columns 0.8 mm, rows 0.9 mm apart
+    # (write_series' geometry, typed here from its header values).
+    nz, ny, nx = 12, 20, 24
+    hu = np.full((nz, ny, nx), -1000, np.int16)
+    hu[:, 5:15, 4:20] = 0                              # a water block, so the CT is a CT in HU
+    labels = np.zeros((nz, ny, nx), np.int16)
+    labels[2:4, 6:10, 8:12] = 5                        # 2 x 4 x 4 voxels centred at k 2.5, j 7.5, i 9.5
+    labels[8:10, 6:10, 8:12] = 5                       # and at k 8.5: together centred at k 5.5
+    write_series(tmp_path / "ct", hu)
+    write_series(tmp_path / "labels", labels, intercept=0.0)
+    expected = (-50.0 + 0.8 * 9.5, -40.0 + 0.9 * 7.5, 100.0 + 2.5 * 5.5)
+    out = tmp_path / "placed.yaml"
+    assert main(["case", "place", str(tmp_path / "ct"), "--target", "label-5", "--labels", str(tmp_path / "labels"),
+                 "--out", str(out)]) == 0
+    said = capsys.readouterr().out
+    assert "64 voxels of labels" in said and "LPS (" + ", ".join(f"{v:g}" for v in expected) + ") mm" in said
+    assert main(["validate", str(out)]) == 0
+    # A label series missing a slice is refused as the CT's would be, in one line.
+    sorted((tmp_path / "labels").iterdir())[0].unlink()
+    capsys.readouterr()
+    assert main(["case", "place", str(tmp_path / "ct"), "--target", "label-5", "--labels", str(tmp_path / "labels")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(tmp_path / "labels") in err[0]

@@ -259,3 +259,42 @@ def test_unreadable_or_newer_ledger_gives_one_clear_error(tmp_path):
         Ledger(newer)
     with pytest.raises(FluorosimError, match="newer than this fluorosim knows"):
         open_readonly(newer)
+
+
+def test_a_damaged_ledger_is_called_damaged_not_a_permissions_problem(tmp_path):
+    """A ledger cut short (a copy that stopped, a disk that failed) is not a permissions problem."""
+    whole = tmp_path / "whole.sqlite"
+    with Ledger(whole) as led:
+        led.start_session("Dr A", "case", "C-arm", t_wall=1_700_000_000.0, t_monotonic=0.0)
+        led.end_session(t_wall=1_700_000_010.0)
+    cut = tmp_path / "cut.sqlite"
+    cut.write_bytes(whole.read_bytes()[:3000])       # the header and part of the first page
+    with pytest.raises(FluorosimError) as e:
+        open_readonly(cut)
+    message = str(e.value)
+    assert "damaged or is not a ledger" in message and "permissions" not in message and "\n" not in message
+
+
+def test_the_wal_beside_the_ledger_stays_small(tmp_path):
+    """The ledger's footprint on a nearly full disk: SQLite's default checkpoint lets the WAL grow to
+    1000 frames (4 MiB) beside the file; checkpointed every 64 pages it stays near 64 frames of
+    4096 + 24 bytes (264 KiB) plus the transaction that crossed the mark."""
+    from appliance.console.state import ConsoleEvent
+
+    path = tmp_path / "ledger.sqlite"
+    wal = tmp_path / "ledger.sqlite-wal"
+    largest = 0
+    with Ledger(path) as led:
+        led.start_session("Dr A", "case", "C-arm", t_wall=1_700_000_000.0, t_monotonic=0.0)
+        t = kerma = 0.0
+        for n in range(300):           # 300 small transactions, as the records worker writes them
+            batch = []
+            for _ in range(4):
+                t, kerma = t + 1.0, kerma + 0.01
+                batch.append(ConsoleEvent(t, "fluoro_off", {"run": n}, t, kerma, kerma / 10, 1.0, 0.01, 0.001))
+            led.record(batch)
+            largest = max(largest, wal.stat().st_size)
+    assert largest < 400 * 1024, largest
+    conn = open_readonly(path)
+    assert conn.execute("SELECT count(*) FROM events").fetchone()[0] == 1 + 1200 and verify(conn).ok
+    conn.close()

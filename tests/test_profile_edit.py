@@ -141,3 +141,16 @@ def test_an_editor_that_does_not_exist_is_one_line_and_the_profile_untouched(con
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "EDITOR=no-such-editor-here --wait: no such program" in lines[0]
     assert path.read_bytes() == before and not list(path.parent.glob(".*edit-*"))
+
+
+def test_no_editor_named_and_no_terminal_is_one_line_not_a_hang(config_copy):
+    """With EDITOR and VISUAL empty the fallbacks are terminal editors (vi waited forever on a pipe)."""
+    path = config_copy / "fluoroscopes" / "generic-ii-carm.yaml"
+    before = path.read_bytes()
+    start = time.monotonic()
+    result = run_edit(path, "")
+    assert time.monotonic() - start < 10
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "EDITOR is not set and standard input is not a terminal" in lines[0]
+    assert path.read_bytes() == before and not list(path.parent.glob(".*edit-*"))

@@ -67,6 +67,9 @@ class Daemon(Section):
                                "beyond that the supervisor lets the watchdog restart the whole service.")
     restart_window_s: float = Field(60.0, gt=0, description="Window over which worker restarts are counted (s).")
     disk_min_free_mb: float = Field(500.0, ge=0, description="Below this much free space in data_dir the disk counts as nearly full (MiB).")
+    records_reserve_mb: float = Field(16.0, ge=0, le=10_000, description="Saved images and the demo's snapshots are not "
+                                      "written while data_dir has less free space than this, which is kept for the dose "
+                                      "ledger: a saved image takes a few MiB, a session's events well under one (MiB).")
     health_period_s: float = Field(1.0, gt=0, le=60, description="How often health checks run (s).")
     status_period_s: float = Field(2.0, gt=0, le=60, description="How often a STATUS= line goes to systemd and the log (s).")
     hold_refresh_hz: float = Field(5.0, gt=0, le=60, description="Overlay refresh rate while no new image is rendered (1/s).")

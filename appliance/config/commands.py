@@ -57,8 +57,14 @@ def _editor() -> list[str]:
                 raise FluorosimError(f"{variable}={named}: no such program; install it or set {variable} to an editor "
                                      "that exists (for example EDITOR=nano)")
             return argv
+    # The fallbacks are terminal editors: without a terminal they wait for keys that never come.
+    if not sys.stdin.isatty():
+        raise FluorosimError("EDITOR is not set and standard input is not a terminal, so no text editor can run "
+                             "here; run `fluorosim profile edit` in a terminal, or set EDITOR to a program that "
+                             "edits the file it is given")
     for candidate in ("editor", "nano", "vi"):
         if shutil.which(candidate):
+            print(f"EDITOR is not set: editing with {candidate}", file=sys.stderr)
             return [candidate]
     raise FluorosimError("no text editor found; set EDITOR (for example EDITOR=nano)")
 

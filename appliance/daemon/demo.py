@@ -94,7 +94,7 @@ def run_demo(config_path: Path, *, case: Path | None = None, seconds: float | No
         snap_dir.mkdir(parents=True, exist_ok=True)
         for old in snap_dir.glob("*.png"):
             old.unlink()
-        snapper = Snapshotter(snap_dir, key_moments())
+        snapper = Snapshotter(snap_dir, key_moments(), reserve_mb=cfg.appliance.daemon.records_reserve_mb)
         _say("[2/4] starting the appliance: phases onto the OpenCL device, kernels built, camera started")
         t_open = time.monotonic()
         app = Appliance(keeper, Notifier(), on_shown=snapper)

@@ -142,7 +142,12 @@ def profile_reload_check(problem: Callable[[], str | None]) -> Reported:
 
 def records_check(problem: Callable[[], str | None]) -> Reported:
     """Whether the ledger and saved images are being written (a full or read-only disk stops them)."""
-    return Reported("records", problem, Level.ERROR, "records not written, kept in memory until they can be: {}")
+    def banner() -> str | None:
+        said = problem()
+        if not said or said.startswith("image not saved"):
+            return said     # the events are written; only a picture is missing
+        return f"records not written, kept in memory until they can be: {said}"
+    return Reported("records", banner, Level.ERROR, "{}")
 
 
 def run_check(check: HealthCheck) -> Health:

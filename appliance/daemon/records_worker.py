@@ -20,6 +20,7 @@ from ..records import rdsr
 from ..records.deferred_ledger import DeferredLedger
 from ..records.dicom import encode as encode_dicom
 from ..records.dicom_sender import KIND, DicomSender, queue_object, sop_instance_uid
+from ..records.disk_reserve import check_reserve
 from ..records.identity import device_uid, equipment_of, identity_path
 from ..records.ledger import Ledger, open_readonly
 from ..records.outbox import Outbox
@@ -40,6 +41,8 @@ RECORDS_RETRY_S = 1.0
 EVENT_WAIT_S = 0.05
 #: At most this many events go into one ledger transaction.
 BATCH_EVENTS = 256
+#: How a missing picture starts the records problem, so the banner does not say the events wait.
+IMAGE_NOT_SAVED = "image not saved (the save is in the ledger): "
 
 
 class RecordsWorker(Worker):
@@ -182,18 +185,19 @@ class RecordsWorker(Worker):
                 except FluorosimError as e:
                     # The save itself is in the ledger; only the picture is missing.
                     log.error("image not saved: %s", e)
-                    self.problem = str(e)
+                    self.problem = f"{IMAGE_NOT_SAVED}{e}"
         finally:
             self._saving = False
         return True
 
     def _save_image(self, state: ConsoleState) -> None:
+        cfg = self.keeper.current
+        check_reserve(cfg.data_dir, cfg.appliance.daemon.records_reserve_mb, "the picture was")
         shown, _ = self.shown.get()
         if shown is None:
             log.warning("save pressed before any image was shown; nothing saved")
             return
         image = shown.image
-        cfg = self.keeper.current
         assert self.session_id is not None   # setup() opened it before any event is recorded
         # The image joins its session's study and names the run it shows (records.study).
         study, event_uid = saved_image_context(*self.ledger.session_rows(self.session_id), state.save_count)
@@ -336,7 +340,11 @@ class RecordsWorker(Worker):
         if not self.stopping:
             return  # crashed: the supervisor restarts this worker and the session goes on
         if self._unwritten:
-            log.error("%d console event(s) could not be written at shutdown: %s", len(self._unwritten), self.problem)
+            # The journal is then the only record: give the session's totals as the console had them.
+            last = self._unwritten[-1].event
+            log.error("%d console event(s) could not be written at shutdown (session totals then: fluoroscopy %.1f s, "
+                      "air kerma %.3f mGy, DAP %.4f Gy cm2): %s", len(self._unwritten), last.fluoro_time_s,
+                      last.air_kerma_mgy, last.dap_gy_cm2, self.problem)
         try:
             self.ledger.end_session(time.time())
         except FluorosimError as e:

@@ -22,6 +22,7 @@ import numpy as np
 
 from ..atomic_file import write_atomic
 from ..errors import FluorosimError
+from ..records.disk_reserve import check_reserve
 from .handoff import ShownFrame
 
 log = logging.getLogger(__name__)
@@ -211,8 +212,10 @@ class Snapshotter:
     #: After a refused write, wait this long before writing a snapshot again (s).
     RETRY_S = 5.0
 
-    def __init__(self, out_dir: Path, moments: list[Moment]):
+    def __init__(self, out_dir: Path, moments: list[Moment], reserve_mb: float = 0.0):
         self.out_dir = Path(out_dir)
+        #: Free space (MiB) below which no snapshot is written: it is the dose ledger's.
+        self.reserve_mb = reserve_mb
         self.moments = moments
         self.taken: dict[str, Path] = {}
         self.failures = 0
@@ -263,6 +266,7 @@ class Snapshotter:
         if digest in self._digests:
             return False
         path = self.out_dir / f"{index:02d}-{moment.name}.png"
+        check_reserve(self.out_dir, self.reserve_mb, f"snapshot {path.name}")
         self.out_dir.mkdir(parents=True, exist_ok=True)
         write_png(path, rgb)
         self.taken[moment.name] = path

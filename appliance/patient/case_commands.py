@@ -179,8 +179,9 @@ def register(commands, benches) -> None:
                    help="the point to centre, in the CT's LPS mm (write --target=-12,5,30 when it starts with a minus), "
                         "or with --labels the name of a label, whose centroid is centred")
     p.add_argument("--labels", metavar="FILE",
-                   help="label map on the CT's grid (NIfTI, MHA or NRRD), or a case profile whose respiration.label_map "
-                        "and respiration.labels name it (the roles lungs, liver, spine, ribs, diaphragm); every id N "
+                   help="label map on the CT's grid (NIfTI, MHA, NRRD, or a folder of DICOM images), or a "
+                        "case profile whose respiration.label_map and respiration.labels name it (the roles lungs, "
+                        "liver, spine, ribs, diaphragm); every id N "
                         "is also called label-N")
     p.add_argument("--label-names", metavar="TABLE",
                    help="names of the label map's ids: one `ID NAME` a line (a 3D Slicer colour table) or an ITK-SNAP "

@@ -41,8 +41,8 @@ def label_map_on_grid(path: Path, ct: Volume) -> np.ndarray:
     when the file is not on the CT's grid."""
     from .volume_io import load_volume
 
-    if path.is_dir():
-        raise FluorosimError(f"{path}: a folder; give the label map as one NIfTI, MHA or NRRD file on the CT's grid")
+    # A folder is a label map exported as an image series (one slice a file, the ids as pixel
+    # values), read as the CT's series is: sorted by position, gaps and mixed series refused.
     lab = load_volume(path, hu_checked=False)   # a label map holds label ids, not HU
     if lab.hu.shape != ct.hu.shape or not np.allclose(lab.T_ct_from_voxel, ct.T_ct_from_voxel, atol=GRID_TOLERANCE_MM):
         raise FluorosimError(f"{path}: label map is not on the CT's grid ({lab.shape_xyz} voxels vs the CT's "

@@ -39,7 +39,7 @@ def load_volume(path: str | Path, *, hu_checked: bool = True) -> Volume:
     if not p.exists():
         raise FluorosimError(f"{p}: no such file or folder; give a DICOM series folder, a NIfTI, MHA or NRRD file")
     if p.is_dir():
-        return load_dicom_series(p)
+        return load_dicom_series(p, hu_checked=hu_checked)
     name = p.name.lower()
     if not name.endswith(FILE_SUFFIXES):
         if name.endswith(".dcm"):
@@ -114,9 +114,10 @@ def _from_image(image, source: str, hu_checked: bool = True) -> Volume:
     return Volume(hu=np.ascontiguousarray(arr), T_ct_from_voxel=T, source=source)
 
 
-def load_dicom_series(folder: Path) -> Volume:
+def load_dicom_series(folder: Path, *, hu_checked: bool = True) -> Volume:
     """One CT series from a folder: sorted by ImagePositionPatient along the slice normal,
-    RescaleSlope/Intercept applied; mixed series, missing or uneven slices refused."""
+    RescaleSlope/Intercept applied; mixed series, missing or uneven slices refused.
+    `hu_checked=False` as for `load_volume` (a label map exported as an image series)."""
     import SimpleITK as sitk
 
     headers, normal, step = dicom_series_headers(folder)
@@ -132,7 +133,7 @@ def load_dicom_series(folder: Path) -> Volume:
         reason = (said() or error.strip().splitlines() or ["unreadable"])[-1]
         raise FluorosimError(f"{folder}: cannot read the DICOM pixels ({reason[:160]})")
     # ITK takes the slice spacing from the positions; make the frame agree with our sort.
-    vol = _from_image(image, str(folder))
+    vol = _from_image(image, str(folder), hu_checked)
     T = vol.T_ct_from_voxel.copy()
     first = np.array([float(x) for x in headers[0][1].ImagePositionPatient])
     T[:3, 2] = normal * step

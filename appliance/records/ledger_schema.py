@@ -14,6 +14,13 @@ from ..errors import FluorosimError
 
 #: Below this much free space an error opening or writing the ledger is the disk being full (bytes).
 FULL_DISK_BYTES = 1 << 20
+#: Checkpoint the WAL into the ledger every this many pages (4 KiB each), and cut the WAL file
+#: back to WAL_LIMIT_BYTES after it. SQLite's default of 1000 pages lets the WAL take 4 MiB beside
+#: the ledger: on a nearly full disk (the demo on a 4 MiB tmpfs) the held dose events, written
+#: once space returned, filled that space with WAL frames and were lost at shutdown. Small
+#: batches of events make few pages, so a checkpoint every 64 costs little.
+WAL_CHECKPOINT_PAGES = 64
+WAL_LIMIT_BYTES = 1 << 20
 
 
 def _why(path: Path, e: Exception) -> str:
@@ -26,6 +33,12 @@ def _why(path: Path, e: Exception) -> str:
         free = None
     if free is not None and free < FULL_DISK_BYTES:
         return f"the disk is full ({free // 1024} KiB free); free space in {path.parent}"
+    # SQLITE_NOTADB and SQLITE_CORRUPT (a file cut short, overwritten, or not SQLite at all) are
+    # what the file holds, not who may read it; they arrive as DatabaseError, permissions as
+    # OperationalError.
+    if isinstance(e, sqlite3.DatabaseError) and not isinstance(e, sqlite3.OperationalError):
+        return (f"{e}: the file is damaged or is not a ledger; keep it for the record and restore the ledger "
+                "from its backup")
     return f"{e}; check the file and its folder's permissions"
 
 MIGRATIONS = (
@@ -130,6 +143,8 @@ def connect(path: Path, readonly: bool) -> sqlite3.Connection:
         if not readonly:
             conn.execute("PRAGMA journal_mode = WAL")
             conn.execute("PRAGMA synchronous = FULL")
+            conn.execute(f"PRAGMA wal_autocheckpoint = {WAL_CHECKPOINT_PAGES}")
+            conn.execute(f"PRAGMA journal_size_limit = {WAL_LIMIT_BYTES}")
         conn.execute("SELECT count(*) FROM sqlite_master").fetchone()
         return conn
     except sqlite3.DatabaseError as e:
