@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from typing import NoReturn
 
 from . import __version__
 from .config.yamlfile import ProfileProblems
@@ -45,8 +46,20 @@ def command_group(commands, name: str, help: str) -> argparse._SubParsersAction:
     return groups[name]
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """An argument mistake is one line, as every other refusal is, and exit status 2.
+
+    argparse prints the whole usage block first; on a console's narrow screen that pushes the
+    line that says what is wrong out of view. The line names the command, and where the usage
+    is ('--help'). Subcommand parsers are made of the same class (argparse's default).
+    """
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: {message} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="fluorosim",
         description="Fluoroscopy training appliance: a tracked box phantom, a virtual 4D patient, "
                     "real-time X-ray rendering, a clinical console and a dose ledger.",

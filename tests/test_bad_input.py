@@ -259,6 +259,26 @@ def test_dates_out_of_range_are_one_line(ledger, tmp_path, capsys, command, opti
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("argv, names", [
+    (["render", "--size", "0"], "--size"),
+    (["render", "--volume", "ct.nii", "--fluoroscope", "f.yaml", "--pose", "p.yaml",
+      "--quantity", "display", "--output", "o.png", "--zoom", "7"], "--zoom"),
+    (["render"], "--volume"),
+    (["logs", "list", "--frobnicate"], "--frobnicate"),
+    (["frobnicate"], "frobnicate"),
+])
+def test_argument_mistakes_are_one_line(argv, names, capsys):
+    """argparse's own refusals (a bad option value, a missing or unknown option) are one line
+    naming the option and where the usage is, exit 2, as every other refusal is."""
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    err = capsys.readouterr().err
+    lines = [l for l in err.splitlines() if l.strip()]
+    assert exit_.value.code == 2
+    assert len(lines) == 1, err
+    assert names in lines[0] and "--help" in lines[0] and "usage:" not in lines[0]
+
+
 # --- Volumes that are not whole CTs in HU ---------------------------------------------------------
 
 def ct_like(shape=(12, 14, 16), seed=0) -> np.ndarray:
