@@ -83,6 +83,8 @@ def test_each_moment_is_taken_once_from_the_first_frame_that_shows_it(tmp_path):
     expect = {"first-live": 10, "zoom-1": 20, "zoom-3": 30, "collimated": 40, "alarm": alarm_on,
               "alarm-reset": 60, "last-image-hold": 65, "roll-plus-90": 70}
     assert set(snap.taken) == set(expect)
+    assert snap.missing() == ["zoom-2", "zoom-4", "inverted", "roll-minus-90", "end-expiration",
+                              "end-inspiration", "breath-hold", "saved", "tracking-lost"]
     for name, value in expect.items():
         assert (read_png(snap.taken[name]) == value).all(), name
     assert snap.taken["zoom-3"].name == "03-zoom-3.png"

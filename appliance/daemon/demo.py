@@ -141,7 +141,7 @@ def run_demo(config_path: Path, *, case: Path | None = None, seconds: float | No
         from .breath_pair import pair_lines
 
         pair = pair_lines(cfg, app.parts.renderer.fluoroscope, snapper.kept)
-        for line in summary_lines(app, run_s, shots, sheet_path, exports) + pair + report_lines(app, report):
+        for line in summary_lines(app, run_s, shots, sheet_path, exports, snapper.missing()) + pair + report_lines(app, report):
             _say("      " + line)
         return 0
     finally:
@@ -211,7 +211,7 @@ def report_lines(app, report: Path | None) -> list[str]:
     return lines
 
 
-def summary_lines(app, run_s: float, shots, sheet_path, exports) -> list[str]:
+def summary_lines(app, run_s: float, shots, sheet_path, exports, missing: list[str]) -> list[str]:
     s = app.stats.summary()
     state, _ = app.console_state.get()
     lines = [
@@ -226,7 +226,7 @@ def summary_lines(app, run_s: float, shots, sheet_path, exports) -> list[str]:
             f"reference air kerma: {state.air_kerma_mgy:.2f} mGy",
             f"DAP:                {state.dap_gy_cm2:.3f} Gy.cm2",
         ]
-    lines.append(f"snapshots:          {len(shots)}")
+    lines.append(f"snapshots:          {len(shots)}" + (f" (not seen on screen: {', '.join(missing)})" if missing else ""))
     lines += [f"  {shown(p)}" for _, p in shots]
     if sheet_path is not None:
         lines.append(f"contact sheet:      {shown(sheet_path)}")

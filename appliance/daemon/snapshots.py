@@ -284,6 +284,12 @@ class Snapshotter:
         out["alarm-reset"] = "alarm reset"
         return out
 
+    def missing(self) -> list[str]:
+        """The moments never seen on screen, in contact-sheet order: a session too short, a
+        machine too slow for a breath to settle, or a case without breathing. The demo names
+        them, so an absent picture is never taken for one that was looked at."""
+        return [name for name in self.captions() if name not in self.taken]
+
 
 def alarm_banner_shown(rgb: np.ndarray) -> bool:
     """Whether the alarm's red banner is on screen: it flashes, and a snapshot named for the
