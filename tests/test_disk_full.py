@@ -7,6 +7,7 @@ really full (ENOSPC from the kernel); elsewhere those tests skip and say why.
 from __future__ import annotations
 
 import subprocess
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -14,6 +15,7 @@ import numpy as np
 import pytest
 
 from appliance.daemon.snapshots import Moment, Snapshotter
+from appliance.errors import FluorosimError
 
 
 def frame():
@@ -68,7 +70,6 @@ def test_snapshot_on_a_really_full_disk(full_disk):
 def test_ledger_on_a_full_disk_opens_when_space_returns(full_disk):
     """`run` on a full disk: the ledger cannot open, the events wait in memory, then all are written."""
     from appliance.console.state import ConsoleEvent
-    from appliance.errors import FluorosimError
     from appliance.records.deferred_ledger import DeferredLedger, open_ledger
     from appliance.records.ledger import open_readonly, verify
 
@@ -187,3 +188,16 @@ def test_snapshots_leave_the_ledger_its_reserve(full_disk):
     unreserved = Snapshotter(full_disk / "snapshots", [Moment("first", "first image", lambda f: True)])
     unreserved(frame())
     assert unreserved.taken["first"].is_file()      # the same disk takes the picture without a reserve
+
+
+def test_built_in_patient_on_a_full_disk_is_refused_before_drawing(full_disk, capfd):
+    """Refused in one line of ours, before a minute of drawing, and with nothing from
+    SimpleITK's writer on stderr; no half-written cache folder is left."""
+    from appliance.patient import builtin
+    start = time.monotonic()
+    with pytest.raises(FluorosimError, match=f"has {builtin.BUILD_FREE_MB} MB free") as refused:
+        builtin.build(full_disk / "cache" / "child")
+    assert time.monotonic() - start < 5.0
+    assert "\n" not in str(refused.value) and str(full_disk / "cache") in str(refused.value)
+    assert capfd.readouterr().err == ""
+    assert sorted(p.name for p in (full_disk / "cache").iterdir()) == []

@@ -33,6 +33,7 @@ Everything else stays below 2500 HU: cortical bone is 1500 HU, the catheter 600 
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -218,6 +219,11 @@ def distinct_volumes() -> int:
     return len({s.file_name for s in timeline()})
 
 
+#: Free space the build needs (MB): its phases take about 35 MB compressed, and the work folder
+#: holds them all before the rename.
+BUILD_FREE_MB = 100
+
+
 def build(target: Path, progress: Callable[[str], None] | None = None) -> None:
     """Build every phase into the folder `target` (created here, atomically: all or nothing)."""
     progress = progress or (lambda message: None)
@@ -228,6 +234,10 @@ def build(target: Path, progress: Callable[[str], None] | None = None) -> None:
         raise FluorosimError(f"{target.parent}: cannot create the cache folder of the built-in patient "
                              f"({e.strerror or e}); check the data folder in configs/appliance.yaml") from None
     try:
+        # Refused before drawing, in our words: on a full disk SimpleITK's writer prints its own
+        # lines to stderr before it raises, and a minute of drawing would be lost.
+        if shutil.disk_usage(target.parent).free < BUILD_FREE_MB * 2**20:
+            raise OSError(errno.ENOSPC, f"under {BUILD_FREE_MB} MB free")
         builder = Builder(progress)
         specs = timeline()
         written: set[str] = set()
@@ -266,7 +276,7 @@ def build(target: Path, progress: Callable[[str], None] | None = None) -> None:
         shutil.rmtree(work, ignore_errors=True)
         reason = getattr(e, "strerror", None) or str(e).strip().splitlines()[-1]
         raise FluorosimError(f"{target.parent}: cannot write the built-in patient ({reason}); "
-                             "check that the data folder is writable and has 100 MB free") from None
+                             f"check that the data folder is writable and has {BUILD_FREE_MB} MB free") from None
     except BaseException:
         shutil.rmtree(work, ignore_errors=True)
         raise
