@@ -12,7 +12,7 @@ from appliance.geometry import make_transform, rotation_about
 from appliance.xray.bench import flat_profile
 from appliance.xray.progressive import ProgressiveRenderer
 from appliance.xray.renderer import Renderer, View, zoomed_K
-from appliance.xray.truth.analytic import box_chords, box_volume, pixel_rays_ct
+from appliance.xray.truth.analytic import box_chords, box_volume, ellipsoid_chords, ellipsoid_volume, pixel_rays_ct
 
 POSE = make_transform(rotation_about([0.2, 1.0, 0.1], np.radians(20)), [0.0, 0.0, 700.0])
 SETTINGS = Rendering(moving_matrix_px=64, settle_s=0.1, crossfade_s=0.2)
@@ -137,3 +137,38 @@ def test_recursive_filter_carries_over_the_switch(renderer, box):
     beam = own > 0
     np.testing.assert_allclose(first_full.signal[beam], expected[beam], rtol=1e-4, atol=1e-6)
     assert moving.image.shape == first_full.image.shape == (128, 128)
+
+
+
+def test_a_moving_frame_at_a_smaller_matrix_puts_a_known_point_on_its_display_pixel(renderer):
+    """A dense sphere off the principal ray, cast at the controller's second moving matrix (64
+    of 128, after two slow frames) and scaled up: the centroid of its shadow on the full matrix
+    is where the closed-form chords through the full matrix's pixel rays put it, within 0.15 px.
+    Pixel centres misplaced by the scaling (cx' = cx * 64/128) would put it 0.5 px off."""
+    centre, radius = (12.0, -8.0, 0.0), (13.0, 13.0, 13.0)
+    prepared = renderer.prepare(ellipsoid_volume((40, 48, 48), (1.5, 1.25, 2.0), centre, radius, hu=1000))
+    air = renderer.prepare(ellipsoid_volume((40, 48, 48), (1.5, 1.25, 2.0), centre, radius, hu=-1000))
+    clock = Clock()
+    ladder = Rendering(moving_matrix_px=96, moving_matrix_min_px=64, moving_matrix_step_px=32,
+                       matrix_window_frames=2, settle_s=0.1)
+    pr = ProgressiveRenderer(renderer, ladder, clock=clock)
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    for dx in (3.0, 6.0):                      # two moving frames far over the 40 ms budget
+        clock.t += 0.04
+        pr.render(prepared, shifted(dx), view)
+        assert pr.matrix == 96
+        pr.frame_shown(1.0)
+    assert pr.control.steps == [(96, 64)]
+    clock.t += 0.04
+    shadow = pr.render(prepared, POSE, view).image
+    open_beam = pr.render(air, POSE, view).image
+    assert pr.matrix == 64 and shadow.shape == (128, 128)
+    s, d = pixel_rays_ct(zoomed_K(renderer.fluoroscope, 1), POSE, 128, 128)
+    chords = ellipsoid_chords(s, d, centre, radius)
+    rows, cols = np.mgrid[0:128, 0:128]
+    expected = np.array([(chords * cols).sum(), (chords * rows).sum()]) / chords.sum()
+    assert np.hypot(*(expected - 63.5)) > 7    # off the centre, where a scaling error shows
+    weight = np.clip(-np.log(shadow / open_beam), 0.0, None)
+    near = np.hypot(cols - expected[0], rows - expected[1]) < 20
+    got = np.array([(weight * cols)[near].sum(), (weight * rows)[near].sum()]) / weight[near].sum()
+    np.testing.assert_allclose(got, expected, atol=0.15)
