@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections import Counter
 from collections.abc import Callable
 
 import numpy as np
@@ -70,6 +71,8 @@ class ProgressiveRenderer:
         self.refined_after_s: list[float] = []
         #: Moving frames cast straight through the renderer, past the cache (count).
         self.moving_casts = 0
+        #: Moving frames cast at a new pose, per matrix (pixels -> count): what the controller chose.
+        self.moving_frames: Counter[int] = Counter()
 
     def __getattr__(self, name):
         # Everything but rendering (prepare, device, fluoroscope, photons_per_pixel, ...) is the
@@ -127,6 +130,8 @@ class ProgressiveRenderer:
         # Only a frame cast at a new pose tells what a moving frame costs; one the cache served
         # while the pose settles would make the matrix look cheaper than it is.
         self._timed = use.shape[1] if use is not self.full and moved else None
+        if self._timed is not None:
+            self.moving_frames[self._timed] += 1
         if use is not self._last_used:
             # The recursive filter goes on across the switch: its state, resampled to the new
             # matrix, is what the first frame of that matrix is blended into.
