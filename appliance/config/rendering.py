@@ -35,6 +35,13 @@ class Rendering(Section):
         0.8, gt=0, lt=1, description="A larger moving matrix is taken only when this one's median frame time, scaled "
         "by the larger one's pixel count, is within this fraction of frame_budget_ms; below 1 so that frame-to-frame "
         "noise does not make the matrix hunt (dimensionless).")
+    slab_max_shift_px: float | None = Field(
+        None, ge=0, le=16, description="Moving frames are cast through pre-integrated slabs (pairs of slices averaged "
+        "along the ray's dominant axis, half the samples; appliance/xray/slabs.py) where the steepest ray of the field "
+        "moves less than this across a slab, seen on the detector; none: never (pixels of the moving matrix).")
+    slab_phases: int = Field(
+        4, ge=1, le=64, description="Slab copies kept on the device, one per phase and axis, each half a phase's size "
+        "(count).")
     settle_s: float = Field(
         0.12, ge=0, le=5, description="The pose must stay unchanged this long before the full matrix is rendered (s).")
     crossfade_s: float = Field(

@@ -172,6 +172,10 @@ def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None,
             print("moving frames:          " + ", ".join(f"{per_matrix[n]} at {n} px" for n in sorted(per_matrix, reverse=True))
                   + f"; {len(steps)} matrix steps" + (f" ({' '.join(f'{a}->{b}' for a, b in steps[:12])}"
                                                        f"{' ...' if len(steps) > 12 else ''})" if steps else ""))
+        slabs = getattr(renderer, "slabs", None)
+        if slabs is not None:
+            print(f"slabs:                  {renderer.slab_casts} moving casts through slabs; {slabs.made} slab copies made, "
+                  f"{slabs.nbytes / 2**20:.0f} MiB held at the end")
         counts = renderer.cache().counts if hasattr(renderer, "cache") else None
         if counts is not None:
             print(f"projection cache:       {counts.frames} full-matrix frames, {counts.casts} phase casts, "

@@ -11,7 +11,8 @@ reports (`frame_shown`; matrix_control.py). A step between moving matrices is hi
 switch to the full one is: every matrix is scaled up into the same full matrix (pixel centres
 kept where the camera model puts them, so nothing shifts), and the recursive filter's state
 carries over. Adjacent steps differ by an eighth to a fifth in pixel pitch, within a moving,
-motion-blurred image. Once
+motion-blurred image. With `rendering.slab_max_shift_px` a moving cast goes through
+pre-integrated slabs (slabs.py), half the samples, where the field's rays allow. Once
 the pose has stayed unchanged (within the projection cache's tolerance) for
 `rendering.settle_s`, the full matrix is cast once and then served from the projection cache,
 so a held view is sharp and costs only the detector per frame.
@@ -41,6 +42,7 @@ from ..config.rendering import Rendering
 from .matrix_control import MatrixController
 from .projection_cache import ProjectionCache, pose_unchanged
 from .renderer import Frame, PreparedVolume, Renderer, View, at_resolution
+from .slabs import SlabCache, slab_cast
 
 
 class ProgressiveRenderer:
@@ -60,6 +62,10 @@ class ProgressiveRenderer:
             self._caches[id(mover)] = ProjectionCache(mover, settings.cache_pose_tolerance_px,
                                                       settings.cache_max_phases)
         self._timed: int | None = None       # the matrix of the last frame if it was a moving cast
+        #: Slab copies of the phases for moving casts (slabs.py); None where the profile casts none.
+        self.slabs = SlabCache(renderer.dev, settings.slab_phases) if settings.slab_max_shift_px is not None else None
+        #: Moving casts that went through the slabs (count).
+        self.slab_casts = 0
         self._last_pose: np.ndarray | None = None
         self._last_motion = -np.inf
         self._last_used: Renderer = renderer
@@ -107,6 +113,9 @@ class ProgressiveRenderer:
             r.render(volume, T_xray_from_ct, View(), blend=(volume, 0.5))
             self.cache(r).render(volume, T_xray_from_ct, View(), blend=(volume, 0.5))
             self.cache(r).clear()
+        if self.slabs is not None:              # compiles the slab kernel (a quarter second on PoCL)
+            self.slabs.get(volume, 0)
+            self.slabs.clear()
 
     def _moved(self, volume: PreparedVolume, T: np.ndarray, zoom: int) -> bool:
         return not pose_unchanged(self.full.fluoroscope, volume, zoom, self._last_pose, T,
@@ -140,7 +149,11 @@ class ProgressiveRenderer:
             # A new pose every frame: the next frame will not reuse what this one casts, so the two
             # phases are blended in the cast (one pass over both, as Renderer.render does) rather
             # than each cast into the cache.
-            frame = use.render(volume, T, view, blend, concentration_factor=concentration_factor)
+            cast = None
+            if self.slabs is not None and self.settings.slab_max_shift_px is not None:
+                cast = slab_cast(use.caster, self.slabs, volume, T, view.zoom, blend, self.settings.slab_max_shift_px)
+                self.slab_casts += cast is not None
+            frame = use.render(volume, T, view, blend, cast=cast, concentration_factor=concentration_factor)
             self.moving_casts += 1
         else:
             frame = self.cache(use).render(volume, T, view, blend, concentration_factor)
