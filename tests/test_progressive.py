@@ -1,6 +1,8 @@
 """Progressive resolution: the moving matrix while the pose changes, the full one at rest, the
 switch faded in, and both matrices against the closed-form transmission of a box."""
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -172,3 +174,40 @@ def test_a_moving_frame_at_a_smaller_matrix_puts_a_known_point_on_its_display_pi
     near = np.hypot(cols - expected[0], rows - expected[1]) < 20
     got = np.array([(weight * cols)[near].sum(), (weight * rows)[near].sum()]) / weight[near].sum()
     np.testing.assert_allclose(got, expected, atol=0.15)
+
+
+def test_a_scaled_up_moving_frame_has_the_full_matrix_s_field_edge():
+    """The intensifier's circle cut at 64 and scaled up steps in 2-pixel stairs; the moving frame
+    shown has the full matrix's own edge instead: black wherever that edge is, the image wherever
+    it is fully open, and around the circle nearer the full matrix's frame than a plain scaling."""
+    from appliance.config.fluoroscope import FluoroscopeProfile
+    from appliance.config.loading import load_profile
+    from appliance.xray.renderer import at_resolution
+
+    configs = Path(__file__).resolve().parents[1] / "configs"
+    ii = load_profile(configs / "fluoroscopes" / "generic-ii-carm.yaml", FluoroscopeProfile)
+    full = Renderer(at_resolution(ii, 128, 128), Materials(), device="cpu")
+    vol, _, _ = box_volume((40, 48, 48), (4.0, 4.0, 4.0), (0, 0, 0), (39, 47, 39))      # a slab of water filling the field
+    prepared = full.prepare(vol)
+    clock = Clock()
+    pr = ProgressiveRenderer(full, Rendering(moving_matrix_px=64, settle_s=0.1), clock=clock)
+    view = View(noise=False)
+    clock.t += 0.04
+    image = pr.render(prepared, make_transform(np.eye(3), [0.0, 0.0, 700.0]), view).image
+    assert pr.matrix == 64
+    edge = pr.full.display_edge(view)
+    coarse = cv2.resize(pr.moving.display_edge(view), (128, 128), interpolation=cv2.INTER_LINEAR)
+    beyond = edge < 0.01
+    assert ((coarse > 0.15) & beyond).sum() > 20       # where the coarse circle spills past the fine one
+    assert np.all(image[beyond] <= 0.01)
+    inside = edge > 0.999
+    assert image[inside].min() > 0.05
+    # Around the circle the shown frame is nearer the full matrix's own than the plain scaled-up
+    # coarse frame is: the stairs are gone (mean absolute grey over the band the two edges differ in).
+    T = make_transform(np.eye(3), [0.0, 0.0, 700.0])
+    own = pr.full.render(prepared, T, view).image
+    plain = cv2.resize(pr.moving.render(prepared, T, view).image, (128, 128), interpolation=cv2.INTER_LINEAR)
+    band = np.abs(edge - coarse) > 0.05
+    assert band.sum() > 100
+    shown_error, plain_error = np.abs(image - own)[band].mean(), np.abs(plain - own)[band].mean()
+    assert shown_error < 0.5 * plain_error, (shown_error, plain_error)

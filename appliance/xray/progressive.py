@@ -44,6 +44,9 @@ from .projection_cache import ProjectionCache, pose_unchanged
 from .renderer import Frame, PreparedVolume, Renderer, View, at_resolution
 from .slabs import SlabCache, slab_cast
 
+#: A scaled-up moving frame's own field edge below this is taken as no image (fraction).
+EDGE_FLOOR = 0.05
+
 
 class ProgressiveRenderer:
     """Wraps a full-matrix `Renderer` (and everything else of it is reached through this object):
@@ -62,6 +65,7 @@ class ProgressiveRenderer:
             self._caches[id(mover)] = ProjectionCache(mover, settings.cache_pose_tolerance_px,
                                                       settings.cache_max_phases)
         self._timed: int | None = None       # the matrix of the last frame if it was a moving cast
+        self._edge_fixes: dict[tuple, np.ndarray] = {}
         #: Slab copies of the phases for moving casts (slabs.py); None where the profile casts none.
         self.slabs = SlabCache(renderer.dev, settings.slab_phases) if settings.slab_max_shift_px is not None else None
         #: Moving casts that went through the slabs (count).
@@ -161,6 +165,8 @@ class ProgressiveRenderer:
         rows, cols = self.full.shape
         if image.shape != (rows, cols):
             image = cv2.resize(image, (cols, rows), interpolation=cv2.INTER_LINEAR)
+            if view.quantity == "display":
+                image = cv2.multiply(image, self._edge_fix(use, view))
         if use is self.full and self._last_used is not self.full:
             self.refined_after_s.append(now - self._last_motion)
             if self.settings.crossfade_s > 0 and self._last_image is not None:
@@ -176,6 +182,26 @@ class ProgressiveRenderer:
         self._last_used = use
         self._last_image = image
         return frame if image is frame.image else dataclasses.replace(frame, image=image)
+
+    def _edge_fix(self, use: Renderer, view: View) -> np.ndarray:
+        """The factor that gives a scaled-up display frame the full matrix's field edge: the
+        coarse frame's own edge, scaled up, steps in whole coarse pixels (a jagged circle at
+        128 of 512), so it is divided out and the full matrix's smooth edge put in its place.
+        Where the coarse edge has faded to under EDGE_FLOOR there is no image to restore and
+        the factor is 0. Made once per matrix and field."""
+        import cv2
+
+        key = (use.shape, view.zoom, None if view.collimation_mm is None else tuple(view.collimation_mm))
+        fix = self._edge_fixes.get(key)
+        if fix is None:
+            rows, cols = self.full.shape
+            coarse = cv2.resize(use.display_edge(view), (cols, rows), interpolation=cv2.INTER_LINEAR)
+            fine = self.full.display_edge(view)
+            fix = np.where(coarse >= EDGE_FLOOR, fine / np.maximum(coarse, EDGE_FLOOR), 0.0).astype(np.float32)
+            if len(self._edge_fixes) > 64:
+                self._edge_fixes.clear()
+            self._edge_fixes[key] = fix
+        return fix
 
     def frame_shown(self, seconds: float) -> None:
         """The last frame took `seconds` (s) from the start of its render to the screen: a moving
