@@ -196,7 +196,7 @@ def run(args) -> int:
     ii = load_profile(here, FluoroscopeProfile)
     print(f"fluorosim bench drr: {os.cpu_count()} CPU(s) visible, load average {os.getloadavg()[0]:.2f}")
 
-    from .frame_cost import bench_ct, cached_frames, centred, next_phase, plastimatch_side_by_side
+    from .frame_cost import bench_ct, cached_frames, centred, next_phase, plastimatch_side_by_side, slab_frames
 
     ct = centred(bench_ct(args.ct)) if not {"speed", "cache", "plastimatch", "memory"} <= skip else None
     if "speed" not in skip and ct is not None:
@@ -235,6 +235,8 @@ def run(args) -> int:
             renderer = Renderer(at_resolution(ii, size, size), materials, contrast, device=args.device)
             for line in cached_frames(renderer, ct, args.frames, lambda deg: pa_pose(620.0, deg)):
                 print(line)
+            for label, base in (("PA", 0.0), ("lateral", 90.0)):
+                print(slab_frames(renderer, ct, args.frames, lambda deg, base=base: pa_pose(620.0, base + deg), label))
             del renderer
 
     if "plastimatch" not in skip and ct is not None:
@@ -285,6 +287,17 @@ def run(args) -> int:
             print(f"While loading: {len(frames)} frames rendered, timeline lookup max {1000 * max(lookups):.2f} ms, "
                   f"frame median {1000 * float(np.median(frames)):.0f} ms, max {1000 * max(frames):.0f} ms "
                   "(the loader shares the two cores)")
+        # The moving frames' slab copies as the shipped profiles keep them (rendering.slab_phases: 4),
+        # on top: the phases blended now and the last two, each half a phase.
+        from .slabs import SlabCache
+
+        slabs = SlabCache(renderer.dev, 4)
+        for p in [p for p in timeline._prepared if p is not None][:4]:
+            slabs.get(p, 1)
+        renderer.dev.queue.finish()
+        rss_slabs = proc.memory_info().rss
+        print(f"With 4 slab copies for moving frames: {slabs.nbytes / 1e9:.2f} GB more on the device; process resident "
+              f"{rss_slabs / 1e9:.2f} GB; limit 1.0 GB")
         timeline.close()
     return 0
 
