@@ -105,6 +105,7 @@ class ProgressiveRenderer:
 
     def set_fluoroscope(self, fluoroscope) -> None:
         self.full.set_fluoroscope(fluoroscope)
+        self._edge_fixes.clear()                # the field's edge may be another
         for mover in self._movers.values():
             rows, cols = mover.shape
             mover.set_fluoroscope(at_resolution(fluoroscope, cols, rows))
