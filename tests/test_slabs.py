@@ -118,3 +118,19 @@ def test_moving_frames_go_through_slabs_and_a_held_view_does_not(renderer):
     t[0] += 0.5
     pr.render(prepared, make_transform(np.eye(3), [7.0, -3.0, 700.0]), view)
     assert pr.matrix == 128 and pr.slab_casts == 4      # the held view: the full volume
+
+
+def test_a_phase_let_go_takes_its_slabs_with_it(renderer):
+    import gc
+
+    vol, _, _ = box_volume((16, 16, 16), (2.0, 2.0, 2.0), (4, 4, 4), (11, 11, 11))
+    cache = SlabCache(renderer.dev, 4)
+    kept, dropped = renderer.prepare(vol), renderer.prepare(vol)
+    cache.get(kept, 2)
+    cache.get(dropped, 2)
+    assert cache.made == 2 and cache.nbytes > 0
+    one = cache.nbytes // 2
+    del dropped
+    gc.collect()
+    cache.get(kept, 2)                 # still there, and the other's slabs gone
+    assert cache.made == 2 and cache.nbytes == one

@@ -18,6 +18,7 @@ first needs it and kept for the last `rendering.slab_phases` of them.
 
 from __future__ import annotations
 
+import weakref
 from collections import OrderedDict
 
 import numpy as np
@@ -89,14 +90,18 @@ class SlabCache:
     def __init__(self, dev, keep: int):
         self.dev, self.keep = dev, keep
         self._kernel = dev.kernel("slab_pairs")
-        self._slabs: OrderedDict[tuple[int, int], tuple[PreparedVolume, PreparedVolume]] = OrderedDict()
+        self._slabs: OrderedDict[tuple[int, int], tuple[weakref.ref[PreparedVolume], PreparedVolume]] = OrderedDict()
         #: Slab copies made (count): one per phase and axis while they stay in the cache.
         self.made = 0
 
     def get(self, volume: PreparedVolume, axis: int) -> PreparedVolume:
+        # A phase no longer held elsewhere (a case switched, a timeline replaced) takes its
+        # slabs with it; its id may then be a new phase's, which the weak reference tells apart.
+        for dead in [k for k, (ref, _) in self._slabs.items() if ref() is None]:
+            del self._slabs[dead]
         key = (id(volume), axis)
         hit = self._slabs.get(key)
-        if hit is not None and hit[0] is volume:
+        if hit is not None and hit[0]() is volume:
             self._slabs.move_to_end(key)
             return hit[1]
         S, shape = slab_index_from_index(volume.shape_xyz, axis)
@@ -108,8 +113,7 @@ class SlabCache:
         slab = PreparedVolume(buffer=out, shape_xyz=shape, T_index_from_ct=S @ volume.T_index_from_ct,
                               box=slab_box(volume.box, axis), nbytes=nbytes, source=f"{volume.source} (slabs)",
                               time_s=volume.time_s, _renderer_id=volume._renderer_id)
-        # The source phase is held with its slabs, so its id is not reused while the entry lives.
-        self._slabs[key] = (volume, slab)
+        self._slabs[key] = (weakref.ref(volume), slab)
         self.made += 1
         while len(self._slabs) > self.keep:
             self._slabs.popitem(last=False)
