@@ -94,6 +94,8 @@ CASES = [
            "missing.nii.gz", "phases[0].volume"),
     Broken("builtin-and-phases", CASE, replace("builtin: child-torso", "builtin: child-torso\nphases:\n  - {volume: case.yaml, time_s: 0}"),
            "phases:", "phases"),
+    Broken("moving-matrix-ladder-upside-down", "appliance-demo.yaml",
+           replace("moving_matrix_min_px: 128", "moving_matrix_min_px: 384"), "rendering:", "moving_matrix_min_px (384)"),
     Broken("webcam-K-not-3x3", WEBCAM, replace("  - [0.0, 0.0, 1.0]\n", ""), "K:", "K"),
     Broken("dangling-profile", APPLIANCE, replace("fluoroscopes/generic-ii-carm.yaml", "fluoroscopes/nope.yaml"), "fluoroscopes/nope.yaml", "fluoroscope"),
     Broken("scripted-keypad-without-script", APPLIANCE, replace("    source: none\n  pedal", "    source: scripted\n  pedal"),

@@ -1,6 +1,8 @@
 """Progressive resolution: the moving matrix while the pose changes, the full one at rest, the
 switch faded in, and both matrices against the closed-form transmission of a box."""
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -12,7 +14,7 @@ from appliance.geometry import make_transform, rotation_about
 from appliance.xray.bench import flat_profile
 from appliance.xray.progressive import ProgressiveRenderer
 from appliance.xray.renderer import Renderer, View, zoomed_K
-from appliance.xray.truth.analytic import box_chords, box_volume, pixel_rays_ct
+from appliance.xray.truth.analytic import box_chords, box_volume, ellipsoid_chords, ellipsoid_volume, pixel_rays_ct
 
 POSE = make_transform(rotation_about([0.2, 1.0, 0.1], np.radians(20)), [0.0, 0.0, 700.0])
 SETTINGS = Rendering(moving_matrix_px=64, settle_s=0.1, crossfade_s=0.2)
@@ -137,3 +139,75 @@ def test_recursive_filter_carries_over_the_switch(renderer, box):
     beam = own > 0
     np.testing.assert_allclose(first_full.signal[beam], expected[beam], rtol=1e-4, atol=1e-6)
     assert moving.image.shape == first_full.image.shape == (128, 128)
+
+
+
+def test_a_moving_frame_at_a_smaller_matrix_puts_a_known_point_on_its_display_pixel(renderer):
+    """A dense sphere off the principal ray, cast at the controller's second moving matrix (64
+    of 128, after two slow frames) and scaled up: the centroid of its shadow on the full matrix
+    is where the closed-form chords through the full matrix's pixel rays put it, within 0.15 px.
+    Pixel centres misplaced by the scaling (cx' = cx * 64/128) would put it 0.5 px off."""
+    centre, radius = (12.0, -8.0, 0.0), (13.0, 13.0, 13.0)
+    prepared = renderer.prepare(ellipsoid_volume((40, 48, 48), (1.5, 1.25, 2.0), centre, radius, hu=1000))
+    air = renderer.prepare(ellipsoid_volume((40, 48, 48), (1.5, 1.25, 2.0), centre, radius, hu=-1000))
+    clock = Clock()
+    ladder = Rendering(moving_matrix_px=96, moving_matrix_min_px=64, moving_matrix_step_px=32,
+                       matrix_window_frames=2, settle_s=0.1)
+    pr = ProgressiveRenderer(renderer, ladder, clock=clock)
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    for dx in (3.0, 6.0):                      # two moving frames far over the 40 ms budget
+        clock.t += 0.04
+        pr.render(prepared, shifted(dx), view)
+        assert pr.matrix == 96
+        pr.frame_shown(1.0)
+    assert pr.control.steps == [(96, 64)]
+    clock.t += 0.04
+    shadow = pr.render(prepared, POSE, view).image
+    open_beam = pr.render(air, POSE, view).image
+    assert pr.matrix == 64 and shadow.shape == (128, 128)
+    s, d = pixel_rays_ct(zoomed_K(renderer.fluoroscope, 1), POSE, 128, 128)
+    chords = ellipsoid_chords(s, d, centre, radius)
+    rows, cols = np.mgrid[0:128, 0:128]
+    expected = np.array([(chords * cols).sum(), (chords * rows).sum()]) / chords.sum()
+    assert np.hypot(*(expected - 63.5)) > 7    # off the centre, where a scaling error shows
+    weight = np.clip(-np.log(shadow / open_beam), 0.0, None)
+    near = np.hypot(cols - expected[0], rows - expected[1]) < 20
+    got = np.array([(weight * cols)[near].sum(), (weight * rows)[near].sum()]) / weight[near].sum()
+    np.testing.assert_allclose(got, expected, atol=0.15)
+
+
+def test_a_scaled_up_moving_frame_has_the_full_matrix_s_field_edge():
+    """The intensifier's circle cut at 64 and scaled up steps in 2-pixel stairs; the moving frame
+    shown has the full matrix's own edge instead: black wherever that edge is, the image wherever
+    it is fully open, and around the circle nearer the full matrix's frame than a plain scaling."""
+    from appliance.config.fluoroscope import FluoroscopeProfile
+    from appliance.config.loading import load_profile
+    from appliance.xray.renderer import at_resolution
+
+    configs = Path(__file__).resolve().parents[1] / "configs"
+    ii = load_profile(configs / "fluoroscopes" / "generic-ii-carm.yaml", FluoroscopeProfile)
+    full = Renderer(at_resolution(ii, 128, 128), Materials(), device="cpu")
+    vol, _, _ = box_volume((40, 48, 48), (4.0, 4.0, 4.0), (0, 0, 0), (39, 47, 39))      # a slab of water filling the field
+    prepared = full.prepare(vol)
+    clock = Clock()
+    pr = ProgressiveRenderer(full, Rendering(moving_matrix_px=64, settle_s=0.1), clock=clock)
+    view = View(noise=False)
+    clock.t += 0.04
+    image = pr.render(prepared, make_transform(np.eye(3), [0.0, 0.0, 700.0]), view).image
+    assert pr.matrix == 64
+    edge = pr.full.display_edge(view)
+    coarse = cv2.resize(pr.moving.display_edge(view), (128, 128), interpolation=cv2.INTER_LINEAR)
+    beyond = edge < 0.01
+    assert ((coarse > 0.15) & beyond).sum() > 20       # where the coarse circle spills past the fine one
+    assert np.all(image[beyond] <= 0.01)
+    inside = edge > 0.999
+    assert image[inside].min() > 0.05
+    # Around the circle the shown frame is nearer the full matrix's own than the plain scaled-up
+    # coarse frame is: the stairs are gone (mean absolute grey over the band the two edges differ in).
+    T = make_transform(np.eye(3), [0.0, 0.0, 700.0])
+    own = pr.full.render(prepared, T, view).image
+    plain = cv2.resize(pr.moving.render(prepared, T, view).image, (128, 128), interpolation=cv2.INTER_LINEAR)
+    band = np.abs(edge - coarse) > 0.05
+    assert band.sum() > 100
+    shown_error, plain_error = np.abs(image - own)[band].mean(), np.abs(plain - own)[band].mean()
+    assert shown_error < 0.5 * plain_error, (shown_error, plain_error)

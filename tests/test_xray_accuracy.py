@@ -40,3 +40,12 @@ def test_joseph_display_path_is_close_on_average(table, case):
     # far off (that is why line-integral uses Siddon), but the mean stays small.
     mx, mean, n = table[(case, "joseph (display)")]
     assert mean < 0.006
+
+
+@pytest.mark.parametrize("case", ["box, axis-aligned view", "box, oblique view", "ellipsoid, partial volume"])
+def test_moving_frames_cast_keeps_the_display_bar(table, case):
+    # Through pre-integrated slabs where the in-slab shift is below a pixel, the full volume
+    # otherwise (the oblique views here): the same bar as the display path.
+    (method, (mx, mean, n)), = [(m, v) for (name, m), v in table.items() if name == case and m.startswith("moving")]
+    assert n > 300 and mean < 0.006
+    assert method.startswith("moving: slabs" if case == "box, axis-aligned view" else "moving: full")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from .base import Section
 
@@ -18,9 +18,42 @@ class Rendering(Section):
         "16 bytes per pixel of the matrix.")
     moving_matrix_px: int | None = Field(
         None, ge=64, le=8192, description="While the C-arm moves, render this square matrix and show it scaled up to "
-        "the full one (pixels); none: always the full matrix.")
+        "the full one (pixels); none: always the full matrix. With moving_matrix_min_px, the largest moving matrix.")
+    moving_matrix_min_px: int | None = Field(
+        None, ge=64, le=8192, description="The smallest matrix a moving frame may drop to when a larger one cannot keep "
+        "frame_budget_ms (appliance/xray/matrix_control.py); none: moving frames are always moving_matrix_px (pixels).")
+    moving_matrix_step_px: int = Field(
+        32, ge=8, le=1024, description="Step between the moving matrices, from moving_matrix_px down to "
+        "moving_matrix_min_px (pixels).")
+    frame_budget_ms: float = Field(
+        40.0, gt=0, le=1000, description="What one moving frame may take, from the start of its render to the image on "
+        "screen, for the moving matrix to hold: 40 ms is 25 frames/s (ms).")
+    matrix_window_frames: int = Field(
+        6, ge=2, le=100, description="Moving frames at one matrix whose median frame time decides a step to another "
+        "(count); a step starts the count again.")
+    matrix_step_up_margin: float = Field(
+        0.8, gt=0, lt=1, description="A larger moving matrix is taken only when this one's median frame time, scaled "
+        "by the larger one's pixel count, is within this fraction of frame_budget_ms; below 1 so that frame-to-frame "
+        "noise does not make the matrix hunt (dimensionless).")
+    slab_max_shift_px: float | None = Field(
+        None, ge=0, le=16, description="Moving frames are cast through pre-integrated slabs (pairs of slices averaged "
+        "along the ray's dominant axis, half the samples; appliance/xray/slabs.py) where the steepest ray of the field "
+        "moves less than this across a slab, seen on the detector; none: never (pixels of the moving matrix).")
+    slab_phases: int = Field(
+        4, ge=1, le=64, description="Slab copies kept on the device, one per phase and axis, each half a phase's size "
+        "(count).")
     settle_s: float = Field(
         0.12, ge=0, le=5, description="The pose must stay unchanged this long before the full matrix is rendered (s).")
     crossfade_s: float = Field(
         0.0, ge=0, le=5, description="After the switch to the full matrix its image is blended into the last moving one "
         "over this long (s); for a fluoroscope without a recursive filter, which otherwise hides the switch.")
+
+    @model_validator(mode="after")
+    def _ladder(self) -> Rendering:
+        low, high = self.moving_matrix_min_px, self.moving_matrix_px
+        if low is not None and high is None:
+            raise ValueError("moving_matrix_min_px needs moving_matrix_px, the largest moving matrix")
+        if low is not None and high is not None and low > high:
+            raise ValueError(f"moving_matrix_min_px ({low}) must not exceed moving_matrix_px ({high}): the moving "
+                             f"matrices run from moving_matrix_px down to moving_matrix_min_px")
+        return self

@@ -114,11 +114,12 @@ def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None,
         rss: list[tuple[float, int]] = []
         cfg = keeper.current
         matrix = cfg.appliance.daemon.render_matrix_px or cfg.fluoroscope.detector.columns
-        moving = cfg.appliance.rendering.moving_matrix_px
+        ladder = getattr(app.parts.renderer, "control", None)
+        moving = "/".join(str(n) for n in ladder.ladder) if ladder is not None and ladder.ladder else None
         camera = camera or f"{cfg.appliance.devices.camera.source} at {cfg.appliance.devices.camera.fps:g} fps"
         print(f"bench e2e: {config_path}, case {cfg.case.title}, {duration:.0f} s measured after {warmup:.0f} s "
               f"warm-up; renderer on {app.parts.renderer_device}, {matrix} px matrix"
-              f"{f' ({moving} px while moving)' if moving and moving < matrix else ''}; camera {camera}; "
+              f"{f' ({moving} px while moving)' if moving else ''}; camera {camera}; "
               f"load average {os.getloadavg()[0]:.1f}; data in {shown(data_dir)}", flush=True)
         t0 = time.monotonic()
         next_sample = [t0]
@@ -165,6 +166,16 @@ def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None,
         if refined:
             print(f"full matrix after rest:  median {np.median(refined) * 1000:.0f} ms, max {max(refined) * 1000:.0f} ms "
                   f"after the pose came to rest ({len(refined)} times)")
+        per_matrix = getattr(renderer, "moving_frames", None)
+        if per_matrix:
+            steps = renderer.control.steps
+            print("moving frames:          " + ", ".join(f"{per_matrix[n]} at {n} px" for n in sorted(per_matrix, reverse=True))
+                  + f"; {len(steps)} matrix steps" + (f" ({' '.join(f'{a}->{b}' for a, b in steps[:12])}"
+                                                       f"{' ...' if len(steps) > 12 else ''})" if steps else ""))
+        slabs = getattr(renderer, "slabs", None)
+        if slabs is not None:
+            print(f"slabs:                  {renderer.slab_casts} moving casts through slabs; {slabs.made} slab copies made, "
+                  f"{slabs.nbytes / 2**20:.0f} MiB held at the end")
         counts = renderer.cache().counts if hasattr(renderer, "cache") else None
         if counts is not None:
             print(f"projection cache:       {counts.frames} full-matrix frames, {counts.casts} phase casts, "

@@ -172,6 +172,9 @@ class RenderWorker(Worker):
         self._last_compose = t_shown
         if live and self.demand is not None:
             self.demand.rendered(now, t_shown)
+        if live:
+            # The moving matrix is chosen from what a frame takes to the screen (matrix_control.py).
+            self.parts.renderer.frame_shown(t_shown - now)
         latency = None
         if live and tracked is not None and self._image is not None and self._image_T is not None:
             latency = t_shown - tracked.t_frame

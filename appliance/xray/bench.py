@@ -124,7 +124,9 @@ def accuracy_table(renderer, cases, with_reference: bool = True):
         sel = truth > min_mm * renderer.mu_water_per_mm
         siddon = renderer.render(prepared, T, View(quantity="line-integral")).image
         joseph = renderer.material_integrals(prepared, T, View(), distorted=False, circle=False).sum(-1) * renderer.mu_water_per_mm
-        for method, img in (("siddon (line-integral)", siddon), ("joseph (display)", joseph)):
+        moving, moving_lines = _moving_cast(renderer, prepared, T)
+        for method, img in (("siddon (line-integral)", siddon), ("joseph (display)", joseph),
+                            (moving, moving_lines * renderer.mu_water_per_mm)):
             rel = np.abs(img[sel] - truth[sel]) / truth[sel]
             rows_out.append((name, method, float(rel.max()), float(rel.mean()), int(sel.sum())))
         if with_reference:
@@ -138,6 +140,28 @@ def accuracy_table(renderer, cases, with_reference: bool = True):
             rel = np.abs(ker[ok] - ref[ok]) / ref[ok]
             rows_out.append((name, "kernel vs numpy reference", float(rel.max()), float(rel.mean()), int(ok.sum())))
     return rows_out
+
+
+#: The shift within a slab up to which a moving frame is cast through slabs in the accuracy
+#: table (pixels): the shipped profiles' rendering.slab_max_shift_px.
+SLAB_MAX_SHIFT_PX = 1.0
+
+
+def _moving_cast(renderer, prepared, T):
+    """(method, image of summed material integrals) as a moving frame casts it: through the
+    pre-integrated slabs where the shift rule allows them (slabs.py), else the full volume."""
+    from .renderer import View, zoomed_K
+    from .slabs import SlabCache, dominant_axis, in_slab_shift_px, slab_cast
+
+    shift = in_slab_shift_px(zoomed_K(renderer.fluoroscope, 1), renderer.shape, prepared, T,
+                             dominant_axis(prepared, T))
+    cast = slab_cast(renderer.caster, SlabCache(renderer.dev, 1), prepared, T, 1, None, SLAB_MAX_SHIFT_PX)
+    if cast is None:
+        lines = renderer.material_integrals(prepared, T, View(), distorted=False, circle=False)
+        return f"moving: full ({shift:.1f} px)", lines.sum(-1)
+    buf, _ = cast(prepared, T, 1, None, None, False, False)
+    lines = renderer.dev.download(buf, np.empty(renderer.shape + (4,), dtype=np.float32))
+    return f"moving: slabs ({shift:.1f} px)", lines.sum(-1)
 
 
 def _sub_K(K, step):
@@ -172,7 +196,7 @@ def run(args) -> int:
     ii = load_profile(here, FluoroscopeProfile)
     print(f"fluorosim bench drr: {os.cpu_count()} CPU(s) visible, load average {os.getloadavg()[0]:.2f}")
 
-    from .frame_cost import bench_ct, cached_frames, centred, next_phase, plastimatch_side_by_side
+    from .frame_cost import bench_ct, cached_frames, centred, next_phase, plastimatch_side_by_side, slab_frames
 
     ct = centred(bench_ct(args.ct)) if not {"speed", "cache", "plastimatch", "memory"} <= skip else None
     if "speed" not in skip and ct is not None:
@@ -211,6 +235,8 @@ def run(args) -> int:
             renderer = Renderer(at_resolution(ii, size, size), materials, contrast, device=args.device)
             for line in cached_frames(renderer, ct, args.frames, lambda deg: pa_pose(620.0, deg)):
                 print(line)
+            for label, base in (("PA", 0.0), ("lateral", 90.0)):
+                print(slab_frames(renderer, ct, args.frames, lambda deg, base=base: pa_pose(620.0, base + deg), label))
             del renderer
 
     if "plastimatch" not in skip and ct is not None:
@@ -261,6 +287,17 @@ def run(args) -> int:
             print(f"While loading: {len(frames)} frames rendered, timeline lookup max {1000 * max(lookups):.2f} ms, "
                   f"frame median {1000 * float(np.median(frames)):.0f} ms, max {1000 * max(frames):.0f} ms "
                   "(the loader shares the two cores)")
+        # The moving frames' slab copies as the shipped profiles keep them (rendering.slab_phases: 4),
+        # on top: the phases blended now and the last two, each half a phase.
+        from .slabs import SlabCache
+
+        slabs = SlabCache(renderer.dev, 4)
+        for p in [p for p in timeline._prepared if p is not None][:4]:
+            slabs.get(p, 1)
+        renderer.dev.queue.finish()
+        rss_slabs = proc.memory_info().rss
+        print(f"With 4 slab copies for moving frames: {slabs.nbytes / 1e9:.2f} GB more on the device; process resident "
+              f"{rss_slabs / 1e9:.2f} GB; limit 1.0 GB")
         timeline.close()
     return 0
 

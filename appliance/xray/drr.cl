@@ -496,3 +496,44 @@ kernel void gather_lines(global const float4 *lines, global const int *index, gl
     const int i = get_global_id(0);
     out[i] = lines[index[i]];
 }
+
+// Pre-integrated slabs (slabs.py): pairs of slices along `axis` averaged into one slab, so a
+// cast through the slab grid steps two voxels at a time yet every voxel counts (HU, hence
+// density, is averaged: the line integral through a pair is kept). The slab grid's padded
+// shape is (ox, oy, get_global_size(0)); slab q >= PAD holds the padded input slices
+// 2q - PAD and 2q - PAD + 1, the last maybe a slice and the padding's air. One work-item per
+// z plane of the slab grid, looping over its rows: PoCL gives each tiny work-item a
+// work-group of its own. Rounded half to even in integers (rint on floats was a library
+// call per voxel, ten times the copy itself): the int16 average is unbiased.
+inline short mean_even(int a, int b)
+{
+    const int s = a + b, h = s >> 1;       // floor(s / 2), negative sums included
+    return (short)(h + (s & h & 1));       // x.5 goes to the even neighbour
+}
+
+kernel void slab_pairs(global const short *vol, const int nx, const int ny, const int axis, const int ox,
+                       const int oy, global short *out)
+{
+    const int k = get_global_id(0), oz = get_global_size(0);
+    for (int j = 0; j < oy; ++j) {
+        global short *row = out + ((size_t)k * oy + j) * ox;
+        if (axis == 0) {
+            global const short *in = vol + ((size_t)k * ny + j) * nx;
+            for (int i = 0; i < ox; ++i) {
+                const int p = clamp(2 * i - PAD, 0, nx - 2);
+                const bool slab = i >= PAD && i < ox - PAD;
+                row[i] = slab ? mean_even(in[p], in[p + 1]) : (short)(-1000);
+            }
+            continue;
+        }
+        const int q = axis == 1 ? j : k, n = axis == 1 ? oy : oz;
+        if (q < PAD || q >= n - PAD) {
+            for (int i = 0; i < ox; ++i) row[i] = -1000;
+            continue;
+        }
+        const int p = 2 * q - PAD;
+        global const short *r0 = vol + (axis == 1 ? ((size_t)k * ny + p) * nx : ((size_t)p * ny + j) * nx);
+        global const short *r1 = r0 + (axis == 1 ? (size_t)nx : (size_t)nx * ny);
+        for (int i = 0; i < ox; ++i) row[i] = mean_even(r0[i], r1[i]);
+    }
+}

@@ -95,6 +95,35 @@ def cached_frames(renderer, volume: Volume, frames: int, pose) -> list[str]:
             f"changing {med(hit)}, {cache.counts.casts - casts} casts in {len(hit)} frames"]
 
 
+def slab_frames(renderer, volume: Volume, frames: int, pose, label: str) -> str:
+    """A line of moving frames at the renderer's matrix (a new pose each, two phases blended in
+    the cast, display quantity with noise): through the full volume and through pre-integrated
+    slabs (slabs.py), alternating frame by frame; medians and their ratio, and the in-slab shift."""
+    from .renderer import View, zoomed_K
+    from .slabs import SlabCache, dominant_axis, in_slab_shift_px, slab_cast
+
+    a, b = renderer.prepare(volume), renderer.prepare(next_phase(volume))
+    slabs = SlabCache(renderer.dev, 2)
+    view = View()
+    first = pose(0.0)
+    renderer.render(a, first, view, blend=(b, 0.5),
+                    cast=slab_cast(renderer.caster, slabs, a, first, 1, (b, 0.5), np.inf))     # makes the slabs
+    full: list[float] = []
+    slab: list[float] = []
+    for f in range(frames):
+        for out, through in ((full, False), (slab, True)):
+            T = pose(1.0 + (2 * f + through) * 1.7 % 6.0)
+            c0 = time.process_time()
+            cast = slab_cast(renderer.caster, slabs, a, T, 1, (b, 0.4), np.inf) if through else None
+            renderer.render(a, T, view, blend=(b, 0.4), cast=cast)
+            out.append(time.process_time() - c0)
+    rows, cols = renderer.shape
+    shift = in_slab_shift_px(zoomed_K(renderer.fluoroscope, 1), renderer.shape, a, first, dominant_axis(a, first))
+    f_ms, s_ms = 1000 * float(np.median(full)), 1000 * float(np.median(slab))
+    return (f"{cols}x{rows} {label}: moving frame through the full volume {f_ms:.1f} cpu ms, through slabs "
+            f"{s_ms:.1f} cpu ms ({f_ms / s_ms:.2f}x); steepest ray's shift within a slab {shift:.2f} px")
+
+
 def plastimatch_binary() -> str | None:
     """plastimatch's executable: on PATH, or beside this Python (the `bench` extra installs it)."""
     found = shutil.which("plastimatch")

@@ -4,7 +4,15 @@ matrix once it rests.
 While the pose changes every frame, each frame needs a new ray cast, and the cast costs in
 proportion to the pixels: the moving matrix (`rendering.moving_matrix_px`, e.g. 256 of 512)
 is cast instead and scaled up to the full matrix. A moving image is blurred by the motion
-and by the recursive filter of a real unit anyway, so the coarser matrix does not show. Once
+and by the recursive filter of a real unit anyway, so the coarser matrix does not show. With
+`rendering.moving_matrix_min_px` the moving matrix is the largest that keeps
+`rendering.frame_budget_ms`, chosen one step at a time from the frame times the render worker
+reports (`frame_shown`; matrix_control.py). A step between moving matrices is hidden as the
+switch to the full one is: every matrix is scaled up into the same full matrix (pixel centres
+kept where the camera model puts them, so nothing shifts), and the recursive filter's state
+carries over. Adjacent steps differ by an eighth to a fifth in pixel pitch, within a moving,
+motion-blurred image. With `rendering.slab_max_shift_px` a moving cast goes through
+pre-integrated slabs (slabs.py), half the samples, where the field's rays allow. Once
 the pose has stayed unchanged (within the projection cache's tolerance) for
 `rendering.settle_s`, the full matrix is cast once and then served from the projection cache,
 so a held view is sharp and costs only the detector per frame.
@@ -25,13 +33,19 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections import Counter
 from collections.abc import Callable
 
 import numpy as np
 
 from ..config.rendering import Rendering
+from .matrix_control import MatrixController
 from .projection_cache import ProjectionCache, pose_unchanged
 from .renderer import Frame, PreparedVolume, Renderer, View, at_resolution
+from .slabs import SlabCache, slab_cast
+
+#: A scaled-up moving frame's own field edge below this is taken as no image (fraction).
+EDGE_FLOOR = 0.05
 
 
 class ProgressiveRenderer:
@@ -44,12 +58,18 @@ class ProgressiveRenderer:
         self.clock = clock
         self._caches = {id(renderer): ProjectionCache(renderer, settings.cache_pose_tolerance_px,
                                                       settings.cache_max_phases)}
-        self.moving: Renderer | None = None
-        n = settings.moving_matrix_px
-        if n is not None and n < max(renderer.shape):
-            self.moving = renderer.at_matrix(n, n)
-            self._caches[id(self.moving)] = ProjectionCache(self.moving, settings.cache_pose_tolerance_px,
-                                                            settings.cache_max_phases)
+        #: Picks the moving matrix from the frame times `frame_shown` is given (matrix_control.py).
+        self.control = MatrixController(settings, max(renderer.shape))
+        self._movers = {n: renderer.at_matrix(n, n) for n in self.control.ladder}
+        for mover in self._movers.values():
+            self._caches[id(mover)] = ProjectionCache(mover, settings.cache_pose_tolerance_px,
+                                                      settings.cache_max_phases)
+        self._timed: int | None = None       # the matrix of the last frame if it was a moving cast
+        self._edge_fixes: dict[tuple, np.ndarray] = {}
+        #: Slab copies of the phases for moving casts (slabs.py); None where the profile casts none.
+        self.slabs = SlabCache(renderer.dev, settings.slab_phases) if settings.slab_max_shift_px is not None else None
+        #: Moving casts that went through the slabs (count).
+        self.slab_casts = 0
         self._last_pose: np.ndarray | None = None
         self._last_motion = -np.inf
         self._last_used: Renderer = renderer
@@ -61,11 +81,19 @@ class ProgressiveRenderer:
         self.refined_after_s: list[float] = []
         #: Moving frames cast straight through the renderer, past the cache (count).
         self.moving_casts = 0
+        #: Moving frames cast at a new pose, per matrix (pixels -> count): what the controller chose.
+        self.moving_frames: Counter[int] = Counter()
 
     def __getattr__(self, name):
         # Everything but rendering (prepare, device, fluoroscope, photons_per_pixel, ...) is the
         # full-matrix renderer's; only called for names this object does not have.
         return getattr(self.__dict__["full"], name)
+
+    @property
+    def moving(self) -> Renderer | None:
+        """The renderer of the moving matrix now (None without one)."""
+        n = self.control.matrix
+        return None if n is None else self._movers[n]
 
     @property
     def matrix(self) -> int:
@@ -77,19 +105,22 @@ class ProgressiveRenderer:
 
     def set_fluoroscope(self, fluoroscope) -> None:
         self.full.set_fluoroscope(fluoroscope)
-        if self.moving is not None:
-            rows, cols = self.moving.shape
-            self.moving.set_fluoroscope(at_resolution(fluoroscope, cols, rows))
+        self._edge_fixes.clear()                # the field's edge may be another
+        for mover in self._movers.values():
+            rows, cols = mover.shape
+            mover.set_fluoroscope(at_resolution(fluoroscope, cols, rows))
 
     def warm(self, volume: PreparedVolume, T_xray_from_ct: np.ndarray) -> None:
         """Build every matrix's kernels and ray tables (a plain and a blended frame each), so the
         first live frames cost what later ones do."""
-        for r in (self.full, self.moving):
-            if r is not None:
-                r.render(volume, T_xray_from_ct, View())
-                r.render(volume, T_xray_from_ct, View(), blend=(volume, 0.5))
-                self.cache(r).render(volume, T_xray_from_ct, View(), blend=(volume, 0.5))
-                self.cache(r).clear()
+        for r in (self.full, *self._movers.values()):
+            r.render(volume, T_xray_from_ct, View())
+            r.render(volume, T_xray_from_ct, View(), blend=(volume, 0.5))
+            self.cache(r).render(volume, T_xray_from_ct, View(), blend=(volume, 0.5))
+            self.cache(r).clear()
+        if self.slabs is not None:              # compiles the slab kernel (a quarter second on PoCL)
+            self.slabs.get(volume, 0)
+            self.slabs.clear()
 
     def _moved(self, volume: PreparedVolume, T: np.ndarray, zoom: int) -> bool:
         return not pose_unchanged(self.full.fluoroscope, volume, zoom, self._last_pose, T,
@@ -108,16 +139,26 @@ class ProgressiveRenderer:
             self._last_motion = now
             self._last_pose = T
         resting = now - self._last_motion >= self.settings.settle_s
-        use = self.full if resting or self.moving is None or view.quantity == "line-integral" else self.moving
+        moving = self.moving
+        use = self.full if resting or moving is None or view.quantity == "line-integral" else moving
+        # Only a frame cast at a new pose tells what a moving frame costs; one the cache served
+        # while the pose settles would make the matrix look cheaper than it is.
+        self._timed = use.shape[1] if use is not self.full and moved else None
+        if self._timed is not None:
+            self.moving_frames[self._timed] += 1
         if use is not self._last_used:
             # The recursive filter goes on across the switch: its state, resampled to the new
             # matrix, is what the first frame of that matrix is blended into.
             use.lag.carry_over(self._last_used.lag, use.shape)
-        if use is self.moving and moved and (blend is None or volume.same_grid(blend[0])):
+        if use is moving and moved and (blend is None or volume.same_grid(blend[0])):
             # A new pose every frame: the next frame will not reuse what this one casts, so the two
             # phases are blended in the cast (one pass over both, as Renderer.render does) rather
             # than each cast into the cache.
-            frame = use.render(volume, T, view, blend, concentration_factor=concentration_factor)
+            cast = None
+            if self.slabs is not None and self.settings.slab_max_shift_px is not None:
+                cast = slab_cast(use.caster, self.slabs, volume, T, view.zoom, blend, self.settings.slab_max_shift_px)
+                self.slab_casts += cast is not None
+            frame = use.render(volume, T, view, blend, cast=cast, concentration_factor=concentration_factor)
             self.moving_casts += 1
         else:
             frame = self.cache(use).render(volume, T, view, blend, concentration_factor)
@@ -125,6 +166,8 @@ class ProgressiveRenderer:
         rows, cols = self.full.shape
         if image.shape != (rows, cols):
             image = cv2.resize(image, (cols, rows), interpolation=cv2.INTER_LINEAR)
+            if view.quantity == "display":
+                image = cv2.multiply(image, self._edge_fix(use, view))
         if use is self.full and self._last_used is not self.full:
             self.refined_after_s.append(now - self._last_motion)
             if self.settings.crossfade_s > 0 and self._last_image is not None:
@@ -140,3 +183,30 @@ class ProgressiveRenderer:
         self._last_used = use
         self._last_image = image
         return frame if image is frame.image else dataclasses.replace(frame, image=image)
+
+    def _edge_fix(self, use: Renderer, view: View) -> np.ndarray:
+        """The factor that gives a scaled-up display frame the full matrix's field edge: the
+        coarse frame's own edge, scaled up, steps in whole coarse pixels (a jagged circle at
+        128 of 512), so it is divided out and the full matrix's smooth edge put in its place.
+        Where the coarse edge has faded to under EDGE_FLOOR there is no image to restore and
+        the factor is 0. Made once per matrix and field."""
+        import cv2
+
+        key = (use.shape, view.zoom, None if view.collimation_mm is None else tuple(view.collimation_mm))
+        fix = self._edge_fixes.get(key)
+        if fix is None:
+            rows, cols = self.full.shape
+            coarse = cv2.resize(use.display_edge(view), (cols, rows), interpolation=cv2.INTER_LINEAR)
+            fine = self.full.display_edge(view)
+            fix = np.where(coarse >= EDGE_FLOOR, fine / np.maximum(coarse, EDGE_FLOOR), 0.0).astype(np.float32)
+            if len(self._edge_fixes) > 64:
+                self._edge_fixes.clear()
+            self._edge_fixes[key] = fix
+        return fix
+
+    def frame_shown(self, seconds: float) -> None:
+        """The last frame took `seconds` (s) from the start of its render to the screen: a moving
+        cast's time picks the next moving matrix; other frames are not counted."""
+        if self._timed is not None:
+            self.control.observe(self._timed, seconds)
+            self._timed = None

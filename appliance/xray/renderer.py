@@ -176,6 +176,13 @@ class Renderer:
             self.dev.download(buf, out)
         return out
 
+    def display_edge(self, view: View) -> np.ndarray:
+        """(rows, cols) float32: the fade of a display frame at the field's edge (1 inside, 0
+        beyond), as `render` applies it for `view`'s zoom and collimation."""
+        circle = self._circle(None)
+        mask = self.caster.beam(view.zoom, view.collimation_mm, circle).mask
+        return self._edge(view.zoom, view.collimation_mm, circle, mask)
+
     def _edge(self, zoom: int, collimation_mm, circle: bool, mask: np.ndarray) -> np.ndarray:
         key = (zoom, None if collimation_mm is None else tuple(float(c) for c in collimation_mm), circle)
         if key not in self._edges:

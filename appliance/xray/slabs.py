@@ -1,0 +1,145 @@
+"""Pre-integrated slabs: a phase with each pair of slices along one axis averaged into one, so
+that a moving frame's cast takes half the samples and still counts every voxel.
+
+Joseph's method samples a ray once per slice along its dominant axis. Sampling every second
+slice halves the cost but aliases: a face on a voxel boundary moves in steps of two voxels,
+and a thin structure between two samples is lost. A slab is the average of two slices, so a
+ray through the slab grid (voxels twice as deep along that axis, `slab_pairs` in drr.cl)
+integrates the same density: what the slab approximates is the ray's shift within a slab,
+where the two slices are read at the slab's middle instead of where the ray crosses each.
+That shift is (slab thickness) x (the ray's slope across the axis); it is used only where,
+seen on the detector, it stays below `rendering.slab_max_shift_px` of the cast matrix's
+pixel, for every ray of the field (the corner rays are the steepest), and only for moving
+frames: a held view is cast from the full volume.
+
+A slab copy is half a phase on the device, made once per phase and axis when a moving frame
+first needs it and kept for the last `rendering.slab_phases` of them.
+"""
+
+from __future__ import annotations
+
+import weakref
+from collections import OrderedDict
+
+import numpy as np
+
+from ..geometry import invert
+from .casting import PAD, PreparedVolume
+from .pixel_geometry import zoomed_K
+
+#: Slices averaged into one slab (count): `slab_pairs` averages pairs.
+SLAB = 2
+
+
+def slab_index_from_index(shape_xyz: tuple[int, int, int], axis: int) -> tuple[np.ndarray, tuple[int, int, int]]:
+    """The map from a phase's padded voxel indices to its slab grid's along `axis`, and the
+    slab grid's padded shape (x, y, z). Slab q >= PAD spans padded slices 2q - PAD and
+    2q - PAD + 1, whose middle is index 2q - PAD + 0.5: q = (p + PAD - 0.5) / 2."""
+    S = np.eye(4)
+    S[axis, axis] = 1.0 / SLAB
+    S[axis, 3] = (PAD - 0.5) / SLAB
+    shape = list(shape_xyz)
+    shape[axis] = -(-(shape[axis] - 2 * PAD) // SLAB) + 2 * PAD
+    return S, (shape[0], shape[1], shape[2])
+
+
+def slab_box(box, axis: int):
+    """The content box (inclusive padded indices) in the slab grid along `axis`."""
+    if box is None:
+        return None
+    lo, hi = list(box[0]), list(box[1])
+    lo[axis] = (lo[axis] - PAD) // SLAB + PAD
+    hi[axis] = (hi[axis] - PAD) // SLAB + PAD
+    return (lo[0], lo[1], lo[2]), (hi[0], hi[1], hi[2])
+
+
+def dominant_axis(volume: PreparedVolume, T_xray_from_ct: np.ndarray) -> int:
+    """The voxel axis (0 x, 1 y, 2 z) the principal ray crosses most slices of."""
+    d = volume.T_index_from_ct[:3, :3] @ invert(np.asarray(T_xray_from_ct, float))[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    return int(np.argmax(np.abs(d)))
+
+
+def in_slab_shift_px(K: np.ndarray, shape: tuple[int, int], volume: PreparedVolume, T_xray_from_ct: np.ndarray,
+                     axis: int) -> float:
+    """How far the steepest ray of the field (a corner's) moves across `axis` within one slab,
+    seen on the detector at the depth of the volume's middle (pixels of the matrix of `K`)."""
+    rows, cols = shape
+    T = np.asarray(T_xray_from_ct, float)
+    index_from_xray = volume.T_index_from_ct @ invert(T)
+    corners = np.array([[0, 0, 1], [cols - 1, 0, 1], [0, rows - 1, 1], [cols - 1, rows - 1, 1],
+                        [K[0, 2], K[1, 2], 1]], float)
+    dirs = corners @ np.linalg.inv(K).T                                  # xray frame, z = 1
+    d_index = dirs @ index_from_xray[:3, :3].T                           # voxels per unit of z
+    # Within a slab the ray advances SLAB voxels along the axis; across it, in mm of the xray
+    # frame, this much (the other index axes scaled back to mm by the grid's spacing).
+    ct_from_index = np.linalg.inv(volume.T_index_from_ct)[:3, :3]
+    per_voxel_mm = np.linalg.norm(ct_from_index, axis=0)
+    others = [i for i in range(3) if i != axis]
+    across_mm = np.hypot(*(d_index[:, i] * per_voxel_mm[i] for i in others)) * SLAB / np.abs(d_index[:, axis])
+    box = volume.box
+    if box is None:
+        return 0.0
+    centre = np.append((np.asarray(box[0], float) + box[1]) / 2.0, 1.0)
+    depth = float((T @ np.linalg.inv(volume.T_index_from_ct) @ centre)[2])
+    return float(np.max(across_mm) * K[0, 0] / max(depth, 1e-6))
+
+
+class SlabCache:
+    """Slab copies of phases on one renderer's device, the last `keep` (phase, axis) pairs."""
+
+    def __init__(self, dev, keep: int):
+        self.dev, self.keep = dev, keep
+        self._kernel = dev.kernel("slab_pairs")
+        self._slabs: OrderedDict[tuple[int, int], tuple[weakref.ref[PreparedVolume], PreparedVolume]] = OrderedDict()
+        #: Slab copies made (count): one per phase and axis while they stay in the cache.
+        self.made = 0
+
+    def get(self, volume: PreparedVolume, axis: int) -> PreparedVolume:
+        # A phase no longer held elsewhere (a case switched, a timeline replaced) takes its
+        # slabs with it; its id may then be a new phase's, which the weak reference tells apart.
+        for dead in [k for k, (ref, _) in self._slabs.items() if ref() is None]:
+            del self._slabs[dead]
+        key = (id(volume), axis)
+        hit = self._slabs.get(key)
+        if hit is not None and hit[0]() is volume:
+            self._slabs.move_to_end(key)
+            return hit[1]
+        S, shape = slab_index_from_index(volume.shape_xyz, axis)
+        nbytes = 2 * shape[0] * shape[1] * shape[2]
+        out = self.dev.scratch(nbytes)
+        nx, ny, _ = volume.shape_xyz
+        self._kernel(self.dev.queue, (shape[2],), None, volume.buffer, np.int32(nx), np.int32(ny), np.int32(axis),
+                     np.int32(shape[0]), np.int32(shape[1]), out)
+        slab = PreparedVolume(buffer=out, shape_xyz=shape, T_index_from_ct=S @ volume.T_index_from_ct,
+                              box=slab_box(volume.box, axis), nbytes=nbytes, source=f"{volume.source} (slabs)",
+                              time_s=volume.time_s, _renderer_id=volume._renderer_id)
+        self._slabs[key] = (weakref.ref(volume), slab)
+        self.made += 1
+        while len(self._slabs) > self.keep:
+            self._slabs.popitem(last=False)
+        return slab
+
+    def clear(self) -> None:
+        self._slabs.clear()
+
+    @property
+    def nbytes(self) -> int:
+        """Device memory the slab copies hold (bytes)."""
+        return sum(slab.nbytes for _, slab in self._slabs.values())
+
+
+def slab_cast(caster, cache: SlabCache, volume: PreparedVolume, T_xray_from_ct: np.ndarray, zoom: int,
+              blend: tuple[PreparedVolume, float] | None, max_shift_px: float):
+    """A stand-in for `caster.cast` (Renderer.render's `cast`) through the slabs of `volume` and
+    of the blended phase, or None where the field's steepest ray shifts more than `max_shift_px`
+    within a slab (then the frame is cast through the full volume)."""
+    axis = dominant_axis(volume, T_xray_from_ct)
+    K = zoomed_K(caster.fluoroscope, zoom)
+    if in_slab_shift_px(K, caster.shape, volume, T_xray_from_ct, axis) > max_shift_px:
+        return None
+    slab = cache.get(volume, axis)
+    slab_blend = None if blend is None else (cache.get(blend[0], axis), blend[1])
+
+    def cast(_volume, T, zoom_, collimation_mm, _blend, distorted, circle):
+        return caster.cast(slab, T, zoom_, collimation_mm, slab_blend, distorted, circle)
+    return cast
