@@ -1,0 +1,83 @@
+"""The console's five-minute alarm in pulsed fluoroscopy, and the breathing keys' counts, under
+an injected clock.
+
+Ground truth: 21 CFR 1020.32(h): the alarm sounds at 5:00 of cumulative fluoroscopy time
+whatever the mode; pulses at t0 + k / 15 for k = 0, 1, ... while the pedal is down (pulsed-15
+mode, 4 mGy/min at zoom 1, so 4 / 60 / 15 mGy a pulse); the breathing keys counted as they
+are pressed in the test.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from appliance.config import FluoroscopeProfile, KeymapProfile, load_profile
+from appliance.console.state import Console
+from drivers.input_event import InputEvent
+
+REPO = Path(__file__).resolve().parents[1]
+II = load_profile(REPO / "configs/fluoroscopes/generic-ii-carm.yaml", FluoroscopeProfile)
+KEYMAP = load_profile(REPO / "configs/keymaps/usb-numeric-keypad.yaml", KeymapProfile)
+
+
+def key(t: float, name: str, down: bool = True) -> InputEvent:
+    return InputEvent(t, "scripted", name, down)
+
+
+def test_pulsed_fluoroscopy_sounds_the_alarm_at_five_minutes_and_keeps_pulsing():
+    """Pedal down at 10 s for 310 s in pulsed-15: the alarm at 310 s (300 s of fluoroscopy), once,
+    and one pulse every 1/15 s throughout: k/15 < 310 for k = 0..4649, 4650 pulses."""
+    assert II.dose.alarm_period_s == 300.0
+    console = Console(II, KEYMAP, t0=0.0)
+    console.handle(key(0.0, "mode_next"))
+    assert console.snapshot().mode == "pulsed-15"
+    events = console.handle(key(10.0, "pedal"))
+    t = 10.0
+    while t < 320.0:
+        t = min(t + 0.5, 320.0)
+        events += console.tick(t)
+    events += console.handle(key(320.0, "pedal", False))
+    alarms = [e for e in events if e.kind == "alarm"]
+    assert [e.t_monotonic for e in alarms] == [pytest.approx(310.0, abs=1e-6)]
+    assert alarms[0].fluoro_time_s == 300.0
+    pulses = [e for e in events if e.kind == "pulse"]
+    assert len(pulses) == 4650
+    assert pulses[-1].t_monotonic == pytest.approx(10.0 + 4649 / 15)
+    state = console.snapshot()
+    assert state.alarm_sounding and state.alarm_count == 1
+    assert state.fluoro_time_s == pytest.approx(310.0)
+    assert state.air_kerma_mgy == pytest.approx(4650 * 4.0 / 60 / 15)
+
+
+def test_breathing_keys_count_from_none_pressed_and_stamp_their_times():
+    console = Console(II, KEYMAP, t0=0.0)
+    fresh = console.snapshot()
+    # Nothing pressed yet: no steps, and no press after the console's start (times the phase
+    # worker subtracts from, so they must be numbers).
+    assert (fresh.breath_rate_steps, fresh.breath_depth_steps) == (0, 0)
+    assert fresh.breath_changed_t - 0.0 <= 0.0 and fresh.breath_step_t - 0.0 <= 0.0
+    assert not fresh.breath_hold and fresh.image == "none"
+    for t, name in [(1.0, "KEY_F11"), (2.0, "KEY_F11"), (3.0, "KEY_F12"),                  # faster, faster, slower
+                    (4.0, "KEY_KPEQUAL"), (5.0, "KEY_KPEQUAL"), (6.0, "KEY_KPEQUAL"), (7.5, "KEY_KPCOMMA")]:
+        console.handle(key(t, name))
+    state = console.snapshot()
+    assert (state.breath_rate_steps, state.breath_depth_steps) == (1, 2)
+    assert state.breath_step_t == 7.5 and state.breath_changed_t == 0.0
+    console.handle(key(9.0, "KEY_KPSLASH"))                                               # hold
+    assert console.snapshot().breath_hold and console.snapshot().breath_changed_t == 9.0
+    console.handle(key(11.0, "KEY_KPDOT"))                                                # resume
+    state = console.snapshot()
+    assert not state.breath_hold and state.breath_changed_t == 11.0 and state.breath_step_t == 7.5
+
+
+def test_a_run_of_no_length_records_the_technique_it_was_set_at():
+    """Pedal pressed and released at one instant (a bounce): the run lasted no time, so its kV
+    and mA are the technique of that moment, the profile's reference technique."""
+    console = Console(II, KEYMAP, t0=0.0)
+    events = console.handle(key(2.0, "pedal")) + console.handle(key(2.0, "pedal", False))
+    (off,) = [e for e in events if e.kind == "fluoro_off"]
+    assert off.detail["duration_s"] == 0.0
+    assert (off.detail["kvp"], off.detail["ma"]) == (II.tube.kvp, II.tube.ma)
+    assert off.detail["air_kerma_mgy"] == 0.0
