@@ -26,6 +26,7 @@ def key(t: float, name: str, down: bool = True) -> InputEvent:
     return InputEvent(t, "scripted", name, down)
 
 
+@pytest.mark.timeout(60)       # an alarm taken for a pulse never leaves the loop: fail in a minute, not five
 def test_pulsed_fluoroscopy_sounds_the_alarm_at_five_minutes_and_keeps_pulsing():
     """Pedal down at 10 s for 310 s in pulsed-15: the alarm at 310 s (300 s of fluoroscopy), once,
     and one pulse every 1/15 s throughout: k/15 < 310 for k = 0..4649, 4650 pulses."""
