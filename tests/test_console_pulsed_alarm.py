@@ -1,5 +1,5 @@
-"""The console's five-minute alarm in pulsed fluoroscopy, and the breathing keys' counts, under
-an injected clock.
+"""The console's five-minute alarm in pulsed fluoroscopy and after a carried timer is reset, and the
+breathing keys' counts, under an injected clock.
 
 Ground truth: 21 CFR 1020.32(h): the alarm sounds at 5:00 of cumulative fluoroscopy time
 whatever the mode; pulses at t0 + k / 15 for k = 0, 1, ... while the pedal is down (pulsed-15
@@ -82,3 +82,39 @@ def test_a_run_of_no_length_records_the_technique_it_was_set_at():
     assert off.detail["duration_s"] == 0.0
     assert (off.detail["kvp"], off.detail["ma"]) == (II.tube.kvp, II.tube.ma)
     assert off.detail["air_kerma_mgy"] == 0.0
+
+
+def expose(console: Console, start: float, length: float) -> list:
+    events = console.handle(key(start, "pedal"))
+    t = start
+    while t < start + length:
+        t = min(t + 0.5, start + length)
+        events += console.tick(t)
+    return events + console.handle(key(start + length, "pedal", False))
+
+
+def test_a_person_resets_a_timer_carried_over_a_crash_and_the_alarm_counts_afresh():
+    """200 s carried: the alarm would come after 100 s more. Reset (no alarm sounding) after
+    50 s of this session: the press is recorded with what it reset, and the alarm then comes
+    at 300 s of this session's own time, 250 s into a run that starts at 100 s: at 350 s."""
+    console = Console(II, KEYMAP, t0=0.0)
+    console.carry_over(200.0, 0)
+    expose(console, 0.0, 50.0)
+    (reset,) = console.handle(key(60.0, "KEY_KPASTERISK"))
+    assert reset.kind == "alarm_reset"
+    assert reset.detail == {"timer": "reset", "carried_fluoro_time_s": 200.0, "carried_alarms": 0}
+    alarms = [e for e in expose(console, 100.0, 260.0) if e.kind == "alarm"]
+    assert [e.t_monotonic for e in alarms] == [pytest.approx(350.0, abs=1e-6)]
+
+
+def test_resetting_carried_alarms_takes_them_off_the_count_once():
+    console = Console(II, KEYMAP, t0=0.0)
+    console.carry_over(650.0, 2)
+    assert console.snapshot().alarm_count == 2
+    (reset,) = console.handle(key(1.0, "KEY_KPASTERISK"))
+    assert reset.detail == {"timer": "reset", "carried_fluoro_time_s": 650.0, "carried_alarms": 2}
+    assert console.snapshot().alarm_count == 0
+    assert console.handle(key(2.0, "KEY_KPASTERISK")) == []       # nothing carried any more
+    alarms = [e for e in expose(console, 10.0, 301.0) if e.kind == "alarm"]
+    assert [e.t_monotonic for e in alarms] == [pytest.approx(310.0, abs=1e-6)]
+    assert console.snapshot().alarm_count == 1
