@@ -60,15 +60,22 @@ def test_breathing_keys_count_from_none_pressed_and_stamp_their_times():
     assert (fresh.breath_rate_steps, fresh.breath_depth_steps) == (0, 0)
     assert fresh.breath_changed_t - 0.0 <= 0.0 and fresh.breath_step_t - 0.0 <= 0.0
     assert not fresh.breath_hold and fresh.image == "none"
+    events = []
     for t, name in [(1.0, "KEY_F11"), (2.0, "KEY_F11"), (3.0, "KEY_F12"),                  # faster, faster, slower
                     (4.0, "KEY_KPEQUAL"), (5.0, "KEY_KPEQUAL"), (6.0, "KEY_KPEQUAL"), (7.5, "KEY_KPCOMMA")]:
-        console.handle(key(t, name))
+        events += console.handle(key(t, name))
+    # Each press is recorded with its step, so the ledger can replay the lesson's breathing.
+    assert [(e.t_monotonic, e.kind, e.detail) for e in events] == [
+        (1.0, "breath_rate", {"step": 1}), (2.0, "breath_rate", {"step": 1}), (3.0, "breath_rate", {"step": -1}),
+        (4.0, "breath_depth", {"step": 1}), (5.0, "breath_depth", {"step": 1}), (6.0, "breath_depth", {"step": 1}),
+        (7.5, "breath_depth", {"step": -1})]
     state = console.snapshot()
     assert (state.breath_rate_steps, state.breath_depth_steps) == (1, 2)
     assert state.breath_step_t == 7.5 and state.breath_changed_t == 0.0
-    console.handle(key(9.0, "KEY_KPSLASH"))                                               # hold
+    assert [e.kind for e in console.handle(key(9.0, "KEY_KPSLASH"))] == ["hold_breath"]
     assert console.snapshot().breath_hold and console.snapshot().breath_changed_t == 9.0
-    console.handle(key(11.0, "KEY_KPDOT"))                                                # resume
+    assert console.handle(key(10.0, "KEY_KPSLASH")) == []                                # already held
+    assert [e.kind for e in console.handle(key(11.0, "KEY_KPDOT"))] == ["resume_breath"]
     state = console.snapshot()
     assert not state.breath_hold and state.breath_changed_t == 11.0 and state.breath_step_t == 7.5
 
