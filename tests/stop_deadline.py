@@ -33,3 +33,14 @@ def busy() -> bool:
 def stop_deadline_s(promise_s: float = PROMISE_S) -> float:
     """`promise_s` on a machine with CPU to spare, else the unit's TimeoutStopSec."""
     return unit_timeout_stop_s() if busy() else promise_s
+
+
+def join_left_behind_sends(timeout_s: float = 30.0) -> None:
+    """Wait for the shutdown's send threads (records_worker: "fluorosim-send-..."), which an
+    appliance run in the test's own process leaves behind when their budget runs out, so what
+    they record is in the queue before the test reads it, however loaded the machine."""
+    import threading
+
+    for thread in threading.enumerate():
+        if thread.name.startswith("fluorosim-send-"):
+            thread.join(timeout_s)

@@ -78,6 +78,8 @@ def test_breathing_keys_count_from_none_pressed_and_stamp_their_times():
     assert [e.kind for e in console.handle(key(11.0, "KEY_KPDOT"))] == ["resume_breath"]
     state = console.snapshot()
     assert not state.breath_hold and state.breath_changed_t == 11.0 and state.breath_step_t == 7.5
+    console.handle(key(12.0, "KEY_F12"))                                                  # slower, last
+    assert console.snapshot().breath_step_t == 12.0 and console.snapshot().breath_rate_steps == 0
 
 
 def test_a_run_of_no_length_records_the_technique_it_was_set_at():

@@ -14,6 +14,7 @@ import pydicom
 from appliance_setup import make_appliance
 from dicom_session import record_session
 from ruamel.yaml import YAML
+from stop_deadline import join_left_behind_sends
 from test_dicom_send import free_port, receivers  # noqa: F401 - the fixture
 
 from appliance.cli import main
@@ -123,9 +124,7 @@ def test_the_appliance_queues_and_sends_its_images_and_dose_report(tmp_path, rec
 def late_at_shutdown(caplog, session_id: int) -> bool:
     """Whether the log says the dose report was not confirmed within the shutdown budget; its
     send thread, left behind at exit, is waited for first, so the queue no longer changes."""
-    for thread in threading.enumerate():
-        if thread.name.startswith("fluorosim-send-"):
-            thread.join(30)
+    join_left_behind_sends()
     return any(f"dose report of session {session_id} not confirmed within" in r.getMessage() for r in caplog.records)
 
 
