@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 from appliance_setup import REPO, make_appliance
 from notify_listener import NotifyListener
+from stop_deadline import stop_deadline_s
 
 from appliance.config import load_appliance
 from appliance.daemon.notify import Notifier
@@ -111,7 +112,7 @@ def test_run_is_ready_after_the_first_frame_survives_a_bad_reload_and_stops_on_s
             proc.wait()
         listener.close()
     assert rc == 0
-    assert took < 2.0, took
+    assert took < stop_deadline_s(), (took, os.getloadavg())
     assert listener.times_of("STOPPING=1")
 
     conn = open_readonly(data / "ledger.sqlite")

@@ -11,6 +11,7 @@ import time
 
 import pytest
 from notify_listener import NotifyListener
+from stop_deadline import stop_deadline_s
 
 from appliance.daemon.health import Health, Level
 from appliance.daemon.notify import Notifier
@@ -138,7 +139,7 @@ def test_sigterm_stops_flushes_and_returns_0_within_2_s(listener, tmp_path):
     rc = sup.run(shutdown_s=1.5)
     took = time.monotonic() - sent[0]
     assert rc == 0
-    assert took < 2.0, took
+    assert took < stop_deadline_s(), (took, os.getloadavg())
     assert signal.getsignal(signal.SIGTERM) is before
     assert listener.wait_for("STOPPING=1", 1) is not None
     rows = [r[0] for r in sqlite3.connect(db_path).execute("SELECT n FROM event ORDER BY n")]
@@ -154,7 +155,7 @@ def test_sigterm_with_a_hung_worker_still_exits_within_2_s(listener):
     t0 = time.monotonic()
     try:
         assert sup.run(shutdown_s=1.5) == 0
-        assert time.monotonic() - t0 < 0.3 + 2.0
+        assert time.monotonic() - t0 < 0.3 + stop_deadline_s(), os.getloadavg()
         assert hung.alive and not sup.workers[1].alive  # the ledger still got its turn
     finally:
         release.set()
