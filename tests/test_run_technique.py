@@ -24,7 +24,9 @@ MEAN_KVP = (2.5 * 75.0 + 4.0 * 88.0 + 3.5 * 104.0) / 10.0     # 90.35 kV
 MEAN_MA = (2.5 * 2.0 + 4.0 * 2.8 + 3.5 * 3.7) / 10.0          # 2.915 mA
 
 
-def _run_with_schedule(console: Console) -> list:
+def _run_with_schedule(console: Console, until: float = 11.0, released: bool = True) -> list:
+    """The pedal down at 1 s, the technique changed at SCHEDULE's times, ticks of 40 ms until
+    `until`; the pedal up then when `released` (otherwise the process dies there)."""
     events = console.handle(press(1.0, "pedal"))
     t = 1.0
     for when, kvp, ma in SCHEDULE:
@@ -32,10 +34,10 @@ def _run_with_schedule(console: Console) -> list:
             t = min(t + 0.04, when)
             events += console.tick(t)
         events += console.set_exposure_factor(1.0, when, kvp, ma)
-    while t < 11.0:
-        t = min(t + 0.04, 11.0)
+    while t < until:
+        t = min(t + 0.04, until)
         events += console.tick(t)
-    return events + console.handle(release(11.0, "pedal"))
+    return events + (console.handle(release(until, "pedal")) if released else [])
 
 
 def test_a_run_records_the_time_weighted_mean_of_the_kv_and_ma_the_control_set():
@@ -117,17 +119,7 @@ def test_a_run_a_crash_cut_off_gets_its_mean_technique_up_to_its_last_progress_r
     """The schedule above, the process dying at 9.7 s with the pedal still down: progress records
     each second from 2 s, the last at 9 s. Up to it, 8 s: 2.5 s at 75 kV 2 mA, 4 s at 88 kV
     2.8 mA, 1.5 s at 104 kV 3.7 mA."""
-    console = Console(II, KEYMAP, t0=0.0)
-    events = console.handle(press(1.0, "pedal"))
-    t = 1.0
-    for when, kvp, ma in SCHEDULE:
-        while t < when:
-            t = min(t + 0.04, when)
-            events += console.tick(t)
-        events += console.set_exposure_factor(1.0, when, kvp, ma)
-    while t < 9.7:
-        t = min(t + 0.04, 9.7)
-        events += console.tick(t)
+    events = _run_with_schedule(Console(II, KEYMAP, t0=0.0), until=9.7, released=False)
     off = _recovered_run(tmp_path / "ledger.sqlite", events)
     assert off["kvp"] == pytest.approx((2.5 * 75.0 + 4.0 * 88.0 + 1.5 * 104.0) / 8.0, rel=1e-9)   # 86.9375 kV
     assert off["ma"] == pytest.approx((2.5 * 2.0 + 4.0 * 2.8 + 1.5 * 3.7) / 8.0, rel=1e-9)        # 2.71875 mA
