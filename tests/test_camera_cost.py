@@ -80,3 +80,11 @@ def test_a_box_drawn_in_its_own_region_leaves_no_trace_of_the_frame_before():
     # The box itself is there: its top face, lit, beside the marker, is well above the backdrop.
     cx, cy = seen._project((far @ [50.0, 0.0, BOX_MM[2] / 2, 1.0])[None, :3])[0].round().astype(int)
     assert after[cy, cx] > 1.2 * _backdrop()[cy, cx]
+
+
+def test_bench_tracking_refuses_a_part_it_does_not_have(capsys):
+    from appliance.cli import main
+
+    assert main(["bench", "tracking", "--parts", "speed,sped"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--parts" in err[0] and "sped" in err[0] and "speed" in err[0]
