@@ -55,6 +55,11 @@ class TexturedQuad:
     textures: list[np.ndarray]          # the same print at several resolutions, finest last
 
 
+def _covers(outer: tuple[int, int, int, int], inner: tuple[int, int, int, int]) -> bool:
+    """Whether the pixel box `outer` (x0, y0, x1, y1) holds all of `inner`."""
+    return outer[0] <= inner[0] and outer[1] <= inner[1] and outer[2] >= inner[2] and outer[3] >= inner[3]
+
+
 def marker_textures(dictionary: str, marker_id: int, margin_cells: float = 1.0,
                     paper: float = 1.0, ink: float = 0.0) -> list[np.ndarray]:
     """Float32 prints of one ArUco marker with its white margin, at 4, 8, 16 and 32 pixels per cell."""
@@ -140,17 +145,18 @@ class SceneRenderer:
         if self.s.blur_sigma_px > 0:
             reach += int(np.ceil(4 * self.s.blur_sigma_px)) + 1   # OpenCV's float kernel spans 4 sigma
         canvas = self._canvas
-        if self._pasted is not None:
-            x0, y0, x1, y1 = self._pasted
-            canvas[y0:y1, x0:x1] = self._still[y0:y1, x0:x1]
         extent = self._extent(T_cam_from_box)
+        paste = None if extent is None else self._grown(extent, reach)
+        if self._pasted is not None and not (paste is not None and _covers(paste, self._pasted)):
+            x0, y0, x1, y1 = self._pasted        # the last box, where this one will not paint over it
+            canvas[y0:y1, x0:x1] = self._still[y0:y1, x0:x1]
         self._pasted = None
-        if extent is not None:
+        if extent is not None and paste is not None:
             cx0, cy0, cx1, cy1 = self._grown(extent, 2 * reach)
             part: np.ndarray = self.backdrop[cy0:cy1, cx0:cx1].copy()
             self._draw(part, (cx0, cy0), T_cam_from_box)
             part = self._blur(part, kernel)
-            x0, y0, x1, y1 = self._pasted = self._grown(extent, reach)
+            x0, y0, x1, y1 = self._pasted = paste
             canvas[y0:y1, x0:x1] = part[y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0]
         if self._maps is not None:
             return cv2.remap(canvas, self._maps[0], self._maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)

@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.camera_scene import RenderSettings, SceneRenderer, box_marker_quads
+from drivers.camera_scene import RenderSettings, SceneRenderer, _covers, box_marker_quads
 
 K = np.array([[900.0, 0.0, 639.5], [0.0, 900.0, 359.5], [0.0, 0.0, 1.0]])
 W, H = 1280, 720
@@ -68,6 +68,11 @@ def test_a_box_drawn_in_its_own_region_leaves_no_trace_of_the_frame_before():
     after = seen.render(far, moving).astype(np.float64)
     fresh = _box_renderer(settings).render(far, moving).astype(np.float64)
     np.testing.assert_array_equal(after, fresh)
+    # A box whose region holds the last one's paints over all of it, leaving nothing to restore.
+    over = _pose(-10, 25, [-80.0, 50.0, 350.0])
+    last = seen._pasted
+    np.testing.assert_array_equal(seen.render(over), _box_renderer(settings).render(over))
+    assert last is not None and _covers(seen._pasted, last)
     # Away from where the far box can reach, the image is the bare backdrop, also where the near box was.
     x0, y0, x1, y1 = seen._extent(far)
     room = np.ones((H, W), bool)
