@@ -134,8 +134,9 @@ class SceneRenderer:
         """The scene through the lens, before the sensor (float32 grey levels).
 
         Only the part of the image the box can reach is drawn and blurred, over a backdrop
-        blurred once: the box covers a fifth of a frame at the demo's distances, and the rest is
-        the same gradient every frame. The part is drawn with twice the blurs' reach around the
+        blurred once: the rest is the same gradient every frame. (Along the demo path the box's
+        bounds fill most of the frame, so there this saves a copy, not the blur; it pays when
+        the box is farther off.) The part is drawn with twice the blurs' reach around the
         box and pasted with one reach, so every pasted pixel saw all the neighbours it sees in a
         whole frame; outside it the backdrop misses only the motion smear, which leaves a linear
         gradient as it was. Distortion moves every pixel, so it still maps the whole frame.
