@@ -19,6 +19,13 @@ _FACES = [((0, 0, 1), (1, 0, 0), (0, 1, 0)), ((0, 0, -1), (1, 0, 0), (0, -1, 0))
           ((0, 1, 0), (0, 0, 1), (1, 0, 0)), ((0, -1, 0), (1, 0, 0), (0, 0, 1)),
           ((1, 0, 0), (0, 1, 0), (0, 0, 1)), ((-1, 0, 0), (0, 0, 1), (0, 1, 0))]
 
+#: The sensor noise pool is this much wider and taller than the frame (pixels): the range of a
+#: frame's random offset into it. Not a camera property, so not a setting: any value above a few
+#: pixels gives frames whose noise no tracker can tell from fresh draws.
+_NOISE_PAD_PX = 64
+#: Bands of the pool drawn anew per frame, one each frame: the pool is all new every this many frames.
+_NOISE_BANDS = 16
+
 
 @dataclass
 class RenderSettings:
@@ -46,6 +53,11 @@ class TexturedQuad:
     half_w_mm: float
     half_h_mm: float
     textures: list[np.ndarray]          # the same print at several resolutions, finest last
+
+
+def _covers(outer: tuple[int, int, int, int], inner: tuple[int, int, int, int]) -> bool:
+    """Whether the pixel box `outer` (x0, y0, x1, y1) holds all of `inner`."""
+    return outer[0] <= inner[0] and outer[1] <= inner[1] and outer[2] >= inner[2] and outer[3] >= inner[3]
 
 
 def marker_textures(dictionary: str, marker_id: int, margin_cells: float = 1.0,
@@ -83,6 +95,12 @@ class SceneRenderer:
         self._maps = None
         self._last_key: bytes | None = None         # the pose of the last frame drawn, and its image
         self._last_clean = self.backdrop
+        # The backdrop through the lens, and the image the box is pasted into (see _optics).
+        self._still = self._blur(self.backdrop, None)
+        self._canvas = self._still.copy()
+        self._pasted: tuple[int, int, int, int] | None = None   # where the last box went (x0, y0, x1, y1)
+        self._pool: np.ndarray | None = None        # the sensor's noise pool, see _sensor
+        self._noise_band = 0
         if np.any(self.dist != 0):
             # For each output (distorted) pixel, the ideal pinhole pixel it sees.
             pts = np.stack([xx.ravel(), yy.ravel()], axis=1).reshape(-1, 1, 2).astype(np.float64)
@@ -109,11 +127,69 @@ class SceneRenderer:
         """
         key = T_cam_from_box.tobytes() + (b"" if exposure is None else exposure[0].tobytes() + exposure[1].tobytes())
         if key != self._last_key:
-            self._last_key, self._last_clean = key, self._lens(self._draw(T_cam_from_box), exposure)
+            self._last_key, self._last_clean = key, self._optics(T_cam_from_box, exposure)
         return self._sensor(self._last_clean)
 
-    def _draw(self, T_cam_from_box: np.ndarray) -> np.ndarray:
-        img: np.ndarray = self.backdrop.copy()
+    def _optics(self, T_cam_from_box: np.ndarray, exposure: tuple | None) -> np.ndarray:
+        """The scene through the lens, before the sensor (float32 grey levels).
+
+        Only the part of the image the box can reach is drawn and blurred, over a backdrop
+        blurred once: the rest is the same gradient every frame. (Along the demo path the box's
+        bounds fill most of the frame, so there this saves a copy, not the blur; it pays when
+        the box is farther off.) The part is drawn with twice the blurs' reach around the
+        box and pasted with one reach, so every pasted pixel saw all the neighbours it sees in a
+        whole frame; outside it the backdrop misses only the motion smear, which leaves a linear
+        gradient as it was. Distortion moves every pixel, so it still maps the whole frame.
+        """
+        kernel = self._motion_kernel(exposure)
+        reach = (kernel.shape[0] - 1) // 2 if kernel is not None else 0
+        if self.s.blur_sigma_px > 0:
+            reach += int(np.ceil(4 * self.s.blur_sigma_px)) + 1   # OpenCV's float kernel spans 4 sigma
+        canvas = self._canvas
+        extent = self._extent(T_cam_from_box)
+        paste = None if extent is None else self._grown(extent, reach)
+        if self._pasted is not None and not (paste is not None and _covers(paste, self._pasted)):
+            x0, y0, x1, y1 = self._pasted        # the last box, where this one will not paint over it
+            canvas[y0:y1, x0:x1] = self._still[y0:y1, x0:x1]
+        self._pasted = None
+        if extent is not None and paste is not None:
+            cx0, cy0, cx1, cy1 = self._grown(extent, 2 * reach)
+            part: np.ndarray = self.backdrop[cy0:cy1, cx0:cx1].copy()
+            self._draw(part, (cx0, cy0), T_cam_from_box)
+            part = self._blur(part, kernel)
+            x0, y0, x1, y1 = self._pasted = paste
+            canvas[y0:y1, x0:x1] = part[y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0]
+        if self._maps is not None:
+            return cv2.remap(canvas, self._maps[0], self._maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return canvas
+
+    def _grown(self, extent: tuple[int, int, int, int], by: int) -> tuple[int, int, int, int]:
+        """`extent` (x0, y0, x1, y1) grown by `by` pixels on every side, within the image."""
+        x0, y0, x1, y1 = extent
+        return max(x0 - by, 0), max(y0 - by, 0), min(x1 + by, self.width), min(y1 + by, self.height)
+
+    def _extent(self, T_cam_from_box: np.ndarray) -> tuple[int, int, int, int] | None:
+        """The pixels (x0, y0, x1, y1) the box and its prints can touch, seen or not; None: none."""
+        square = np.array([[-1, 1, 0], [1, 1, 0], [1, -1, 0], [-1, -1, 0]], dtype=np.float64)
+        pts = [(square * [q.half_w_mm, q.half_h_mm, 0]) @ q.T_box_from_quad[:3, :3].T + q.T_box_from_quad[:3, 3]
+               for q in self.quads]
+        if self.box_mm is not None:
+            half = np.array(self.box_mm) / 2
+            pts.append(np.array([[a, b, c] for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)]) * half)
+        if not pts:
+            return None
+        cam = np.concatenate(pts) @ T_cam_from_box[:3, :3].T + T_cam_from_box[:3, 3]
+        if np.any(cam[:, 2] < 1.0):
+            return 0, 0, self.width, self.height     # a corner behind the lens: draw the whole frame
+        px = self._project(cam)
+        # The same bounds _draw_quad clips a print to, and a pixel of antialiasing round a face.
+        x0, y0 = np.floor(px.min(axis=0)).astype(int) - 1
+        x1, y1 = np.ceil(px.max(axis=0)).astype(int) + 2
+        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, self.width), min(y1, self.height)
+        return None if x1 <= x0 or y1 <= y0 else (int(x0), int(y0), int(x1), int(y1))
+
+    def _draw(self, img: np.ndarray, origin: tuple[int, int], T_cam_from_box: np.ndarray) -> None:
+        """Draws the box and its prints into `img`, whose top left pixel is `origin` (x, y) of the frame."""
         R, t = T_cam_from_box[:3, :3], T_cam_from_box[:3, 3]
         half: np.ndarray = np.zeros(3) if self.box_mm is None else np.array(self.box_mm) / 2
         for face in (_FACES if self.box_mm is not None else ()):
@@ -128,15 +204,14 @@ class SceneRenderer:
             cam = corners @ R.T + t
             if np.any(cam[:, 2] < 1.0):
                 continue
-            px = self._project(cam)
+            # Whole pixels of offset in 1/16 pixel fixed point: the same edges as in a whole frame.
+            px = np.round(self._project(cam) * 16).astype(np.int32) - 16 * np.asarray(origin, np.int32)
             shade = self._shade(n_cam)
-            cv2.fillConvexPoly(img, np.round(px * 16).astype(np.int32), self.s.box_grey * shade,
-                               lineType=cv2.LINE_AA, shift=4)
+            cv2.fillConvexPoly(img, px, self.s.box_grey * shade, lineType=cv2.LINE_AA, shift=4)
         for q in self.quads:
-            self._draw_quad(img, T_cam_from_box @ q.T_box_from_quad, q)
-        return img
+            self._draw_quad(img, origin, T_cam_from_box @ q.T_box_from_quad, q)
 
-    def _draw_quad(self, img: np.ndarray, T_cam_from_quad: np.ndarray, q: TexturedQuad) -> None:
+    def _draw_quad(self, img: np.ndarray, origin: tuple[int, int], T_cam_from_quad: np.ndarray, q: TexturedQuad) -> None:
         R, t = T_cam_from_quad[:3, :3], T_cam_from_quad[:3, 3]
         n_cam = R[:, 2]
         if n_cam @ t >= 0 or t[2] < 1.0:
@@ -149,7 +224,8 @@ class SceneRenderer:
         px = self._project(cam)
         x0, y0 = np.floor(px.min(axis=0)).astype(int) - 1
         x1, y1 = np.ceil(px.max(axis=0)).astype(int) + 2
-        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, self.width), min(y1, self.height)
+        ox, oy = origin
+        x0, y0, x1, y1 = max(x0, ox), max(y0, oy), min(x1, ox + img.shape[1]), min(y1, oy + img.shape[0])
         if x1 <= x0 or y1 <= y0:
             return
         # Pick the coarsest print that still has at least one texel per screen pixel (a cheap mipmap).
@@ -162,7 +238,7 @@ class SceneRenderer:
         H = cv2.getPerspectiveTransform(tex_corners, (px - [x0, y0]).astype(np.float32))
         shade = self._shade(n_cam)
         lo, hi = self.s.ink_black * shade, self.s.paper_white * shade
-        region = img[y0:y1, x0:x1]
+        region = img[y0 - oy:y1 - oy, x0 - ox:x1 - ox]
         # Point-sampling a sharp print quantises its edges to whole pixels (a quarter-pixel bias in
         # marker corners); band-limiting it first to half a screen pixel makes every sample exact.
         sx = self.s.antialias_px * nu / max(side_u, 1.0)
@@ -173,40 +249,75 @@ class SceneRenderer:
         cv2.warpPerspective(printed, H, (x1 - x0, y1 - y0), dst=region, flags=cv2.INTER_LINEAR,
                             borderMode=cv2.BORDER_TRANSPARENT)
 
-    def _lens(self, img: np.ndarray, exposure: tuple | None) -> np.ndarray:
-        """Motion blur over the exposure, the lens's blur and its distortion."""
-        if exposure is not None:
-            # Motion blur: a centred line kernel along the image motion of the box centre during the exposure.
-            p = self._project(np.array([exposure[1][:3, 3], exposure[0][:3, 3]]))
-            d = p[0] - p[1]
-            length = float(np.hypot(*d))
-            if length >= 1.0:
-                k = int(np.ceil(length)) | 1
-                kernel = np.zeros((k, k), np.float32)
-                c = (k - 1) / 2
-                for s in np.linspace(-0.5, 0.5, 4 * k):
-                    kernel[int(round(c + s * d[1])), int(round(c + s * d[0]))] += 1.0
-                img = cv2.filter2D(img, -1, kernel / kernel.sum(), borderType=cv2.BORDER_REPLICATE)
+    def _motion_kernel(self, exposure: tuple | None) -> np.ndarray | None:
+        """Motion blur: a centred line kernel along the image motion of the box centre during the exposure."""
+        if exposure is None:
+            return None
+        p = self._project(np.array([exposure[1][:3, 3], exposure[0][:3, 3]]))
+        d = p[0] - p[1]
+        length = float(np.hypot(*d))
+        if length < 1.0:
+            return None
+        k = int(np.ceil(length)) | 1
+        kernel = np.zeros((k, k), np.float32)
+        c = (k - 1) / 2
+        for s in np.linspace(-0.5, 0.5, 4 * k):
+            kernel[int(round(c + s * d[1])), int(round(c + s * d[0]))] += 1.0
+        kernel /= kernel.sum()
+        return kernel
+
+    def _blur(self, img: np.ndarray, kernel: np.ndarray | None) -> np.ndarray:
+        """Motion blur over the exposure and the lens's blur (its distortion is applied in _optics)."""
+        if kernel is not None:
+            img = cv2.filter2D(img, -1, kernel, borderType=cv2.BORDER_REPLICATE)
         if self.s.blur_sigma_px > 0:
             img = cv2.GaussianBlur(img, (0, 0), self.s.blur_sigma_px)
-        if self._maps is not None:
-            img = cv2.remap(img, self._maps[0], self._maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         return img
 
     def _sensor(self, img: np.ndarray) -> np.ndarray:
         """The sensor's noise, 8-bit quantisation and the camera's JPEG compression."""
         if self.s.noise_sigma > 0:
-            noise = np.empty(img.shape, np.float32)
-            # OpenCV's generator is four times faster than numpy's here; seeding it from this
-            # renderer's own generator keeps a seeded camera's frames reproducible.
-            cv2.setRNGSeed(int(self.rng.integers(2**31)))
-            cv2.randn(noise, 0.0, self.s.noise_sigma)  # type: ignore[call-overload]  # stubs want arrays for scalars
-            img = img + noise
-        out = np.clip(img + 0.5, 0, 255).astype(np.uint8)
+            # Each frame's noise is a window at a random offset into a pool of Gaussian noise a
+            # little larger than the frame, one band of which is drawn anew per frame: every
+            # frame still carries white Gaussian noise of noise_sigma at every pixel, and no two
+            # frames share it pixel for pixel, for a sixteenth of the cost of drawing a frame's
+            # worth (the sensor was half of what the synthetic webcam cost the appliance).
+            first = self._pool is None
+            pool = self._noise_pool()
+            dy = dx = 0
+            if not first:
+                band = -(-pool.shape[0] // _NOISE_BANDS)
+                rows = pool[self._noise_band * band:(self._noise_band + 1) * band]
+                self._noise_band = (self._noise_band + 1) % _NOISE_BANDS
+                cv2.setRNGSeed(int(self.rng.integers(2**31)))
+                cv2.randn(rows, 0.0, self.s.noise_sigma)  # type: ignore[call-overload]  # stubs want arrays for scalars
+                dy, dx = (int(v) for v in self.rng.integers(0, _NOISE_PAD_PX + 1, size=2))
+            noise = pool[dy:dy + img.shape[0], dx:dx + img.shape[1]]
+            # One pass: sum, round to nearest and saturate to 0..255, as the 8-bit readout does.
+            out = cv2.add(img, noise, dtype=cv2.CV_8U)
+        else:
+            out = np.clip(img + 0.5, 0, 255).astype(np.uint8)
         if self.s.jpeg_quality is not None:
             ok, data = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(self.s.jpeg_quality)])
             out = np.asarray(cv2.imdecode(data, cv2.IMREAD_GRAYSCALE), dtype=np.uint8)
         return out
+
+    def _noise_pool(self) -> np.ndarray:
+        """The sensor's noise pool (float32 grey levels), drawn whole on first use.
+
+        Its top left frame is drawn first, from the generator's next seed, just as a frame's own
+        noise was drawn before the pool: a camera's first frame (all a single view renders) is
+        the one it always was, and seeded tests and benchmarks see the images they saw."""
+        if self._pool is None:
+            h, w, pad, sigma = self.height, self.width, _NOISE_PAD_PX, self.s.noise_sigma
+            pool = np.empty((h + pad, w + pad), np.float32)
+            parts = [np.empty((h, w), np.float32), np.empty((h, pad), np.float32), np.empty((pad, w + pad), np.float32)]
+            cv2.setRNGSeed(int(self.rng.integers(2**31)))
+            for part in parts:
+                cv2.randn(part, 0.0, sigma)  # type: ignore[call-overload]
+            pool[:h, :w], pool[:h, w:], pool[h:] = parts
+            self._pool = pool
+        return self._pool
 
 
 def box_marker_quads(marker_ids: Sequence[int], T_box_from_marker: Sequence[np.ndarray], marker_size_mm: float,

@@ -8,6 +8,7 @@ motion blur and sensor noise), so nothing here compares the code with itself.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -18,6 +19,7 @@ from drivers.camera_scene import RenderSettings, SceneRenderer, TexturedQuad
 from ..config.loading import load_profile
 from ..config.phantom import PhantomProfile
 from ..config.webcam import WebcamProfile
+from ..errors import FluorosimError
 from ..geometry import make_transform, rotation_about, rotation_angle_deg
 from .composite import CompositeCalibration
 from .markers import MarkerDetector
@@ -231,13 +233,15 @@ def bench_speed(phantom, webcam, rng, frames: int) -> None:
           f"{per} frames at 30 fps along the demo path")
     path = load_trajectory(DEMO_TRAJECTORY)
     cam = synthetic_camera(phantom, webcam, path, seed=int(rng.integers(2**31)))
-    images, render = [], []
+    cam.render_at(0.0)                  # the first frame also draws the sensor's noise pool: not counted
+    images, render, render_cpu = [], [], []
     for s in range(segments):
         for k in range(per):
             t = s * path.duration / segments + k / 30.0
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.thread_time()
             images.append((t, cam.render_at(t)[0]))
             render.append(time.perf_counter() - t0)
+            render_cpu.append(time.thread_time() - c0)
     for method, window in (("joint", True), ("joint", False), ("marker", True)):
         tr = Tracker(phantom, webcam, method, smoothing=True, window=window)
         ts, cpu = [], []
@@ -251,24 +255,33 @@ def bench_speed(phantom, webcam, rng, frames: int) -> None:
                  else "whole image")
         print(f"  {method:6s}, {where}: wall median {np.median(ts) * 1e3:.2f} ms (p95 {np.percentile(ts, 95) * 1e3:.2f}); "
               f"CPU median {np.median(cpu) * 1e3:.2f} ms (p95 {np.percentile(cpu, 95) * 1e3:.2f})")
-    print(f"  synthetic camera rendering: median {np.median(render) * 1e3:.2f} ms per frame")
+    print(f"  synthetic camera rendering: wall median {np.median(render) * 1e3:.2f} ms per frame; "
+          f"CPU median {np.median(render_cpu) * 1e3:.2f} ms (p95 {np.percentile(render_cpu, 95) * 1e3:.2f})")
 
 
 def run_bench(args) -> int:
     phantom = load_profile(args.phantom, PhantomProfile)
     webcam = load_profile(args.webcam, WebcamProfile)
     rng = np.random.default_rng(args.seed)
+    parts: dict[str, Callable[[], object]] = {
+        "accuracy": lambda: (bench_accuracy(phantom, webcam, rng, args.frames),
+                             bench_accuracy(phantom, webcam, rng, args.frames, HARSH)),
+        "intrinsics": lambda: bench_intrinsics(phantom, webcam, rng, args.frames // 2),
+        "roll": lambda: bench_roll(phantom, webcam, rng),
+        "jitter": lambda: bench_jitter(phantom, webcam, rng, 120),
+        "lag": lambda: bench_lag(phantom, webcam, rng),
+        "calibration": lambda: bench_calibration(phantom, webcam, rng, args.calibration_frames),
+        "webcam-calibration": lambda: bench_webcam_calibration(rng, 15),
+        "speed": lambda: bench_speed(phantom, webcam, rng, 60),
+    }
+    wanted = list(parts) if args.parts == "all" else [p.strip() for p in args.parts.split(",") if p.strip()]
+    unknown = [p for p in wanted if p not in parts]
+    if unknown:
+        raise FluorosimError(f"bench tracking --parts: no part {', '.join(unknown)}; the parts are {', '.join(parts)}")
     print(f"phantom {args.phantom}, webcam {args.webcam} ({webcam.width}x{webcam.height}), seed {args.seed}; "
           f"synthetic frames: {RenderSettings()}")
-    bench_accuracy(phantom, webcam, rng, args.frames)
-    bench_accuracy(phantom, webcam, rng, args.frames, HARSH)
-    bench_intrinsics(phantom, webcam, rng, args.frames // 2)
-    bench_roll(phantom, webcam, rng)
-    bench_jitter(phantom, webcam, rng, 120)
-    bench_lag(phantom, webcam, rng)
-    bench_calibration(phantom, webcam, rng, args.calibration_frames)
-    bench_webcam_calibration(rng, 15)
-    bench_speed(phantom, webcam, rng, 60)
+    for name in wanted:
+        parts[name]()
     return 0
 
 
@@ -280,4 +293,7 @@ def register_bench(benches) -> None:
     b.add_argument("--frames", type=int, default=100, help="random frames for the accuracy figures")
     b.add_argument("--calibration-frames", type=int, default=200, help="random frames for the composite calibration")
     b.add_argument("--seed", type=int, default=1)
+    b.add_argument("--parts", default="all", metavar="PART,...",
+                   help="comma-separated parts to run: accuracy, intrinsics, roll, jitter, lag, calibration, "
+                        "webcam-calibration, speed (default: all)")
     b.set_defaults(run=run_bench)
