@@ -7,7 +7,10 @@ settings from pyproject.toml only, so this runs it in a copy of the tree (build/
 whose [tool.mutmut] names these modules and these tests, then prints the score from there
 (tests/mutation_score.py).
 
-    python tests/mutation_module.py GROUP [CHILDREN]
+    python tests/mutation_module.py GROUP [CHILDREN] [MUTANT-GLOB ...]
+
+With globs (mutmut's names, "appliance.display.text.x_wrap_text__mutmut_*") it runs only those
+mutants, in a copy of its own (build/mutation-<group>-some), so a full run can go on beside it.
 """
 
 from __future__ import annotations
@@ -39,12 +42,13 @@ def toml_list(names: list[str]) -> str:
 
 def main() -> int:
     if len(sys.argv) < 2 or sys.argv[1] not in GROUPS:
-        print(f"usage: mutation_module.py {{{','.join(GROUPS)}}} [CHILDREN]", file=sys.stderr)
+        print(f"usage: mutation_module.py {{{','.join(GROUPS)}}} [CHILDREN] [MUTANT-GLOB ...]", file=sys.stderr)
         return 2
     group = sys.argv[1]
     children = sys.argv[2] if len(sys.argv) > 2 else "1"
     modules, tests = GROUPS[group]
-    work = REPO / "build" / f"mutation-{group}"
+    some = sys.argv[3:]
+    work = REPO / "build" / (f"mutation-{group}-some" if some else f"mutation-{group}")
     shutil.rmtree(work, ignore_errors=True)
     files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard"], cwd=REPO, capture_output=True, text=True,
                            check=True).stdout.split()
@@ -58,14 +62,14 @@ def main() -> int:
                   f"pytest_add_cli_args_test_selection = {toml_list(tests)}", toml, flags=re.M | re.S)
     (work / "pyproject.toml").write_text(toml)
     mutmut = Path(sys.executable).with_name("mutmut")
-    globs = [m.removesuffix(".py").replace("/", ".") + ".*" for m in modules]
+    globs = some or [m.removesuffix(".py").replace("/", ".") + ".*" for m in modules]
     with open(work / "mutation.log", "w") as log:
         run = subprocess.run([str(mutmut), "run", "--max-children", children, *globs], cwd=work,
                              stdout=log, stderr=subprocess.STDOUT)
     if run.returncode != 0:
         print((work / "mutation.log").read_text()[-2000:], file=sys.stderr)
         return 1
-    return subprocess.run([sys.executable, str(REPO / "tests" / "mutation_score.py")], cwd=work).returncode
+    return subprocess.run([sys.executable, str(REPO / "tests" / "mutation_score.py"), *some], cwd=work).returncode
 
 
 if __name__ == "__main__":

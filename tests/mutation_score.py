@@ -53,11 +53,13 @@ def main() -> int:
     if out.returncode != 0:
         print(f"mutmut results failed: {out.stderr.strip().splitlines()[-1:]}", file=sys.stderr)
         return 2
+    # Mutant names given (a run of only some, tests/mutation_module.py): only those count.
+    targets = tuple(sys.argv[1:]) or TARGETS
     equivalent = equivalent_mutants()
     per_module: dict[str, dict[str, list[str]]] = defaultdict(lambda: defaultdict(list))
     for line in out.stdout.splitlines():
         m = RESULT.match(line)
-        if m and any(fnmatch.fnmatchcase(line.strip().split(":")[0], glob) for glob in TARGETS):
+        if m and any(fnmatch.fnmatchcase(line.strip().split(":")[0], glob) for glob in targets):
             per_module[m["name"]][m["status"].strip()].append(line.strip().split(":")[0])
     if not per_module:
         print("no mutation results: run `mutmut run` first", file=sys.stderr)
