@@ -391,3 +391,19 @@ def test_the_live_and_hold_markers_are_lettered_in_the_bold_face(live, fill, ink
     frame = comp.compose(np.zeros((64, 64), np.float32), Overlay(live=live), now=0.0)
     box = (slice(y0, y1 + 1), slice(x0 - 3, x1 + 4))
     assert np.array_equal(frame[box], expected[box])
+
+
+def test_before_the_first_image_the_field_is_dark_grey_and_says_starting_in_its_middle():
+    # On 640 x 512 the field is centred on (320, 256); the label is grey Hershey duplex in the
+    # marker's size (14 px high, thickness 2), centred there, over the field's grey 24.
+    comp = Compositor(640, SIDE)
+    font = cv2.FONT_HERSHEY_DUPLEX
+    scale = cv2.getFontScaleFromHeight(font, 14, 2)
+    (w, h), base = cv2.getTextSize("STARTING", font, scale, 2)
+    org = (round(320 - w / 2), round(256 + h / 2))
+    expected = np.full((SIDE, 640, 3), 24, np.uint8)
+    cv2.putText(expected, "STARTING", org, font, scale, (170, 170, 170), 2, cv2.LINE_AA)
+    frame = comp.compose(None, Overlay(), now=0.0)
+    around = (slice(org[1] - h - 6, org[1] + base + 6), slice(org[0] - 6, org[0] + w + 6))
+    assert np.array_equal(frame[around], expected[around])
+    assert (frame[around] == 170).all(axis=2).sum() > 50          # the letters are there, in grey
