@@ -407,3 +407,27 @@ def test_before_the_first_image_the_field_is_dark_grey_and_says_starting_in_its_
     around = (slice(org[1] - h - 6, org[1] + base + 6), slice(org[0] - 6, org[0] + w + 6))
     assert np.array_equal(frame[around], expected[around])
     assert (frame[around] == 170).all(axis=2).sum() > 50          # the letters are there, in grey
+
+
+def test_the_fourth_warning_banner_reads_how_many_more_there_are():
+    # Seven warnings: three shown and a fourth that stands for the other four (7 - 3), in letters
+    # of the same width as any other count, so its pixels, not its box, tell the number.
+    comp = Compositor(640, SIDE)
+    frame = comp.compose(np.zeros((64, 64), np.float32), Overlay(warnings=[f"warning {k}" for k in range(7)]),
+                         now=0.75)
+    top, bottom, left, right = boxes(frame, AMBER)[3]
+    drawn = drawn_banner(comp, "... AND 4 MORE WARNINGS", top, AMBER, BLACK)
+    assert np.array_equal(frame[top:bottom + 1, left:right + 1], drawn[top:bottom + 1, left:right + 1])
+
+
+@pytest.mark.parametrize("after_s, lit", [
+    (0.0, True), (0.4, True), (0.5, False), (0.9, False), (1.2, True), (1.5, False),
+])
+def test_the_alarm_banner_flashes_half_of_each_second_from_the_alarms_onset(after_s, lit):
+    # The alarm began at 2.25 s on the compose clock (binary-exact, so 0.5 s after it is exactly
+    # half a period): lit for [0, 0.5) s of each 1 s period after it, dark for [0.5, 1). A flash
+    # timed from 0 instead of the onset would be dark 0.4 s after it (2.65 % 1) and lit 0.9 s after.
+    comp = Compositor(640, SIDE)
+    overlay = Overlay(alarm=True, fluoro_time_s=301.0, alarm_since=2.25)
+    frame = comp.compose(np.zeros((64, 64), np.float32), overlay, now=2.25 + after_s)
+    assert (len(boxes(frame, RED)) == 1) is lit
