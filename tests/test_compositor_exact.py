@@ -216,7 +216,8 @@ def test_text_is_drawn_over_a_dark_outline_a_border_wider_each_side(thickness, b
     pixels the text covers at least half) is black with the text's colour laid over it in
     proportion to its coverage; farther than the border from any text pixel nothing changes."""
     from appliance.display.text import FONT_BOLD, TextLine, draw_text
-    canvas = np.full((80, 400, 3), 128, np.uint8)
+    # 200, not 128: a blend that scaled by 1/256 keeps 128 (127.5 rounds to it) but makes 200 199.
+    canvas = np.full((80, 400, 3), 200, np.uint8)
     for font in (FONT, FONT_BOLD):
         t = TextLine("DAP 1.23 Gy cm", (10, 50), 1.0, (255, 214, 0), font, thickness, "2")
         got = canvas.copy()
@@ -229,7 +230,7 @@ def test_text_is_drawn_over_a_dark_outline_a_border_wider_each_side(thickness, b
         # The ring outside the stroke is about the border times the stroke's edge long.
         edge = stroke & ~cv2.erode(stroke.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
         assert (near & ~stroke).sum() > 0.6 * border * edge.sum(), (font, thickness)
-        assert (got[distance_to(core > 0) > border + 1e-3] == 128).all(), (font, thickness)
+        assert (got[distance_to(core > 0) > border + 1e-3] == 200).all(), (font, thickness)
 
 
 def static_text_masks(comp: Compositor, overlay: Overlay) -> tuple[np.ndarray, np.ndarray]:
