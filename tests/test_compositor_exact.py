@@ -432,3 +432,20 @@ def test_the_alarm_banner_flashes_half_of_each_second_from_the_alarms_onset(afte
     overlay = Overlay(alarm=True, fluoro_time_s=301.0, alarm_since=2.25)
     frame = comp.compose(np.zeros((64, 64), np.float32), overlay, now=2.25 + after_s)
     assert (len(boxes(frame, RED)) == 1) is lit
+
+
+def test_a_tall_detector_larger_than_the_square_is_averaged_down():
+    # 2048 x 1024 (rows x columns) into the 512 px square: shown 256 x 512, a quarter each way, so
+    # every screen pixel averages 4 columns of which one is white: 255 / 4 = 63.75 -> 64 (sampling
+    # between pixels instead would give 0 or 255).
+    comp = Compositor(640, SIDE, circular_fov=False)
+    image = np.zeros((2048, 1024), np.float32)
+    image[:, ::4] = 1.0
+    square = comp._image_square(image, Overlay())
+    assert (square[:, 128:384] == 64).all() and (square[:, :128] == 0).all() and (square[:, 384:] == 0).all()
+
+
+def test_the_corner_text_starts_a_margin_in_from_the_left_edge():
+    # 640 x 512: a margin of max(6, 17 // 3) = 6 px; the left corners' lines begin there.
+    lines = Compositor(640, SIDE).text_layout(Overlay(case="x"), now=0.0)
+    assert {t.org[0] for t in lines if t.text.startswith(("CASE", "DAP", "AIR KERMA", "FLUORO"))} == {6}
