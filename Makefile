@@ -18,7 +18,7 @@ BIN    := $(VENV)/bin
 APT_PACKAGES := libsystemd-dev pkg-config dicom3tools systemd python3-venv gcc linux-libc-dev alsa-utils dcmtk orthanc iproute2 openssl grub-common
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: demo test lint setup system-packages bench mutation mutation-console clean
+.PHONY: demo test lint setup system-packages bench mutation mutation-console mutation-display clean
 
 demo: setup
 	$(BIN)/fluorosim demo
@@ -74,10 +74,14 @@ mutation: system-packages $(MVENV)/.installed
 		> mutation.log 2>&1 || { tail -c 2000 mutation.log; exit 1; }
 	$(MVENV)/bin/python tests/mutation_score.py
 
-# The console state machine alone (about 1,040 mutants) with only its own tests: about a second
-# a mutant instead of the whole selection's many (tests/mutation_console.py names them).
+# The console state machine alone (about 1,040 mutants), or the compositor and its text, with only
+# their own tests: about a second a mutant instead of the whole selection's many
+# (tests/mutation_module.py names the modules and tests of each).
 mutation-console: system-packages $(MVENV)/.installed
-	$(MVENV)/bin/python tests/mutation_console.py $(MUTATION_CHILDREN)
+	$(MVENV)/bin/python tests/mutation_module.py console $(MUTATION_CHILDREN)
+
+mutation-display: system-packages $(MVENV)/.installed
+	$(MVENV)/bin/python tests/mutation_module.py display $(MUTATION_CHILDREN)
 
 bench: setup
 	$(BIN)/fluorosim bench all

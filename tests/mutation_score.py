@@ -53,11 +53,13 @@ def main() -> int:
     if out.returncode != 0:
         print(f"mutmut results failed: {out.stderr.strip().splitlines()[-1:]}", file=sys.stderr)
         return 2
+    # Mutant names given (a run of only some, tests/mutation_module.py): only those count.
+    targets = tuple(sys.argv[1:]) or TARGETS
     equivalent = equivalent_mutants()
     per_module: dict[str, dict[str, list[str]]] = defaultdict(lambda: defaultdict(list))
     for line in out.stdout.splitlines():
         m = RESULT.match(line)
-        if m and any(fnmatch.fnmatchcase(line.strip().split(":")[0], glob) for glob in TARGETS):
+        if m and any(fnmatch.fnmatchcase(line.strip().split(":")[0], glob) for glob in targets):
             per_module[m["name"]][m["status"].strip()].append(line.strip().split(":")[0])
     if not per_module:
         print("no mutation results: run `mutmut run` first", file=sys.stderr)
@@ -66,8 +68,11 @@ def main() -> int:
     print(f"{'module':40s} {'mutants':>7s} {'killed':>7s} {'equiv':>6s} {'other':>6s} {'score':>6s}")
     for module, by_status in sorted(per_module.items()):
         total = sum(len(v) for v in by_status.values())
-        killed = len(by_status.get("killed", [])) + len(by_status.get("timeout", []))
-        survivors = [n for s, names in by_status.items() if s not in ("killed", "timeout") for n in names]
+        # A mutant whose tests hang or crash the interpreter (segfault: OpenCV handed None for an
+        # array) is caught as surely as one that fails them.
+        caught = ("killed", "timeout", "segfault")
+        killed = sum(len(by_status.get(s, [])) for s in caught)
+        survivors = [n for s, names in by_status.items() if s not in caught for n in names]
         equiv = [n for n in survivors if n in equivalent]
         unexplained = [n for n in survivors if n not in equivalent]
         score = killed / max(total - len(equiv), 1)

@@ -216,7 +216,8 @@ def test_text_is_drawn_over_a_dark_outline_a_border_wider_each_side(thickness, b
     pixels the text covers at least half) is black with the text's colour laid over it in
     proportion to its coverage; farther than the border from any text pixel nothing changes."""
     from appliance.display.text import FONT_BOLD, TextLine, draw_text
-    canvas = np.full((80, 400, 3), 128, np.uint8)
+    # 200, not 128: a blend that scaled by 1/256 keeps 128 (127.5 rounds to it) but makes 200 199.
+    canvas = np.full((80, 400, 3), 200, np.uint8)
     for font in (FONT, FONT_BOLD):
         t = TextLine("DAP 1.23 Gy cm", (10, 50), 1.0, (255, 214, 0), font, thickness, "2")
         got = canvas.copy()
@@ -229,7 +230,7 @@ def test_text_is_drawn_over_a_dark_outline_a_border_wider_each_side(thickness, b
         # The ring outside the stroke is about the border times the stroke's edge long.
         edge = stroke & ~cv2.erode(stroke.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
         assert (near & ~stroke).sum() > 0.6 * border * edge.sum(), (font, thickness)
-        assert (got[distance_to(core > 0) > border + 1e-3] == 128).all(), (font, thickness)
+        assert (got[distance_to(core > 0) > border + 1e-3] == 200).all(), (font, thickness)
 
 
 def static_text_masks(comp: Compositor, overlay: Overlay) -> tuple[np.ndarray, np.ndarray]:
@@ -370,3 +371,81 @@ def test_a_larger_image_is_averaged_down_and_a_smaller_one_interpolated_up():
     assert row[0] == 0 and row[-1] == 255 and (np.diff(row) >= 0).all()
     middle = row[128:384]
     assert np.abs(middle - (np.arange(128, 384) + 0.5 - 128) * 255 / 256).max() <= 1.5
+
+
+@pytest.mark.parametrize("live, fill, ink", [(True, (255, 214, 0), (0, 0, 0)), (False, (60, 60, 60), (255, 255, 255))])
+def test_the_live_and_hold_markers_are_lettered_in_the_bold_face(live, fill, ink):
+    # Worked from the layout's rules on 640 x 512, not read from it: a line pitch of 512 / 30 -> 17
+    # px, thickness 1 (the marker's 2), margin 6 and the marker's inset 3, so its baseline sits
+    # 9 px in from the right and bottom edges less its width and depth; its letters are
+    # Hershey duplex 0.85 of a line (14 px) high, in a box padded 3 px, widened half a margin.
+    comp = Compositor(640, SIDE)
+    text = "LIVE" if live else "HOLD"
+    font = cv2.FONT_HERSHEY_DUPLEX
+    scale = cv2.getFontScaleFromHeight(font, 14, 2)
+    (w, h), base = cv2.getTextSize(text, font, scale, 2)
+    org = (640 - 9 - w, SIDE - 9 - base)
+    x0, y0, x1, y1 = org[0] - 3, org[1] - h - 3, org[0] + w + 3, org[1] + base + 3
+    expected = np.zeros((SIDE, 640, 3), np.uint8)
+    cv2.rectangle(expected, (x0 - 3, y0), (x1 + 3, y1), fill, thickness=-1)
+    cv2.putText(expected, text, org, font, scale, ink, 2, cv2.LINE_AA)
+    frame = comp.compose(np.zeros((64, 64), np.float32), Overlay(live=live), now=0.0)
+    box = (slice(y0, y1 + 1), slice(x0 - 3, x1 + 4))
+    assert np.array_equal(frame[box], expected[box])
+
+
+def test_before_the_first_image_the_field_is_dark_grey_and_says_starting_in_its_middle():
+    # On 640 x 512 the field is centred on (320, 256); the label is grey Hershey duplex in the
+    # marker's size (14 px high, thickness 2), centred there, over the field's grey 24.
+    comp = Compositor(640, SIDE)
+    font = cv2.FONT_HERSHEY_DUPLEX
+    scale = cv2.getFontScaleFromHeight(font, 14, 2)
+    (w, h), base = cv2.getTextSize("STARTING", font, scale, 2)
+    org = (round(320 - w / 2), round(256 + h / 2))
+    expected = np.full((SIDE, 640, 3), 24, np.uint8)
+    cv2.putText(expected, "STARTING", org, font, scale, (170, 170, 170), 2, cv2.LINE_AA)
+    frame = comp.compose(None, Overlay(), now=0.0)
+    around = (slice(org[1] - h - 6, org[1] + base + 6), slice(org[0] - 6, org[0] + w + 6))
+    assert np.array_equal(frame[around], expected[around])
+    assert (frame[around] == 170).all(axis=2).sum() > 50          # the letters are there, in grey
+
+
+def test_the_fourth_warning_banner_reads_how_many_more_there_are():
+    # Seven warnings: three shown and a fourth that stands for the other four (7 - 3), in letters
+    # of the same width as any other count, so its pixels, not its box, tell the number.
+    comp = Compositor(640, SIDE)
+    frame = comp.compose(np.zeros((64, 64), np.float32), Overlay(warnings=[f"warning {k}" for k in range(7)]),
+                         now=0.75)
+    top, bottom, left, right = boxes(frame, AMBER)[3]
+    drawn = drawn_banner(comp, "... AND 4 MORE WARNINGS", top, AMBER, BLACK)
+    assert np.array_equal(frame[top:bottom + 1, left:right + 1], drawn[top:bottom + 1, left:right + 1])
+
+
+@pytest.mark.parametrize("after_s, lit", [
+    (0.0, True), (0.4, True), (0.5, False), (0.9, False), (1.2, True), (1.5, False),
+])
+def test_the_alarm_banner_flashes_half_of_each_second_from_the_alarms_onset(after_s, lit):
+    # The alarm began at 2.25 s on the compose clock (binary-exact, so 0.5 s after it is exactly
+    # half a period): lit for [0, 0.5) s of each 1 s period after it, dark for [0.5, 1). A flash
+    # timed from 0 instead of the onset would be dark 0.4 s after it (2.65 % 1) and lit 0.9 s after.
+    comp = Compositor(640, SIDE)
+    overlay = Overlay(alarm=True, fluoro_time_s=301.0, alarm_since=2.25)
+    frame = comp.compose(np.zeros((64, 64), np.float32), overlay, now=2.25 + after_s)
+    assert (len(boxes(frame, RED)) == 1) is lit
+
+
+def test_a_tall_detector_larger_than_the_square_is_averaged_down():
+    # 2048 x 1024 (rows x columns) into the 512 px square: shown 256 x 512, a quarter each way, so
+    # every screen pixel averages 4 columns of which one is white: 255 / 4 = 63.75 -> 64 (sampling
+    # between pixels instead would give 0 or 255).
+    comp = Compositor(640, SIDE, circular_fov=False)
+    image = np.zeros((2048, 1024), np.float32)
+    image[:, ::4] = 1.0
+    square = comp._image_square(image, Overlay())
+    assert (square[:, 128:384] == 64).all() and (square[:, :128] == 0).all() and (square[:, 384:] == 0).all()
+
+
+def test_the_corner_text_starts_a_margin_in_from_the_left_edge():
+    # 640 x 512: a margin of max(6, 17 // 3) = 6 px; the left corners' lines begin there.
+    lines = Compositor(640, SIDE).text_layout(Overlay(case="x"), now=0.0)
+    assert {t.org[0] for t in lines if t.text.startswith(("CASE", "DAP", "AIR KERMA", "FLUORO"))} == {6}
