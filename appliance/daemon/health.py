@@ -140,11 +140,16 @@ def profile_reload_check(problem: Callable[[], str | None]) -> Reported:
     return Reported("profile", problem, Level.WARNING, "profile not reloaded, running on the last good one: {}")
 
 
+#: How the records worker starts a problem that is only a missing picture (the save press is in
+#: the ledger), so the banner does not say the events wait.
+IMAGE_NOT_SAVED = "image not saved (the save is in the ledger): "
+
+
 def records_check(problem: Callable[[], str | None]) -> Reported:
     """Whether the ledger and saved images are being written (a full or read-only disk stops them)."""
     def banner() -> str | None:
         said = problem()
-        if not said or said.startswith("image not saved"):
+        if not said or said.startswith(IMAGE_NOT_SAVED):
             return said     # the events are written; only a picture is missing
         return f"records not written, kept in memory until they can be: {said}"
     return Reported("records", banner, Level.ERROR, "{}")

@@ -29,6 +29,7 @@ from ..records.saved_images import save_image
 from ..records.study import saved_image_context
 from ..teaching import xapi
 from .handoff import LatestValue, Recorded, SavedImage, ShownImage
+from .health import IMAGE_NOT_SAVED
 from .parts import Parts
 from .reload import ProfileKeeper
 from .worker import Worker
@@ -41,8 +42,6 @@ RECORDS_RETRY_S = 1.0
 EVENT_WAIT_S = 0.05
 #: At most this many events go into one ledger transaction.
 BATCH_EVENTS = 256
-#: How a missing picture starts the records problem, so the banner does not say the events wait.
-IMAGE_NOT_SAVED = "image not saved (the save is in the ledger): "
 
 
 class RecordsWorker(Worker):
@@ -147,19 +146,20 @@ class RecordsWorker(Worker):
             batch = [self.events.get(timeout=EVENT_WAIT_S)]
         except queue.Empty:
             return False
-        while len(batch) < BATCH_EVENTS:
+        return self._record(batch + self._queued(BATCH_EVENTS - 1))
+
+    def _queued(self, most: int | None = None) -> list[Recorded]:
+        """The events waiting in the queue now, at most `most` of them (all without)."""
+        out: list[Recorded] = []
+        while most is None or len(out) < most:
             try:
-                batch.append(self.events.get_nowait())
+                out.append(self.events.get_nowait())
             except queue.Empty:
                 break
-        return self._record(batch)
+        return out
 
     def _hold_queued(self) -> None:
-        while True:
-            try:
-                self._unwritten.append(self.events.get_nowait())
-            except queue.Empty:
-                return
+        self._unwritten += self._queued()
 
     def _record(self, batch: list[Recorded]) -> bool:
         """Write events (and their saved images); on a disk error keep them for the next try."""
@@ -231,12 +231,7 @@ class RecordsWorker(Worker):
         the events that came in meanwhile, so the dose ledger never waits for a saved image."""
         self.beat()
         if self.session_id is not None and not self._unwritten:
-            waiting: list[Recorded] = []
-            while len(waiting) < BATCH_EVENTS:
-                try:
-                    waiting.append(self.events.get_nowait())
-                except queue.Empty:
-                    break
+            waiting = self._queued(BATCH_EVENTS)
             if waiting:
                 self._record(waiting)
         return self.stopping
@@ -324,12 +319,7 @@ class RecordsWorker(Worker):
 
     def teardown(self) -> None:
         # The input worker has stopped before this one: what is queued is all there is.
-        batch = []
-        while True:
-            try:
-                batch.append(self.events.get_nowait())
-            except queue.Empty:
-                break
+        batch = self._queued()
         if self.session_id is None:
             self._unwritten += batch
             batch = []
