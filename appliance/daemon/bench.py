@@ -24,6 +24,7 @@ from .demo import shown
 from .logqueue import start_logging
 from .notify import Notifier
 from .reload import ProfileKeeper
+from .stage_times import breakdown_text
 
 #: Frames and memory of the first part of a run are not counted: kernel compilation,
 #: patient loading and allocator warm-up are start-up costs, not steady state (fraction of the run).
@@ -167,6 +168,9 @@ def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None,
         if n:
             print(f"motion-to-photon:       median {np.median(lat[steady]) * 1000:.0f} ms, "
                   f"p99 {np.percentile(lat[steady], 99) * 1000:.0f} ms")
+        stages = app.render.stages.summary(since=t0 + warmup)
+        if stages:
+            print(f"latency by stage:       {breakdown_text(stages)}")
         if after:
             print(f"resident memory:        {after[0] / 2**20:.0f} MiB -> {after[-1] / 2**20:.0f} MiB "
                   f"({growth:+.1f} % over {rss[-1][0] - warmup:.0f} s)")

@@ -39,10 +39,11 @@ class CaptureWorker(Worker):
         if self.demand is not None and not self.demand.wanted():
             self.skipped += 1
             return True
-        t0 = time.perf_counter()
+        t0 = time.monotonic()
         pose = self.tracker.track(frame.image, frame.t_monotonic)
+        t1 = time.monotonic()
         if self.demand is not None:
-            self.demand.tracked(time.perf_counter() - t0)
+            self.demand.tracked(t1 - t0)
         self.pose_ok = bool(pose.ok)
-        self.poses.put(TrackedPose(pose, frame.t_monotonic, frame.seq))
+        self.poses.put(TrackedPose(pose, frame.t_monotonic, frame.seq, t0, t1, self.tracker.filter_s))
         return True

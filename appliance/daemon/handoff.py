@@ -85,6 +85,9 @@ class TrackedPose:
     pose: Pose
     t_frame: float            # camera frame timestamp (time.monotonic, s)
     seq: int                  # camera frame sequence number
+    t_picked: float | None = None     # when the capture worker took the frame (time.monotonic, s)
+    t_tracked: float | None = None    # when the pose was ready, filtered (time.monotonic, s)
+    filter_s: float = 0.0             # of that, the time in the pose filter (s)
 
 
 @dataclass(frozen=True)

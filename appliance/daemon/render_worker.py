@@ -31,6 +31,7 @@ from .native_save import LIVE_GAP_S, native_frame
 from .parts import Parts, is_cpu
 from .pose_demand import PoseDemand
 from .reload import ProfileKeeper
+from .stage_times import FrameStamps, StageTimes
 from .worker import Worker
 
 log = logging.getLogger(__name__)
@@ -106,6 +107,7 @@ class RenderWorker(Worker):
         # shot counter and task line come back.
         self.views, self.teaching = views, teaching
         self.stats = FrameStats()
+        self.stages = StageTimes()      # where each live frame's latency went (stage_times.py)
         #: Why rendering left the profile's OpenCL device (None while it has not), for the health check.
         self.fault: str | None = None
         self._last_pose_seq = 0
@@ -131,6 +133,7 @@ class RenderWorker(Worker):
         cfg = self.keeper.current
         now = time.monotonic()
         live = False
+        t_rendered = now
         if (tracked is not None and tracked.pose.ok and phase is not None
                 and phase.generation == self.parts.generation and state.image_due(self._drawn)):
             T_xray_from_ct = (cfg.fluoroscope.T_xray_from_webcam() @ tracked.pose.T_webcam_from_phantom
@@ -141,6 +144,7 @@ class RenderWorker(Worker):
             frame = None
             try:
                 frame = self._render(cfg, T_xray_from_ct, phase, state)
+                t_rendered = time.monotonic()
             finally:
                 if frame is None and self.demand is not None:
                     self.demand.rendered(now, time.monotonic())
@@ -167,7 +171,10 @@ class RenderWorker(Worker):
         elif not state.alarm_sounding:
             self._alarm_since = None
         overlay.alarm_since = self._alarm_since
-        self.parts.display.show(self.parts.compositor.compose(self._image, overlay, now))
+        t_compose = time.monotonic()
+        screen = self.parts.compositor.compose(self._image, overlay, now)
+        t_composed = time.monotonic()
+        self.parts.display.show(screen)
         t_shown = time.monotonic()
         self._last_compose = t_shown
         if live and self.demand is not None:
@@ -179,6 +186,9 @@ class RenderWorker(Worker):
         if live and tracked is not None and self._image is not None and self._image_T is not None:
             latency = t_shown - tracked.t_frame
             self.stats.add(t_shown, latency)
+            if tracked.t_picked is not None and tracked.t_tracked is not None:
+                self.stages.add(FrameStamps(tracked.t_frame, tracked.t_picked, tracked.t_tracked, tracked.filter_s,
+                                            now, t_rendered, t_compose, t_composed, t_shown))
             self.shown.put(ShownImage(self._image, self._image_T))
         self.on_first_frame()
         if self.on_shown is not None:

@@ -88,9 +88,12 @@ class Tracker:
         self._last: tuple[float, np.ndarray] | None = None     # (t, unsmoothed pose) of the last success
         self.window_searches = 0
         self.full_searches = 0
+        #: What the pose filter took on the last image (s), for the latency breakdown.
+        self.filter_s = 0.0
 
     def track(self, image: np.ndarray, t_monotonic: float | None = None) -> Pose:
         t = time.monotonic() if t_monotonic is None else t_monotonic
+        self.filter_s = 0.0
         roi, expected = self._window(image.shape[1], image.shape[0], t) if self.window else (None, set())
         pose = None
         if roi is not None:
@@ -106,7 +109,9 @@ class Tracker:
         if pose.ok and pose.T_webcam_from_phantom is not None:    # ok: a pose was solved
             self._last = (t, pose.T_webcam_from_phantom.copy())
             if self.filter is not None:
+                f0 = time.perf_counter()
                 pose.T_webcam_from_phantom = self.filter(pose.T_webcam_from_phantom, t)
+                self.filter_s = time.perf_counter() - f0
         return pose
 
     def _detect_and_solve(self, image: np.ndarray, t: float, roi) -> Pose:
