@@ -83,7 +83,13 @@ class PixelFormat:
         order = self._byte_order()
         packed = None
         if order is not None and self.bpp == 32 and self.padding_bits == 0xFF000000:
-            packed = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGRA if order == "BGR" else cv2.COLOR_RGB2RGBA)
+            code = cv2.COLOR_RGB2BGRA if order == "BGR" else cv2.COLOR_RGB2RGBA
+            if out.flags.c_contiguous:
+                # Converted straight into `out`: a 32 bpp screen is 4-5 MB, and a converted copy
+                # costs its allocation and one more pass over it on every frame.
+                cv2.cvtColor(rgb, code, dst=out.reshape(h, w, 4))
+                return
+            packed = cv2.cvtColor(rgb, code)
         elif order is not None and self.bpp == 24:
             packed = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR) if order == "BGR" else rgb
         elif self.bpp == 16 and (self.red, self.green, self.blue) == ((11, 5), (5, 6), (0, 5)):

@@ -118,6 +118,7 @@ class RenderWorker(Worker):
         self._alarm_since: float | None = None       # when the alarm's banner began (time.monotonic s)
         self._factor_sent = Technique(1.0)
         self._request: tuple | None = None        # what the last live frame was rendered from
+        self._screen: np.ndarray | None = None    # the screen the compositor draws into, reused
 
     def step(self) -> bool:
         state, _ = self.console_state.get()
@@ -172,7 +173,11 @@ class RenderWorker(Worker):
             self._alarm_since = None
         overlay.alarm_since = self._alarm_since
         t_compose = time.monotonic()
-        screen = self.parts.compositor.compose(self._image, overlay, now)
+        compositor = self.parts.compositor
+        if self._screen is None or self._screen.shape != (compositor.height, compositor.width, 3):
+            self._screen = np.zeros((compositor.height, compositor.width, 3), np.uint8)
+        # One screen buffer, drawn over every frame: the display copies it out in show().
+        screen = compositor.compose(self._image, overlay, now, out=self._screen)
         t_composed = time.monotonic()
         self.parts.display.show(screen)
         t_shown = time.monotonic()

@@ -297,15 +297,30 @@ class Compositor:
 
     # ------------------------------------------------------------------ the frame
 
-    def compose(self, image: np.ndarray | None, overlay: Overlay, now: float | None = None) -> np.ndarray:
-        """The screen as a new (height, width, 3) uint8 RGB array.
+    def _blank(self, out: np.ndarray | None) -> np.ndarray:
+        """A black screen to compose on: new, or `out` with all but the image square cleared
+        (compose overwrites every pixel of the square)."""
+        if out is None:
+            return np.zeros((self.height, self.width, 3), np.uint8)
+        if out.shape != (self.height, self.width, 3) or out.dtype != np.uint8:
+            raise ValueError(f"out must be ({self.height}, {self.width}, 3) uint8, got {out.shape} {out.dtype}")
+        y1, x1 = self.y0 + self.side, self.x0 + self.side
+        for border in (out[:self.y0], out[y1:], out[self.y0:y1, :self.x0], out[self.y0:y1, x1:]):
+            border.fill(0)
+        return out
+
+    def compose(self, image: np.ndarray | None, overlay: Overlay, now: float | None = None,
+                out: np.ndarray | None = None) -> np.ndarray:
+        """The screen as a new (height, width, 3) uint8 RGB array, or drawn into `out` (that
+        shape) and returned: a caller showing a frame at video rate keeps one, since a fresh
+        4-5 MB array costs its page faults on every frame.
 
         `image`: (rows, cols) float32 display values in [0, 1] from the renderer (1 bright),
         or None before the first frame (a "starting" screen). `now` (s, monotonic clock)
         sets the phase of the flashing alarm; default time.monotonic().
         """
         now = time.monotonic() if now is None else now
-        frame = np.zeros((self.height, self.width, 3), np.uint8)
+        frame = self._blank(out)
         square = self._starting if image is None else self._image_square(image, overlay)
         cv2.cvtColor(square, cv2.COLOR_GRAY2RGB, dst=frame[self.y0:self.y0 + self.side, self.x0:self.x0 + self.side])
         if overlay.saved_flash:

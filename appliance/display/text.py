@@ -114,16 +114,22 @@ def _put(mask: np.ndarray, t: TextLine, origin: tuple[int, int]) -> None:
         cv2.putText(mask, t.sup, org, t.font, t.scale * SUP_SCALE, 255, t.thickness, cv2.LINE_AA)
 
 
-def _blend(roi: np.ndarray, coverage: np.ndarray, color: Color) -> None:
-    """Paint `color` over `roi` in place, in proportion to `coverage` (0-255), in OpenCV's
-    saturating 8-bit arithmetic (this runs for every line of text on every frame)."""
+def _blend_layers(coverage: np.ndarray, color: Color, rgb: bool) -> tuple[np.ndarray, np.ndarray]:
+    """What a blend of `color` at `coverage` keeps of the image (255 - coverage) and adds
+    (coverage x colour / 255), in the frame's channels: they depend only on the line, so a
+    line that reads the same from frame to frame is blended with one multiply and one add."""
     inverse = cv2.bitwise_not(coverage)                        # 255 - coverage
-    if roi.ndim == 3:
+    if rgb:
         coverage, inverse = cv2.cvtColor(coverage, cv2.COLOR_GRAY2RGB), cv2.cvtColor(inverse, cv2.COLOR_GRAY2RGB)
     scalar = (*color, 0) if isinstance(color, tuple) else (color, 0, 0, 0)
-    keep = cv2.multiply(roi, inverse, scale=1 / 255)
     # (OpenCV takes a colour as a Scalar here; its type stubs know only arrays)
     paint = cv2.multiply(coverage, scalar, scale=1 / 255)  # type: ignore[call-overload]
+    inverse.flags.writeable = paint.flags.writeable = False
+    return inverse, paint
+
+
+def _apply(roi: np.ndarray, inverse: np.ndarray, paint: np.ndarray) -> None:
+    keep = cv2.multiply(roi, inverse, scale=1 / 255)
     cv2.add(keep, paint, dst=roi)
 
 
@@ -134,13 +140,28 @@ def draw_text(frame: np.ndarray, t: TextLine, outline_color: Color = BLACK) -> N
     not the text drawn again with a thicker stroke: OpenCV draws Hershey text no bolder than
     about 2 px whatever the thickness asked, and widens the letters' advance with it, so a
     thicker stroke lay under the text on big screens and drifted off it along the line."""
-    drawn = _coverages(t.text, t.org, t.scale, t.font, t.thickness, t.sup, frame.shape[:2])
+    drawn = _layers(t.text, t.org, t.scale, t.font, t.thickness, t.sup, frame.shape[:2], frame.ndim == 3,
+                    t.color, outline_color)
     if drawn is None:
         return
+    x0, y0, layers = drawn
+    h, w = layers[0][0].shape[:2]
+    roi = frame[y0:y0 + h, x0:x0 + w]
+    for inverse, paint in layers:           # the outline, then the text over it
+        _apply(roi, inverse, paint)
+
+
+@functools.lru_cache(maxsize=128)
+def _layers(text: str, org: tuple[int, int], scale: float, font: int, thickness: int, sup: str,
+            shape: tuple[int, ...], rgb: bool, color: Color, outline_color: Color
+            ) -> tuple[int, int, tuple[tuple[np.ndarray, np.ndarray], ...]] | None:
+    """Where a line goes and its blend layers (outline, then text): this runs for every line of
+    text on every frame, and most lines read the same for many frames."""
+    drawn = _coverages(text, org, scale, font, thickness, sup, shape)
+    if drawn is None:
+        return None
     x0, y0, core, outline = drawn
-    roi = frame[y0:y0 + core.shape[0], x0:x0 + core.shape[1]]
-    _blend(roi, outline, outline_color)
-    _blend(roi, core, t.color)
+    return x0, y0, (_blend_layers(outline, outline_color, rgb), _blend_layers(core, color, rgb))
 
 
 @functools.lru_cache(maxsize=128)
