@@ -302,7 +302,9 @@ class SyntheticCamera(CameraSource):
     def __init__(self, marker_ids: Sequence[int], T_phantom_from_marker: Sequence[np.ndarray], marker_size_mm: float,
                  dictionary: str, box_mm: tuple, K: np.ndarray, dist: np.ndarray | Sequence[float], width: int, height: int,
                  trajectory: Callable[[float], np.ndarray], clock: Callable[[], float] = time.monotonic,
-                 fps: float = 30.0, settings: RenderSettings | None = None, seed: int | None = None) -> None:
+                 fps: float = 30.0, settings: RenderSettings | None = None, seed: int | None = None,
+                 nice: int = 0) -> None:
+        """`nice`: run the drawing thread this many nice steps below its starter (a lower priority)."""
         super().__init__()
         self.settings = settings or RenderSettings()
         quads = box_marker_quads(marker_ids, T_phantom_from_marker, marker_size_mm, dictionary, self.settings)
@@ -316,6 +318,9 @@ class SyntheticCamera(CameraSource):
         #: Frame times the camera did not draw because `wanted` said no (count).
         self.frames_skipped = 0
         self._draw_s = 0.0
+        self.nice = nice
+        #: The drawing thread's niceness once it runs (None before, or where it cannot be read).
+        self.thread_nice: int | None = None
 
     def render_at(self, t: float, bgr: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """(image, truth) for trajectory time `t` (s): the pose at mid-exposure, blurred over the exposure."""
@@ -328,7 +333,19 @@ class SyntheticCamera(CameraSource):
         gray = self.renderer.render(T_mid, None if exp <= 0 else (T_start, T_end))
         return (cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR) if bgr else gray), T_mid
 
+    def _lower_priority(self) -> None:
+        # Linux gives each thread its own nice value; lowering one's own priority needs no privilege.
+        # Elsewhere the thread keeps its priority and `thread_nice` stays None.
+        try:
+            tid = threading.get_native_id()
+            if self.nice:
+                os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + self.nice)
+            self.thread_nice = os.getpriority(os.PRIO_PROCESS, tid)
+        except (AttributeError, OSError):
+            pass
+
     def _run(self) -> None:
+        self._lower_priority()
         period = 1.0 / self.fps
         if self.t0 is None:             # the path's time 0, unless the owner set it (a session's start)
             self.t0 = self.clock()

@@ -97,6 +97,8 @@ CASES = [
     Broken("moving-matrix-ladder-upside-down", "appliance-demo.yaml",
            replace("moving_matrix_min_px: 128", "moving_matrix_min_px: 384"), "rendering:", "moving_matrix_min_px (384)"),
     Broken("webcam-K-not-3x3", WEBCAM, replace("  - [0.0, 0.0, 1.0]\n", ""), "K:", "K"),
+    Broken("camera-nice-out-of-range", APPLIANCE, replace("    synthetic_nice: 10", "    synthetic_nice: 25"),
+           "synthetic_nice", "devices.camera.synthetic_nice"),
     Broken("dangling-profile", APPLIANCE, replace("fluoroscopes/generic-ii-carm.yaml", "fluoroscopes/nope.yaml"), "fluoroscopes/nope.yaml", "fluoroscope"),
     Broken("scripted-keypad-without-script", APPLIANCE, replace("    source: none\n  pedal", "    source: scripted\n  pedal"),
            "source: scripted", "devices.keypad.script"),

@@ -24,6 +24,11 @@ class Camera(Section):
     fps: float = Field(30.0, gt=0, le=240, description="Requested frame rate (1/s).")
     fourcc: Literal["MJPG", "YUYV"] = Field("MJPG", description="Pixel format asked of the V4L2 device.")
     trajectory: str | None = Field(None, description="Synthetic camera only: scripted intensifier path (JSONL), relative to this file.")
+    synthetic_nice: int = Field(10, ge=0, le=19, description="Synthetic camera only: how many nice steps below the "
+                                                             "appliance its drawing thread runs, so that drawing the "
+                                                             "box (which a real webcam's driver does not cost) yields "
+                                                             "the CPU to tracking and rendering (nice increments; 0: "
+                                                             "the same priority).")
 
 
 class Keypad(Section):

@@ -143,9 +143,11 @@ def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None,
                 next_sample[0] += 1.0
             if "start" not in cpu_at and now - t0 >= warmup:
                 cpu_at["start"] = time.process_time()
+                cpu_at["camera_start"] = app.parts.camera.frames_captured
             done = now - t0 >= duration + warmup
             if done:
                 cpu_at["end"] = time.process_time()
+                cpu_at["camera_end"] = app.parts.camera.frames_captured
             return done
 
         app.run(until=until)
@@ -195,6 +197,11 @@ def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None,
                   f"{counts.hits} phases reused")
         if camera_cost:
             print(f"camera cost:            {camera_cost}")
+        if "camera_end" in cpu_at:
+            delivered = (cpu_at["camera_end"] - cpu_at["camera_start"]) / span
+            nice = getattr(app.parts.camera, "thread_nice", None)
+            print(f"camera frames:          {delivered:.1f} per second delivered of {cfg.appliance.devices.camera.fps:g} asked"
+                  + (f" (drawing thread at nice {nice:g})" if nice is not None else ""))
         dropped = app.poses.dropped
         print(f"stale poses skipped:    {dropped} (the renderer always draws the newest)")
         undrawn = getattr(app.parts.camera, "frames_skipped", 0)

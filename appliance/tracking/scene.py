@@ -18,7 +18,7 @@ from ..geometry import make_transform, rotation_about
 def synthetic_camera(phantom: PhantomProfile, webcam: WebcamProfile, trajectory: Callable[[float], np.ndarray],
                      clock: Callable[[], float] = time.monotonic, fps: float = 30.0,
                      settings: RenderSettings | None = None, seed: int | None = None,
-                     T_phantom_from_marker: dict[int, np.ndarray] | None = None) -> SyntheticCamera:
+                     T_phantom_from_marker: dict[int, np.ndarray] | None = None, nice: int = 0) -> SyntheticCamera:
     """A SyntheticCamera showing `phantom` through `webcam` along `trajectory` (t in s -> T_webcam_from_phantom).
 
     `T_phantom_from_marker` overrides where markers really sit (to test calibration against a
@@ -29,7 +29,8 @@ def synthetic_camera(phantom: PhantomProfile, webcam: WebcamProfile, trajectory:
     b = phantom.box
     return SyntheticCamera(ids, [placed[i] for i in ids], phantom.marker_size_mm, phantom.aruco_dictionary,
                            (b.length_mm, b.width_mm, b.height_mm), webcam.camera_matrix(), webcam.distortion(),
-                           webcam.width, webcam.height, trajectory, clock=clock, fps=fps, settings=settings, seed=seed)
+                           webcam.width, webcam.height, trajectory, clock=clock, fps=fps, settings=settings, seed=seed,
+                           nice=nice)
 
 
 def markers_stuck_by_hand(phantom: PhantomProfile, rng: np.random.Generator) -> dict[int, np.ndarray]:

@@ -25,7 +25,8 @@ def open_camera(config: ApplianceConfig, clock: Callable[[], float] = time.monot
     cam = config.appliance.devices.camera
     if cam.source == "synthetic":
         path = config.resolve(cam.trajectory) if cam.trajectory else DEMO_TRAJECTORY
-        return synthetic_camera(config.phantom, config.webcam, load_trajectory(path), clock=clock, fps=cam.fps)
+        return synthetic_camera(config.phantom, config.webcam, load_trajectory(path), clock=clock, fps=cam.fps,
+                                nice=cam.synthetic_nice)
     source = config.resolve(cam.source)
     if (cam.width, cam.height) != (config.webcam.width, config.webcam.height):
         # Intrinsics hold for the resolution they were measured at; another one would bias every pose.
