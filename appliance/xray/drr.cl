@@ -50,16 +50,16 @@ inline bool clip_box(float3 s, float3 d, float3 lo, float3 hi, float *t0, float 
 // axis in one Joseph step where that is wider (a ray steep to the slices: one sample stands for
 // the whole step, whose exact integral over a face is a ramp that wide). At width 1 (a voxel
 // no bigger than either) that is linear interpolation, which is kept there, untouched.
-// VOXEL_WEIGHT(w, inv), inv = VOXEL_SLOPE(width) = 1 / min(width, 1), maps the linear weight w
-// in [0, 1) to that box's; BLOCKS(inv): the weight needs it (LINEAR_SAMPLES: never, the plain
-// kernel `bench drr` times this sampling against). fmin(fmax()), not clamp(): PoCL's float16
+// VOXEL_WEIGHT(w, inv, off), inv = VOXEL_SLOPE(width) = 1 / min(width, 1), off = (1 - inv) / 2,
+// maps the linear weight w in [0, 1) to that box's; BLOCKS(wanted): whether the weights get it
+// (LINEAR_SAMPLES: never, the plain kernel `bench drr` times this sampling against). fmin(fmax()), not clamp(): PoCL's float16
 // clamp made the packet kernel 10-20 % slower where these are single vector instructions.
 #define VOXEL_SLOPE(width) (1.0f / fmin(fmax((width), 1e-3f), 1.0f))
-#define VOXEL_WEIGHT(w, inv) fmin(fmax(mad((w) - 0.5f, (inv), 0.5f), 0.0f), 1.0f)
+#define VOXEL_WEIGHT(w, inv, off) fmin(fmax(mad((w), (inv), (off)), 0.0f), 1.0f)
 #ifdef LINEAR_SAMPLES
-#define BLOCKS(inv) false
+#define BLOCKS(wanted) false
 #else
-#define BLOCKS(inv) ((inv) > 1.0f)
+#define BLOCKS(wanted) (wanted)
 #endif
 
 // Joseph's method: one bilinear sample per slice along the ray's dominant axis, the HU
@@ -129,14 +129,16 @@ kernel void joseph_materials(global const short *vol,
         inv_c = VOXEL_SLOPE(fmax(depth * (fabs(geo[3 * c] * du.x + geo[3 * c + 1] * du.y) +
                                           fabs(geo[3 * c] * dw.x + geo[3 * c + 1] * dw.y)), fabs(dc)));
     }
+    const float off_b = 0.5f - 0.5f * inv_b, off_c = 0.5f - 0.5f * inv_c;
+    const bool blocks_b = BLOCKS(inv_b > 1.0f), blocks_c = BLOCKS(inv_c > 1.0f);
 
     for (int k = k0; k <= k1; ++k) {
         const float fbv = clamp(b0 + (float)k * db, 0.0f, bmax);
         const float fcv = clamp(c0 + (float)k * dc, 0.0f, cmax);
         const int ib = (int)fbv, ic = (int)fcv;
         float wb = fbv - (float)ib, wc = fcv - (float)ic;
-        if (BLOCKS(inv_b)) wb = VOXEL_WEIGHT(wb, inv_b);
-        if (BLOCKS(inv_c)) wc = VOXEL_WEIGHT(wc, inv_c);
+        if (blocks_b) wb = VOXEL_WEIGHT(wb, inv_b, off_b);
+        if (blocks_c) wc = VOXEL_WEIGHT(wc, inv_c, off_c);
         const int base = k * sa + ib * sb + ic * sc;
         float h0 = mix((float)vol[base], (float)vol[base + sb], wb);
         float h1 = mix((float)vol[base + sc], (float)vol[base + sb + sc], wb);
@@ -276,11 +278,8 @@ kernel void joseph_packet(global const short *vol,
     const float air_max = mat[0], bone_min = mat[1], con_min = mat[2];
     const float bone_off = mat[3], bone_slope = mat[4];
     const float bmax = (float)(dims[b] - 2), cmax = (float)(dims[c] - 2);
-    // The packet's widest pixel footprint along b and c (see VOXEL_WEIGHT and joseph_materials):
-    // one width for its sixteen nearly parallel rays, so the weights of a packet whose voxels
-    // are no larger than it are left as they are, and the loop holds two numbers more, not
-    // two vectors (a float16 is two AVX registers: more would spill).
-    float inv_b = 1.0f, inv_c = 1.0f;
+    // Each lane's pixel footprint along b and c, as joseph_materials takes it (see VOXEL_WEIGHT).
+    float16 inv_b = 1.0f, inv_c = 1.0f;
     if (geo[12] > 0.0f) {
         const int rows = get_global_size(1) + get_global_offset(1);
         const int vn = v > 0 ? v - 1 : min(v + 1, rows - 1);
@@ -293,14 +292,13 @@ kernel void joseph_packet(global const short *vol,
         }
         const float16 depth = geo[12] * 0.5f * (t0 + t1);
         const float ab0 = geo[3 * b], ab1 = geo[3 * b + 1], ac0 = geo[3 * c], ac1 = geo[3 * c + 1];
-        const float16 width_b = fmax(depth * (fabs(ab0 * dux + ab1 * duy) + fabs(ab0 * dwx + ab1 * dwy)), fabs(db));
-        const float16 width_c = fmax(depth * (fabs(ac0 * dux + ac1 * duy) + fabs(ac0 * dwx + ac1 * dwy)), fabs(dc));
-        float wide_b = 0.0f, wide_c = 0.0f;
-        for (int l = 0; l < LANES; ++l)
-            if (hit[l]) { wide_b = fmax(wide_b, width_b[l]); wide_c = fmax(wide_c, width_c[l]); }
-        inv_b = VOXEL_SLOPE(wide_b);
-        inv_c = VOXEL_SLOPE(wide_c);
+        inv_b = VOXEL_SLOPE(fmax(depth * (fabs(ab0 * dux + ab1 * duy) + fabs(ab0 * dwx + ab1 * dwy)), fabs(db)));
+        inv_c = VOXEL_SLOPE(fmax(depth * (fabs(ac0 * dux + ac1 * duy) + fabs(ac0 * dwx + ac1 * dwy)), fabs(dc)));
     }
+    const float16 off_b = 0.5f - 0.5f * inv_b, off_c = 0.5f - 0.5f * inv_c;
+    // A packet none of whose rays meets a voxel larger than its footprint keeps linear weights
+    // without a cycle spent on them.
+    const bool blocks_b = BLOCKS(any(inv_b > 1.0f)), blocks_c = BLOCKS(any(inv_c > 1.0f));
     float16 acc_air = 0.0f, acc_soft = 0.0f, acc_bone = 0.0f, acc_con = 0.0f;
 #ifdef SPLIT
     float16 bcc_air = 0.0f, bcc_soft = 0.0f, bcc_bone = 0.0f, bcc_con = 0.0f;
@@ -319,8 +317,8 @@ kernel void joseph_packet(global const short *vol,
         const float16 fc = clamp(c0 + (float)k * dc, 0.0f, cmax);
         const int16 ib = convert_int16(fb), ic = convert_int16(fc);
         float16 wb = fb - convert_float16(ib), wc = fc - convert_float16(ic);
-        if (BLOCKS(inv_b)) wb = VOXEL_WEIGHT(wb, inv_b);
-        if (BLOCKS(inv_c)) wc = VOXEL_WEIGHT(wc, inv_c);
+        if (blocks_b) wb = VOXEL_WEIGHT(wb, inv_b, off_b);
+        if (blocks_c) wc = VOXEL_WEIGHT(wc, inv_c, off_c);
         const int16 i00 = k * sa + ib * sb + ic * sc, i10 = i00 + sb, i01 = i00 + sc, i11 = i01 + sb;
         float16 g00, g10, g01, g11;
         CORNERS(vol, g00, g10, g01, g11);
