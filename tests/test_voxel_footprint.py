@@ -135,3 +135,18 @@ def test_a_ray_steep_to_thick_voxels_integrates_its_whole_step():
     lines = renderer.material_integrals(renderer.prepare(vol), T, View(), distorted=False, circle=False).sum(-1)
     assert truth.max() > 390
     assert np.max(np.abs(lines - truth)) < 0.01 * truth.max()
+
+
+@pytest.mark.parametrize("value", ["0", "-1.0", "100", "'wide'"])
+def test_a_bad_edge_width_is_one_line_naming_the_field(tmp_path, value):
+    from appliance.config import ProfileProblems
+
+    text = (CONFIGS / "generic-ii-carm.yaml").read_text()
+    assert "  voxel_edge_px: 1.0" in text
+    path = tmp_path / "fluoroscopes" / "f.yaml"
+    path.parent.mkdir()
+    path.write_text(text.replace("  voxel_edge_px: 1.0", f"  voxel_edge_px: {value}", 1))
+    with pytest.raises(ProfileProblems) as e:
+        load_profile(path, FluoroscopeProfile)
+    (problem,) = e.value.problems
+    assert "\n" not in str(problem) and str(problem).startswith(str(path)) and "ct_sampling.voxel_edge_px" in str(problem)
