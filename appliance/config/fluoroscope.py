@@ -14,6 +14,7 @@ from pydantic import Field, model_validator
 from ..geometry import camera_matrix
 from . import limits
 from .base import IDENTITY, Findings, RigidTransform, Section, matrix
+from .ct_sampling import CtSampling
 from .image_chain import ImageChain
 
 
@@ -174,6 +175,7 @@ class FluoroscopeProfile(Section):
     display: Display
     abc: AutomaticBrightness = Field(default_factory=AutomaticBrightness)
     image: ImageChain = Field(default_factory=ImageChain, description="Detector blur, glare, lag and display characteristic.")
+    ct_sampling: CtSampling = Field(default_factory=CtSampling, description="How rays sample the CT's voxels.")
     webcam: Webcam = Field(default_factory=Webcam)
 
     def problems(self) -> Findings:

@@ -198,7 +198,7 @@ def run(args) -> int:
 
     from .frame_cost import bench_ct, cached_frames, centred, next_phase, plastimatch_side_by_side, slab_frames
 
-    ct = centred(bench_ct(args.ct)) if not {"speed", "cache", "plastimatch", "memory"} <= skip else None
+    ct = centred(bench_ct(args.ct)) if not {"speed", "sampling", "cache", "plastimatch", "memory"} <= skip else None
     if "speed" not in skip and ct is not None:
         torso = ct
         sp = np.linalg.norm(np.asarray(ct.T_ct_from_voxel)[:3, :3], axis=0)
@@ -227,6 +227,15 @@ def run(args) -> int:
                       f"{1000 * float(np.median(cpus)):8.1f} {1000 / ms:6.1f}")
             del prepared, renderer
         print(f"OpenCL device: {_device_name(args.device)}")
+
+    if "sampling" not in skip and ct is not None:
+        from .sampling_cost import sampling_side_by_side
+
+        print(f"\nCT sampling: {ct.source}, voxels larger than the pixel sampled as blocks (the profiles' ct_sampling) "
+              f"against plain linear interpolation, PA display frames with noise, alternating in one run:")
+        for line in sampling_side_by_side(at_resolution(ii, 512, 512), materials, contrast, ct,
+                                          lambda deg: pa_pose(620.0, deg), args.rounds, args.frames, args.device):
+            print(line)
 
     if "cache" not in skip and ct is not None:
         print(f"\nProjection cache: {ct.source} and a second phase 10 mm caudal, PA, display quantity with noise; "

@@ -282,6 +282,8 @@ class Caster:
         geo = np.zeros(16, dtype=np.float32)
         geo[:9] = T_index_from_xray[:3, :3].ravel()
         geo[9:12] = T_index_from_xray[:3, 3]
+        edge = self.fluoroscope.ct_sampling.voxel_edge_px
+        geo[12] = 0.0 if edge is None else edge        # 0: linear interpolation everywhere (drr.cl)
         return geo
 
     @staticmethod

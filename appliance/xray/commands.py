@@ -179,11 +179,11 @@ def register(commands, benches) -> None:
     b.add_argument("--frames", type=int, default=7, help="frames per timing (median reported)")
     b.add_argument("--sizes", default="256,512,1024", help="image sizes to time (pixels, comma-separated)")
     b.add_argument("--phases", type=int, default=10, help="phases of the 4D CT for the memory figure")
-    b.add_argument("--skip", default="", help="comma-separated parts to leave out: speed, cache, plastimatch, accuracy, "
-                                              "memory")
+    b.add_argument("--skip", default="", help="comma-separated parts to leave out: speed, sampling, cache, plastimatch, "
+                                              "accuracy, memory")
     b.add_argument("--ct", default="chest", choices=("chest", "torso"),
                    help="the real-size CT: the adult chest (default) or the quicker synthetic torso")
-    b.add_argument("--rounds", type=int, default=3, help="alternating rounds of the plastimatch side-by-side")
+    b.add_argument("--rounds", type=int, default=3, help="alternating rounds of the plastimatch and CT-sampling side-by-sides")
     b.add_argument("--device", default="auto", choices=("auto", "cpu", "gpu"))
 
     from .acceptance import register as register_image_bench
