@@ -14,6 +14,7 @@ from pydantic import Field, model_validator
 from ..geometry import camera_matrix
 from . import limits
 from .base import IDENTITY, Findings, RigidTransform, Section, matrix
+from .energy_nodes import EnergyNodes
 from .image_chain import ImageChain
 
 
@@ -174,6 +175,8 @@ class FluoroscopeProfile(Section):
     display: Display
     abc: AutomaticBrightness = Field(default_factory=AutomaticBrightness)
     image: ImageChain = Field(default_factory=ImageChain, description="Detector blur, glare, lag and display characteristic.")
+    energy_nodes: EnergyNodes = Field(default_factory=EnergyNodes, description="The energies the spectrum sum is "
+                                      "evaluated at, fitted to the whole spectrum within a stated error.")
     webcam: Webcam = Field(default_factory=Webcam)
 
     def problems(self) -> Findings:

@@ -36,6 +36,7 @@ from ..patient.materials import (
 )
 from ..patient.volume import Volume
 from .device import ClDevice
+from .energy_nodes import FIT_FACTORS, NodeQuadrature, fit_nodes
 from .pixel_geometry import (
     field_edge,
     field_mask,
@@ -93,14 +94,17 @@ class CastCancelled(Exception):
 @dataclass(frozen=True, eq=False)
 class DetectorTables:
     """One technique's detector tables: the spectrum, each energy bin's share of the open-field
-    signal (weights) and each material's mass attenuation there (mu, cm^2/g), on the host and
-    on the device."""
+    signal (weights) and each material's mass attenuation there (mu, cm^2/g), on the host; on
+    the device, the same for the `device_bins` energies the frame's sum is evaluated at: the
+    fitted nodes of `quadrature` (energy_nodes.py), or every bin where it is None."""
 
     spectrum: Spectrum
     weights: np.ndarray          # (n_e,) float32, sum 1
     mu: np.ndarray               # (n_e, 4) float32
     weights_buf: cl.Buffer
     mu_buf: cl.Buffer
+    device_bins: int = 0
+    quadrature: NodeQuadrature | None = None
 
     def transmission(self, lines: np.ndarray) -> np.ndarray:
         """I/I0 of (n, 4) material integrals (g/cm^3 * mm), as the polychromatic kernel computes it."""
@@ -174,6 +178,7 @@ class Caster:
         self.spectrum = spectrum
         self.mu_water_per_mm = water_mu_per_mm(spectrum.effective_kev)
         self._tables: dict = {}
+        self._quads: dict[float, NodeQuadrature | None] = {}
         self._dirs: dict = {}
         self._masks: dict = {}
 
@@ -206,8 +211,24 @@ class Caster:
             energies = spectrum.energies_kev if polychromatic else [spectrum.effective_kev]
             weights = (spectrum.energy_weights() if polychromatic else np.ones(1)).astype(np.float32)
             mu = np.ascontiguousarray(mass_attenuation(energies, contrast).astype(np.float32))
-            self._tables[key] = DetectorTables(spectrum, weights, mu, self.dev.upload(weights), self.dev.upload(mu))
+            quad = self._quadrature(kv, spectrum, weights) if polychromatic else None
+            on_device = (weights, mu) if quad is None else (quad.weights, np.ascontiguousarray(mu[quad.bins]))
+            self._tables[key] = DetectorTables(spectrum, weights, mu, self.dev.upload(on_device[0]),
+                                               self.dev.upload(on_device[1]), len(on_device[0]), quad)
         return self._tables[key]
+
+    def _quadrature(self, kv: float, spectrum: Spectrum, weights: np.ndarray) -> NodeQuadrature | None:
+        """The energy nodes of the spectrum at `kv` for the case's materials (energy_nodes.py),
+        fitted once per kV over the case's iodine and every lower concentration; None: sum every bin."""
+        limits = self.fluoroscope.energy_nodes
+        if not limits.enabled:
+            return None
+        if kv not in self._quads:
+            c = self.contrast
+            mus = [mass_attenuation(spectrum.energies_kev, None if f == 0.0 or c is None else Contrast(
+                agent=c.agent, concentration_mg_per_ml=c.concentration_mg_per_ml * f)) for f in FIT_FACTORS]
+            self._quads[kv] = fit_nodes(weights, mus if c is not None else mus[:1], limits)
+        return self._quads[kv]
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -368,7 +389,7 @@ class Caster:
         cast `lines` through the detector `tables`; 0 outside the beam."""
         dev = self.dev
         rows, cols = self.shape
-        weights, mu_rho, n_e = tables.weights_buf, tables.mu_buf, len(tables.weights)
+        weights, mu_rho, n_e = tables.weights_buf, tables.mu_buf, tables.device_bins
         mask_buf = self.beam(zoom, collimation_mm, circle).exposed_buf
         out_buf = dev.scratch(rows * cols * 4)
         if isinstance(lines, BlendedLines):
