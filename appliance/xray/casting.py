@@ -137,7 +137,9 @@ class Beam:
     """One field's masks: `mask` the geometric field (inside the blades and the intensifier's
     circle), `exposed` that and the edge's penumbra outside it (the pixels rays are cast for),
     `central` the exposure control's measuring field, `sample` the pixels of it (flat indices)
-    the control reads; with their device buffers."""
+    the control reads; with their device buffers. `mask_index` and `central_index` are the
+    flat indices of `mask` and `central` (what boolean indexing by them reads, in its order),
+    so a frame's statistics over them take their pixels without scanning a whole-frame mask."""
 
     mask: np.ndarray
     mask_buf: cl.Buffer
@@ -146,6 +148,8 @@ class Beam:
     exposed_buf: cl.Buffer
     sample: np.ndarray
     sample_buf: cl.Buffer
+    mask_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.intp))
+    central_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.intp))
 
 
 class Caster:
@@ -290,7 +294,8 @@ class Caster:
             step = max(1, len(inside) // ABC_SAMPLE_PIXELS)
             sample = np.ascontiguousarray(inside[::step]) if len(inside) else np.zeros(1, np.int32)
             self._masks[key] = Beam(m, self.dev.upload(m.astype(np.uint8)), central, exposed,
-                                    self.dev.upload(exposed.astype(np.uint8)), sample, self.dev.upload(sample))
+                                    self.dev.upload(exposed.astype(np.uint8)), sample, self.dev.upload(sample),
+                                    np.flatnonzero(m), np.flatnonzero(central))
         return self._masks[key]
 
     # -- casting ---------------------------------------------------------------------

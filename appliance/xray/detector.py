@@ -169,9 +169,13 @@ class Detector:
             a, b = curve[i], curve[i + 1]
             return round(a.kvp + w * (b.kvp - a.kvp)), a.ma + w * (b.ma - a.ma)
 
+        @functools.cache
+        def per_mas(kv: float) -> float:       # the bisection asks each kV dozens of times
+            return tables(kv).spectrum.detector_signal_per_mas() * transmission(kv)
+
         def signal(x: float) -> float:
             kv, ma = at(x)
-            return ma * tables(kv).spectrum.detector_signal_per_mas() * transmission(kv)
+            return ma * per_mas(kv)
 
         def factor(x: float) -> float:
             kv, ma = at(x)

@@ -164,10 +164,11 @@ class Renderer:
         """Poisson counting noise on a relative intensity image (kernel quantum_noise):
         `image` x `photons_open_field` photons expected per pixel, returned relative to the open
         field again (float32). The same `seed` gives the same noise; None a new one."""
-        out = np.ascontiguousarray(image, dtype=np.float32).copy()
+        image = np.ascontiguousarray(image, dtype=np.float32)
+        out = np.empty_like(image)
         seed = int(self._seeds.integers(2 ** 32)) if seed is None else int(seed) & 0xFFFFFFFF
         with self._lock:
-            buf = self.dev.upload(out, writable=True)
+            buf = self.dev.upload(image, writable=True)     # the upload is the copy the kernel draws into
             args = (buf, np.float32(photons_open_field), np.uint32(seed))
             if self.dev.is_cpu:
                 self._noise(self.dev.queue, (-(-out.size // PACKET),), None, *args, np.int32(out.size))
@@ -276,7 +277,7 @@ class Renderer:
         image = detector.spread(image, exposed, view.zoom)      # 0 outside `exposed`
         if not display:
             image[~mask] = 0.0
-        measured = float(np.median(image[central])) if central.any() else 0.0
+        measured = float(np.median(image.ravel()[beam.central_index])) if len(beam.central_index) else 0.0
         if not display:
             return Frame(image, exposure.factor, exposure.attenuation, exposure.limited, photons * measured,
                          kvp=exposure.kvp, ma=exposure.ma)
@@ -284,11 +285,14 @@ class Renderer:
             image = self.lag.step(image, (view.zoom, view.collimation_mm, image.shape))
         # Half a photon stands in for none, so a pixel that caught nothing reads as very dense.
         floor = 0.5 / photons if view.noise else 1e-12
-        p = -np.log(np.maximum(image, np.float32(floor)))
+        p = np.maximum(image, np.float32(floor))
+        np.log(p, out=p)
+        np.negative(p, out=p)
         pitch = pixel_pitch_at_zoom_mm(self.fluoroscope, view.zoom)
         p = unsharp(p, chain.unsharp_amount, chain.unsharp_sigma_mm / pitch)
         if abc.enabled:
-            centre, width = auto_window(p, mask, central, chain.display_latitude, chain.display_min_window)
+            centre, width = auto_window(p, mask, central, chain.display_latitude, chain.display_min_window,
+                                        (beam.mask_index, beam.central_index))
         else:
             centre, width = self.fluoroscope.display.level, self.fluoroscope.display.window
         width *= view.window_scale
