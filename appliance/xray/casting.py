@@ -85,6 +85,10 @@ class BlendedLines:
     a: cl.Buffer
     b: cl.Buffer
     w: float
+    #: The exposure control's sample (Beam.sample) of `a` and of `b` on the host, where the
+    #: caller holds them (the projection cache: a cached phase's integrals do not change, so
+    #: a frame between two reads no device at all for its control); None: gathered per frame.
+    samples: tuple[np.ndarray, np.ndarray] | None = None
 
 
 class CastCancelled(Exception):
@@ -385,7 +389,7 @@ class Caster:
             return self.dev.download(out, np.empty((n, 4), dtype=np.float32))
         if not isinstance(lines, BlendedLines):
             return gather(lines)
-        a, b = gather(lines.a), gather(lines.b)
+        a, b = lines.samples if lines.samples is not None else (gather(lines.a), gather(lines.b))
         return a + np.float32(lines.w) * (b - a)
 
     def intensity(self, lines: cl.Buffer | BlendedLines, tables: DetectorTables, zoom, collimation_mm,
