@@ -64,7 +64,7 @@ class Frame:
     exposure_factor: float = 1.0        # tube output relative to the reference technique (the dose rate follows it)
     attenuation: float | None = None    # median -ln(I/I0) over the measuring field, as the exposure control saw it
     limited: bool = False               # the exposure control was at its lowest or highest output
-    photons_per_pixel: float = 0.0      # photons per pixel per frame in the measuring field (median)
+    photons_per_pixel: float = 0.0      # photons per pixel per frame in the measuring field (median of its sample)
     window: tuple[float, float] | None = None   # (centre, width) of the display window on -ln(I/I0)
     signal: np.ndarray | None = None    # display frames: the detector signal (after the recursive filter) the LUT was given
     kvp: float | None = None            # the tube voltage the exposure control set (kV); None: the profile's tube.kvp
@@ -277,7 +277,9 @@ class Renderer:
         image = detector.spread(image, exposed, view.zoom)      # 0 outside `exposed`
         if not display:
             image[~mask] = 0.0
-        measured = float(np.median(image.ravel()[beam.central_index])) if len(beam.central_index) else 0.0
+        # The photon figure reads the control's sample of its measuring field (ABC_SAMPLE_PIXELS:
+        # its median to a few tenths of a per cent), not all of it, a whole-frame partition.
+        measured = float(np.median(image.ravel()[beam.sample])) if len(beam.central_index) else 0.0
         if not display:
             return Frame(image, exposure.factor, exposure.attenuation, exposure.limited, photons * measured,
                          kvp=exposure.kvp, ma=exposure.ma)
