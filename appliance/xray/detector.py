@@ -177,9 +177,13 @@ class Detector:
             kv, ma = at(x)
             return ma * per_mas(kv)
 
+        @functools.cache
+        def kerma_per_mas(kv: float) -> float:
+            return tables(kv).spectrum.air_kerma_ugy_per_mas
+
         def factor(x: float) -> float:
             kv, ma = at(x)
-            return ma * tables(kv).spectrum.air_kerma_ugy_per_mas / (tube.ma * ref.spectrum.air_kerma_ugy_per_mas)
+            return ma * kerma_per_mas(kv) / (tube.ma * ref.spectrum.air_kerma_ugy_per_mas)
 
         top = float(len(curve) - 1)
         ceiling = self.chain.dose_rate_limit_mgy_per_min / self.reference_rate_mgy_per_min(zoom, mode)
