@@ -98,6 +98,8 @@ def test_the_kernel_sums_the_nodes_and_matches_every_bin():
         r = Renderer(fl, Materials(), device="cpu")
         images.append(r.render(r.prepare(vol), pose, view).image)
         images.append(r.caster.tables().device_bins)
+        # Another matrix of the same fluoroscope fits nothing again: the process keeps the fit.
+        assert r.at_matrix(32, 32).caster.tables().quadrature is r.caster.tables().quadrature
     on_img, on_bins, off_img, off_bins = images
     assert off_bins == 24 and on_bins <= 10
     inside = off_img > 0

@@ -106,10 +106,26 @@ MINIMAX_FROM = 10.0
 OPEN_BEAM_WEIGHT = 100.0
 
 
+#: Fits made in this process, by what they were fitted to: every renderer of one fluoroscope
+#: (the moving matrices' included) shares them, so a kV's fit (a tenth of a second or more on
+#: two cores) is paid once per process.
+_FITS: dict[tuple, NodeQuadrature | None] = {}
+
+
 def fit_nodes(weights: np.ndarray, mu_by_factor: list[np.ndarray], limits: EnergyNodes) -> NodeQuadrature | None:
     """The quadrature of the spectrum `weights` (n_e,) and mass attenuation tables
     `mu_by_factor` ((n_e, 4) each, cm^2/g; one per iodine concentration to cover) within
-    `limits`; None where max_nodes bins cannot reach max_relative_error."""
+    `limits`; None where max_nodes bins cannot reach max_relative_error. Kept for the process."""
+    key = (np.asarray(weights, np.float64).tobytes(), tuple(np.asarray(m, np.float64).tobytes() for m in mu_by_factor),
+           limits)
+    if key not in _FITS:
+        if len(_FITS) > 256:
+            _FITS.clear()
+        _FITS[key] = _fit(weights, mu_by_factor, limits)
+    return _FITS[key]
+
+
+def _fit(weights: np.ndarray, mu_by_factor: list[np.ndarray], limits: EnergyNodes) -> NodeQuadrature | None:
     from scipy.optimize import nnls
 
     fit = relative_terms(weights, mu_by_factor, fitting_rays(limits, FIT_RAYS, 1), limits.min_transmission)
