@@ -115,3 +115,18 @@ def test_a_node_count_out_of_range_is_refused_with_its_line(tmp_path):
         load_profile(bad, FluoroscopeProfile)
     message = str(err.value)
     assert "energy_nodes.max_nodes" in message and f"bad.yaml:{text.count(chr(10))}" in message
+
+
+def test_a_display_frame_fits_nodes_only_at_the_kv_its_exposure_control_chose(monkeypatch):
+    """The control's kV search reads many kV values on the host; only the image's kV is fitted."""
+    import appliance.xray.energy_nodes as energy_nodes
+
+    monkeypatch.setattr(energy_nodes, "_FITS", {})
+    fl = at_resolution(load_profile(CONFIGS / "generic-flat-detector.yaml", FluoroscopeProfile), 48, 48)
+    assert fl.abc.enabled and len(fl.abc.curve) > 1
+    r = Renderer(fl, Materials(), device="cpu")
+    vol, _, _ = box_volume((16, 32, 32), (6.0, 6.0, 2.5), (0, 0, 0), (31, 31, 15), hu=700)
+    frame = r.render(r.prepare(vol), make_transform(np.eye(3), [0.0, 0.0, 750.0]), View(noise=False))
+    assert frame.kvp is not None and frame.kvp != fl.tube.kvp       # the search left the reference kV
+    assert len(energy_nodes._FITS) == 1
+    assert r.caster.tables(frame.kvp, None, True).quadrature is not None

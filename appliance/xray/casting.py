@@ -191,16 +191,19 @@ class Caster:
         self._masks: dict = {}
 
     def tables(self, kvp: float | None = None, concentration_factor: float | None = None,
-               polychromatic: bool = True) -> DetectorTables:
+               polychromatic: bool = True, nodes: bool = True) -> DetectorTables:
         """The detector's tables for a technique: the spectrum at `kvp` (None: tube.kvp; rounded to
         1 kV, as a generator sets it) in ENERGY_BINS bins, or its effective energy alone for a
         monochromatic frame, and the materials' mass attenuation there, with the iodine at
         `concentration_factor` times the case's (None: the case's; mass attenuation is linear
-        in the concentration). Cached: a frame of a known technique builds nothing."""
+        in the concentration). Cached: a frame of a known technique builds nothing. `nodes`: the
+        device sums the spectrum at the fitted energy nodes (energy_nodes.py), fitted on first
+        use of a kV; False for tables only the host reads (the exposure control's kV search
+        visits many kV values and sums every bin of each on its sample)."""
         tube = self.fluoroscope.tube
         kv = float(tube.kvp) if kvp is None else float(round(kvp))
         factor = None if concentration_factor is None else round(max(float(concentration_factor), 0.0), 4)
-        key = (kv, factor, polychromatic)
+        key = (kv, factor, polychromatic, nodes)
         if key not in self._tables:
             if len(self._tables) > 512:
                 self._tables.clear()
@@ -219,7 +222,7 @@ class Caster:
             energies = spectrum.energies_kev if polychromatic else [spectrum.effective_kev]
             weights = (spectrum.energy_weights() if polychromatic else np.ones(1)).astype(np.float32)
             mu = np.ascontiguousarray(mass_attenuation(energies, contrast).astype(np.float32))
-            quad = self._quadrature(kv, spectrum, weights) if polychromatic else None
+            quad = self._quadrature(kv, spectrum, weights) if polychromatic and nodes else None
             on_device = (weights, mu) if quad is None else (quad.weights, np.ascontiguousarray(mu[quad.bins]))
             self._tables[key] = DetectorTables(spectrum, weights, mu, self.dev.upload(on_device[0]),
                                                self.dev.upload(on_device[1]), len(on_device[0]), quad)

@@ -256,7 +256,7 @@ class Renderer:
                 gain = detector.gain(view.zoom)
                 exposure = detector.exposure_on_curve(
                     self.caster.sample_lines(lines, beam), None if gain is None else gain.ravel()[beam.sample],
-                    view.zoom, view.mode, lambda kv: self.caster.tables(kv, None, True))
+                    view.zoom, view.mode, lambda kv: self.caster.tables(kv, None, True, nodes=False))
             tables = self.caster.tables(None if exposure is None else exposure.kvp, concentration_factor, view.polychromatic)
             image = self.caster.intensity(lines, tables, view.zoom, view.collimation_mm, circle)
         sigma = detector.focal_blur_px(view.zoom, self.depth_mm(volume, T_xray_from_ct))
