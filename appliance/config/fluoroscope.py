@@ -15,6 +15,7 @@ from ..geometry import camera_matrix
 from . import limits
 from .base import IDENTITY, Findings, RigidTransform, Section, matrix
 from .ct_sampling import CtSampling
+from .energy_nodes import EnergyNodes
 from .image_chain import ImageChain
 
 
@@ -176,6 +177,8 @@ class FluoroscopeProfile(Section):
     abc: AutomaticBrightness = Field(default_factory=AutomaticBrightness)
     image: ImageChain = Field(default_factory=ImageChain, description="Detector blur, glare, lag and display characteristic.")
     ct_sampling: CtSampling = Field(default_factory=CtSampling, description="How rays sample the CT's voxels.")
+    energy_nodes: EnergyNodes = Field(default_factory=EnergyNodes, description="The energies the spectrum sum is "
+                                      "evaluated at, fitted to the whole spectrum within a stated error.")
     webcam: Webcam = Field(default_factory=Webcam)
 
     def problems(self) -> Findings:

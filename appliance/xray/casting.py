@@ -36,6 +36,7 @@ from ..patient.materials import (
 )
 from ..patient.volume import Volume
 from .device import ClDevice
+from .energy_nodes import FIT_FACTORS, NodeQuadrature, fit_nodes
 from .pixel_geometry import (
     field_edge,
     field_mask,
@@ -84,6 +85,10 @@ class BlendedLines:
     a: cl.Buffer
     b: cl.Buffer
     w: float
+    #: The exposure control's sample (Beam.sample) of `a` and of `b` on the host, where the
+    #: caller holds them (the projection cache: a cached phase's integrals do not change, so
+    #: a frame between two reads no device at all for its control); None: gathered per frame.
+    samples: tuple[np.ndarray, np.ndarray] | None = None
 
 
 class CastCancelled(Exception):
@@ -93,14 +98,17 @@ class CastCancelled(Exception):
 @dataclass(frozen=True, eq=False)
 class DetectorTables:
     """One technique's detector tables: the spectrum, each energy bin's share of the open-field
-    signal (weights) and each material's mass attenuation there (mu, cm^2/g), on the host and
-    on the device."""
+    signal (weights) and each material's mass attenuation there (mu, cm^2/g), on the host; on
+    the device, the same for the `device_bins` energies the frame's sum is evaluated at: the
+    fitted nodes of `quadrature` (energy_nodes.py), or every bin where it is None."""
 
     spectrum: Spectrum
     weights: np.ndarray          # (n_e,) float32, sum 1
     mu: np.ndarray               # (n_e, 4) float32
     weights_buf: cl.Buffer
     mu_buf: cl.Buffer
+    device_bins: int = 0
+    quadrature: NodeQuadrature | None = None
 
     def transmission(self, lines: np.ndarray) -> np.ndarray:
         """I/I0 of (n, 4) material integrals (g/cm^3 * mm), as the polychromatic kernel computes it."""
@@ -133,7 +141,9 @@ class Beam:
     """One field's masks: `mask` the geometric field (inside the blades and the intensifier's
     circle), `exposed` that and the edge's penumbra outside it (the pixels rays are cast for),
     `central` the exposure control's measuring field, `sample` the pixels of it (flat indices)
-    the control reads; with their device buffers."""
+    the control reads; with their device buffers. `mask_index` and `central_index` are the
+    flat indices of `mask` and `central` (what boolean indexing by them reads, in its order),
+    so a frame's statistics over them take their pixels without scanning a whole-frame mask."""
 
     mask: np.ndarray
     mask_buf: cl.Buffer
@@ -142,6 +152,8 @@ class Beam:
     exposed_buf: cl.Buffer
     sample: np.ndarray
     sample_buf: cl.Buffer
+    mask_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.intp))
+    central_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.intp))
 
 
 class Caster:
@@ -174,20 +186,24 @@ class Caster:
         self.spectrum = spectrum
         self.mu_water_per_mm = water_mu_per_mm(spectrum.effective_kev)
         self._tables: dict = {}
+        self._quads: dict[float, NodeQuadrature | None] = {}
         self._dirs: dict = {}
         self._masks: dict = {}
 
     def tables(self, kvp: float | None = None, concentration_factor: float | None = None,
-               polychromatic: bool = True) -> DetectorTables:
+               polychromatic: bool = True, nodes: bool = True) -> DetectorTables:
         """The detector's tables for a technique: the spectrum at `kvp` (None: tube.kvp; rounded to
         1 kV, as a generator sets it) in ENERGY_BINS bins, or its effective energy alone for a
         monochromatic frame, and the materials' mass attenuation there, with the iodine at
         `concentration_factor` times the case's (None: the case's; mass attenuation is linear
-        in the concentration). Cached: a frame of a known technique builds nothing."""
+        in the concentration). Cached: a frame of a known technique builds nothing. `nodes`: the
+        device sums the spectrum at the fitted energy nodes (energy_nodes.py), fitted on first
+        use of a kV; False for tables only the host reads (the exposure control's kV search
+        visits many kV values and sums every bin of each on its sample)."""
         tube = self.fluoroscope.tube
         kv = float(tube.kvp) if kvp is None else float(round(kvp))
         factor = None if concentration_factor is None else round(max(float(concentration_factor), 0.0), 4)
-        key = (kv, factor, polychromatic)
+        key = (kv, factor, polychromatic, nodes)
         if key not in self._tables:
             if len(self._tables) > 512:
                 self._tables.clear()
@@ -206,8 +222,24 @@ class Caster:
             energies = spectrum.energies_kev if polychromatic else [spectrum.effective_kev]
             weights = (spectrum.energy_weights() if polychromatic else np.ones(1)).astype(np.float32)
             mu = np.ascontiguousarray(mass_attenuation(energies, contrast).astype(np.float32))
-            self._tables[key] = DetectorTables(spectrum, weights, mu, self.dev.upload(weights), self.dev.upload(mu))
+            quad = self._quadrature(kv, spectrum, weights) if polychromatic and nodes else None
+            on_device = (weights, mu) if quad is None else (quad.weights, np.ascontiguousarray(mu[quad.bins]))
+            self._tables[key] = DetectorTables(spectrum, weights, mu, self.dev.upload(on_device[0]),
+                                               self.dev.upload(on_device[1]), len(on_device[0]), quad)
         return self._tables[key]
+
+    def _quadrature(self, kv: float, spectrum: Spectrum, weights: np.ndarray) -> NodeQuadrature | None:
+        """The energy nodes of the spectrum at `kv` for the case's materials (energy_nodes.py),
+        fitted once per kV over the case's iodine and every lower concentration; None: sum every bin."""
+        limits = self.fluoroscope.energy_nodes
+        if not limits.enabled:
+            return None
+        if kv not in self._quads:
+            c = self.contrast
+            mus = [mass_attenuation(spectrum.energies_kev, None if f == 0.0 or c is None else Contrast(
+                agent=c.agent, concentration_mg_per_ml=c.concentration_mg_per_ml * f)) for f in FIT_FACTORS]
+            self._quads[kv] = fit_nodes(weights, mus if c is not None else mus[:1], limits)
+        return self._quads[kv]
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -269,7 +301,8 @@ class Caster:
             step = max(1, len(inside) // ABC_SAMPLE_PIXELS)
             sample = np.ascontiguousarray(inside[::step]) if len(inside) else np.zeros(1, np.int32)
             self._masks[key] = Beam(m, self.dev.upload(m.astype(np.uint8)), central, exposed,
-                                    self.dev.upload(exposed.astype(np.uint8)), sample, self.dev.upload(sample))
+                                    self.dev.upload(exposed.astype(np.uint8)), sample, self.dev.upload(sample),
+                                    np.flatnonzero(m), np.flatnonzero(central))
         return self._masks[key]
 
     # -- casting ---------------------------------------------------------------------
@@ -361,7 +394,7 @@ class Caster:
             return self.dev.download(out, np.empty((n, 4), dtype=np.float32))
         if not isinstance(lines, BlendedLines):
             return gather(lines)
-        a, b = gather(lines.a), gather(lines.b)
+        a, b = lines.samples if lines.samples is not None else (gather(lines.a), gather(lines.b))
         return a + np.float32(lines.w) * (b - a)
 
     def intensity(self, lines: cl.Buffer | BlendedLines, tables: DetectorTables, zoom, collimation_mm,
@@ -370,7 +403,7 @@ class Caster:
         cast `lines` through the detector `tables`; 0 outside the beam."""
         dev = self.dev
         rows, cols = self.shape
-        weights, mu_rho, n_e = tables.weights_buf, tables.mu_buf, len(tables.weights)
+        weights, mu_rho, n_e = tables.weights_buf, tables.mu_buf, tables.device_bins
         mask_buf = self.beam(zoom, collimation_mm, circle).exposed_buf
         out_buf = dev.scratch(rows * cols * 4)
         if isinstance(lines, BlendedLines):

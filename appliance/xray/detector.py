@@ -169,13 +169,21 @@ class Detector:
             a, b = curve[i], curve[i + 1]
             return round(a.kvp + w * (b.kvp - a.kvp)), a.ma + w * (b.ma - a.ma)
 
+        @functools.cache
+        def per_mas(kv: float) -> float:       # the bisection asks each kV dozens of times
+            return tables(kv).spectrum.detector_signal_per_mas() * transmission(kv)
+
         def signal(x: float) -> float:
             kv, ma = at(x)
-            return ma * tables(kv).spectrum.detector_signal_per_mas() * transmission(kv)
+            return ma * per_mas(kv)
+
+        @functools.cache
+        def kerma_per_mas(kv: float) -> float:
+            return tables(kv).spectrum.air_kerma_ugy_per_mas
 
         def factor(x: float) -> float:
             kv, ma = at(x)
-            return ma * tables(kv).spectrum.air_kerma_ugy_per_mas / (tube.ma * ref.spectrum.air_kerma_ugy_per_mas)
+            return ma * kerma_per_mas(kv) / (tube.ma * ref.spectrum.air_kerma_ugy_per_mas)
 
         top = float(len(curve) - 1)
         ceiling = self.chain.dose_rate_limit_mgy_per_min / self.reference_rate_mgy_per_min(zoom, mode)

@@ -42,20 +42,24 @@ def unsharp(p: np.ndarray, amount: float, sigma_px: float) -> np.ndarray:
 
 
 def auto_window(p: np.ndarray, field: np.ndarray, measuring: np.ndarray, latitude: float,
-                min_width: float) -> tuple[float, float]:
+                min_width: float, indices: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[float, float]:
     """(centre, width) of the window over the in-field log signal `p`.
 
     The width spans its 1st-99th percentile range times `latitude`; the centre is the median
     over the exposure control's measuring field (the video gain holds the middle of the image
     at mid-grey), moved only as far as needed to keep both percentiles inside the window. A
-    sample of every third pixel is enough.
+    sample of every third pixel is enough. `indices`: the flat indices of `field` and
+    `measuring` (np.flatnonzero of each), the same pixels without scanning the masks.
     """
-    values = p[field][::3]
+    if indices is not None:
+        flat = p.ravel()
+        values, middle = flat[indices[0][::3]], flat[indices[1][::3]]
+    else:
+        values, middle = p[field][::3], p[measuring][::3]
     if values.size < 16:
         return 0.0, 1.0
     lo, hi = (float(v) for v in np.percentile(values, (1.0, 99.0)))
     width = max((hi - lo) * latitude, min_width)
-    middle = p[measuring][::3]
     centre = float(np.median(middle)) if middle.size else (lo + hi) / 2.0
     return min(max(centre, hi - width / 2.0), lo + width / 2.0), width
 

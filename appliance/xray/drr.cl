@@ -384,12 +384,27 @@ kernel void polychromatic_packet(global const float4 *lines, global const float4
     float16 sum = 0.0f;
     if (any(on)) {      // a packet wholly outside the beam reads nothing
         float16 La, Ls, Lb, Lc;
-        for (int l = 0; l < LANES; ++l) {
-            const int q = min(p0 + l, n_pixels - 1);
-            float4 L = lines[q];
-            if (w_b > 0.0f) L = mix(L, lines_b[q], w_b);
-            L *= 0.1f;
-            La[l] = L.x; Ls[l] = L.y; Lb[l] = L.z; Lc[l] = L.w;
+        if (whole) {
+            // Sixteen pixels' float4s as four float16s, split into one vector per material.
+            global const float *fa = (global const float *)(lines + p0);
+            float16 v0 = vload16(0, fa), v1 = vload16(1, fa), v2 = vload16(2, fa), v3 = vload16(3, fa);
+            if (w_b > 0.0f) {
+                global const float *fb = (global const float *)(lines_b + p0);
+                v0 = mix(v0, vload16(0, fb), w_b); v1 = mix(v1, vload16(1, fb), w_b);
+                v2 = mix(v2, vload16(2, fb), w_b); v3 = mix(v3, vload16(3, fb), w_b);
+            }
+            La = 0.1f * (float16)(v0.s048c, v1.s048c, v2.s048c, v3.s048c);
+            Ls = 0.1f * (float16)(v0.s159d, v1.s159d, v2.s159d, v3.s159d);
+            Lb = 0.1f * (float16)(v0.s26ae, v1.s26ae, v2.s26ae, v3.s26ae);
+            Lc = 0.1f * (float16)(v0.s37bf, v1.s37bf, v2.s37bf, v3.s37bf);
+        } else {
+            for (int l = 0; l < LANES; ++l) {
+                const int q = min(p0 + l, n_pixels - 1);
+                float4 L = lines[q];
+                if (w_b > 0.0f) L = mix(L, lines_b[q], w_b);
+                L *= 0.1f;
+                La[l] = L.x; Ls[l] = L.y; Lb[l] = L.z; Lc[l] = L.w;
+            }
         }
         for (int e = 0; e < n_e; ++e) {
             const float4 m = mu_rho[e];

@@ -86,13 +86,19 @@ def cached_frames(renderer, volume: Volume, frames: int, pose) -> list[str]:
     for f in range(3 * frames):
         timed(hit, cache.render, a, T, view, blend=(b, (f % 10) / 10.0), concentration_factor=0.2 + 0.8 * (f % 7) / 6)
     rows, cols = renderer.shape
+    last = cache.render(a, T, view, blend=(b, 0.5))
+    tables = renderer.caster.tables(last.kvp, 1.0, True)
+    quad = tables.quadrature
+    nodes = (f"the spectrum summed at {tables.device_bins} of {len(tables.weights)} energies at {last.kvp:g} kV, "
+             f"within {100 * quad.max_error:.2f} % of every bin's sum (energy_nodes)") if quad is not None else \
+        f"the spectrum summed at all {tables.device_bins} energies"
 
     def med(xs):
         wall, cpu = np.median(np.array(xs), axis=0) * 1000
         return f"{wall:.1f} ms ({cpu:.1f} cpu ms)"
     return [f"{cols}x{rows}: blended cast (HU blend, one pass) {med(direct)}; first frame at a new pose (both "
             f"phases' integrals, one pass) {med(miss)}; frame at an unchanged pose with breathing and contrast "
-            f"changing {med(hit)}, {cache.counts.casts - casts} casts in {len(hit)} frames"]
+            f"changing {med(hit)}, {cache.counts.casts - casts} casts in {len(hit)} frames; {nodes}"]
 
 
 def slab_frames(renderer, volume: Volume, frames: int, pose, label: str) -> str:

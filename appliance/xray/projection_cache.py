@@ -87,6 +87,8 @@ class ProjectionCache:
         self._pose: np.ndarray | None = None
         self._key: tuple | None = None
         self._lines: dict[PreparedVolume, cl.Buffer] = {}     # phase -> device buffer of its integrals
+        # phase -> (its integrals' buffer, the exposure control's sample of them on the host)
+        self._samples: dict[PreparedVolume, tuple[cl.Buffer, np.ndarray]] = {}
         self._split: cl.Kernel | None = None    # the two-phase cast kernel, built on first use
         self._blend: cl.Kernel | None = None
 
@@ -108,6 +110,7 @@ class ProjectionCache:
         key = self._geometry_key(zoom, collimation_mm, distorted, circle)
         if key != self._key or not self.unchanged(volume, T_xray_from_ct, zoom):
             self._lines.clear()
+            self._samples.clear()
             self._key = key
             self._pose = np.array(T_xray_from_ct, dtype=np.float64)
 
@@ -161,11 +164,16 @@ class ProjectionCache:
         phases = [volume] if blend is None or blend[1] == 0.0 else [volume, blend[0]]
         self._cast_phases(phases, T, zoom, collimation_mm, distorted, circle)
         mask = r.caster.beam(zoom, collimation_mm, circle).exposed
-        if len(phases) == 1:
-            return self._lines[volume], mask
-        if fused:
-            # The detector's kernel and the exposure control's sample blend as they read.
-            return BlendedLines(self._lines[volume], self._lines[blend[0]], float(blend[1])), mask
+        if not fused:
+            if len(phases) == 1:
+                return self._lines[volume], mask
+        else:
+            # The detector's kernel blends as it reads; the control's sample, gathered once per
+            # cast phase, blends on the host.
+            beam = r.caster.beam(zoom, collimation_mm, circle)
+            a, b = phases[0], phases[-1]
+            w = float(blend[1]) if len(phases) == 2 else 0.0
+            return BlendedLines(self._lines[a], self._lines[b], w, (self._sample(a, beam), self._sample(b, beam))), mask
         if self._blend is None:
             self._blend = dev.kernel("blend_lines")
         rows, cols = r.shape
@@ -173,6 +181,17 @@ class ProjectionCache:
         self._blend(dev.queue, (rows * cols,), None, self._lines[volume], self._lines[blend[0]],
                     np.float32(blend[1]), out)
         return out, mask
+
+    def _sample(self, volume: PreparedVolume, beam) -> np.ndarray:
+        """The exposure control's sample of the phase's cached integrals (Caster.sample_lines),
+        gathered from the device once per cast."""
+        lines = self._lines[volume]
+        held = self._samples.get(volume)
+        if held is None or held[0] is not lines:
+            held = self._samples[volume] = (lines, self.renderer.caster.sample_lines(lines, beam))
+            for stale in [v for v in self._samples if v not in self._lines]:
+                del self._samples[stale]
+        return held[1]
 
     # -- frames ----------------------------------------------------------------------------
     def render(self, volume: PreparedVolume, T_xray_from_ct: np.ndarray, view: View,
@@ -201,5 +220,6 @@ class ProjectionCache:
     def clear(self) -> None:
         """Forget every cached projection (a new case, a replaced renderer)."""
         self._lines.clear()
+        self._samples.clear()
         self._pose = None
         self._key = None

@@ -64,7 +64,7 @@ class Frame:
     exposure_factor: float = 1.0        # tube output relative to the reference technique (the dose rate follows it)
     attenuation: float | None = None    # median -ln(I/I0) over the measuring field, as the exposure control saw it
     limited: bool = False               # the exposure control was at its lowest or highest output
-    photons_per_pixel: float = 0.0      # photons per pixel per frame in the measuring field (median)
+    photons_per_pixel: float = 0.0      # photons per pixel per frame in the measuring field (median of its sample)
     window: tuple[float, float] | None = None   # (centre, width) of the display window on -ln(I/I0)
     signal: np.ndarray | None = None    # display frames: the detector signal (after the recursive filter) the LUT was given
     kvp: float | None = None            # the tube voltage the exposure control set (kV); None: the profile's tube.kvp
@@ -164,10 +164,11 @@ class Renderer:
         """Poisson counting noise on a relative intensity image (kernel quantum_noise):
         `image` x `photons_open_field` photons expected per pixel, returned relative to the open
         field again (float32). The same `seed` gives the same noise; None a new one."""
-        out = np.ascontiguousarray(image, dtype=np.float32).copy()
+        image = np.ascontiguousarray(image, dtype=np.float32)
+        out = np.empty_like(image)
         seed = int(self._seeds.integers(2 ** 32)) if seed is None else int(seed) & 0xFFFFFFFF
         with self._lock:
-            buf = self.dev.upload(out, writable=True)
+            buf = self.dev.upload(image, writable=True)     # the upload is the copy the kernel draws into
             args = (buf, np.float32(photons_open_field), np.uint32(seed))
             if self.dev.is_cpu:
                 self._noise(self.dev.queue, (-(-out.size // PACKET),), None, *args, np.int32(out.size))
@@ -255,7 +256,7 @@ class Renderer:
                 gain = detector.gain(view.zoom)
                 exposure = detector.exposure_on_curve(
                     self.caster.sample_lines(lines, beam), None if gain is None else gain.ravel()[beam.sample],
-                    view.zoom, view.mode, lambda kv: self.caster.tables(kv, None, True))
+                    view.zoom, view.mode, lambda kv: self.caster.tables(kv, None, True, nodes=False))
             tables = self.caster.tables(None if exposure is None else exposure.kvp, concentration_factor, view.polychromatic)
             image = self.caster.intensity(lines, tables, view.zoom, view.collimation_mm, circle)
         sigma = detector.focal_blur_px(view.zoom, self.depth_mm(volume, T_xray_from_ct))
@@ -276,7 +277,9 @@ class Renderer:
         image = detector.spread(image, exposed, view.zoom)      # 0 outside `exposed`
         if not display:
             image[~mask] = 0.0
-        measured = float(np.median(image[central])) if central.any() else 0.0
+        # The photon figure reads the control's sample of its measuring field (ABC_SAMPLE_PIXELS:
+        # its median to a few tenths of a per cent), not all of it, a whole-frame partition.
+        measured = float(np.median(image.ravel()[beam.sample])) if len(beam.central_index) else 0.0
         if not display:
             return Frame(image, exposure.factor, exposure.attenuation, exposure.limited, photons * measured,
                          kvp=exposure.kvp, ma=exposure.ma)
@@ -284,11 +287,14 @@ class Renderer:
             image = self.lag.step(image, (view.zoom, view.collimation_mm, image.shape))
         # Half a photon stands in for none, so a pixel that caught nothing reads as very dense.
         floor = 0.5 / photons if view.noise else 1e-12
-        p = -np.log(np.maximum(image, np.float32(floor)))
+        p = np.maximum(image, np.float32(floor))
+        np.log(p, out=p)
+        np.negative(p, out=p)
         pitch = pixel_pitch_at_zoom_mm(self.fluoroscope, view.zoom)
         p = unsharp(p, chain.unsharp_amount, chain.unsharp_sigma_mm / pitch)
         if abc.enabled:
-            centre, width = auto_window(p, mask, central, chain.display_latitude, chain.display_min_window)
+            centre, width = auto_window(p, mask, central, chain.display_latitude, chain.display_min_window,
+                                        (beam.mask_index, beam.central_index))
         else:
             centre, width = self.fluoroscope.display.level, self.fluoroscope.display.window
         width *= view.window_scale
