@@ -130,3 +130,34 @@ def test_a_display_frame_fits_nodes_only_at_the_kv_its_exposure_control_chose(mo
     assert frame.kvp is not None and frame.kvp != fl.tube.kvp       # the search left the reference kV
     assert len(energy_nodes._FITS) == 1
     assert r.caster.tables(frame.kvp, None, True).quadrature is not None
+
+
+def test_a_live_renderer_sums_every_bin_until_its_side_thread_has_fitted_the_kv(monkeypatch):
+    """A live frame at a kV met for the first time does not wait for the fit: it is the exact sum
+    over all 24 bins; once the side thread's fit has come, the same kV is summed at the nodes,
+    within the fit's bound of the exact image."""
+    import appliance.xray.energy_nodes as energy_nodes
+
+    monkeypatch.setattr(energy_nodes, "_FITS", {})
+    base = at_resolution(load_profile(CONFIGS / "generic-flat-detector.yaml", FluoroscopeProfile), 48, 48)
+    exact = Renderer(base.model_copy(update={"energy_nodes": EnergyNodes(enabled=False)}), Materials(), device="cpu")
+    live = Renderer(base, Materials(), device="cpu")
+    live.caster.fit_in_background = True
+    assert live.at_matrix(32, 32).caster.fit_in_background      # the moving matrices are live too
+    vol, _, _ = box_volume((16, 32, 32), (6.0, 6.0, 2.5), (0, 0, 0), (31, 31, 15), hu=700)
+    pose = make_transform(np.eye(3), [0.0, 0.0, 750.0])
+    view = View(quantity="intensity", noise=False)
+    truth = exact.render(exact.prepare(vol), pose, view).image
+    prepared = live.prepare(vol)
+    first = live.render(prepared, pose, view).image
+    kv = float(base.tube.kvp)
+    assert live.caster.tables().device_bins == 24 and live.caster.tables().quadrature is None
+    np.testing.assert_allclose(first, truth, rtol=1e-5, atol=1e-7)
+    live.caster._fitting[kv].result(timeout=60)                  # the side thread's fit, done
+    later = live.render(prepared, pose, view).image
+    tables = live.caster.tables()
+    assert tables.quadrature is not None and tables.device_bins <= 10 and not tables.awaiting_nodes
+    inside = truth > 0
+    assert inside.sum() > 500
+    assert np.abs(later[inside] / truth[inside] - 1.0).max() <= LIMITS.max_relative_error
+    assert np.abs(later[inside] / truth[inside] - 1.0).max() > 0.0     # the nodes, not the bins

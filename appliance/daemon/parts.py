@@ -57,9 +57,13 @@ def rendered_fluoroscope(cfg: ApplianceConfig, fallback: bool = False) -> Fluoro
 
 
 def make_renderer(cfg: ApplianceConfig, device: str = "auto") -> ProgressiveRenderer:
-    """The renderer behind its projection cache and progressive matrix (the `rendering` section)."""
-    return ProgressiveRenderer(Renderer(rendered_fluoroscope(cfg, fallback=device == "cpu"), cfg.case.materials,
-                                        contrast=cfg.case.contrast, device=device), cfg.appliance.rendering)
+    """The renderer behind its projection cache and progressive matrix (the `rendering` section).
+    A live renderer fits a new kV's energy nodes on a side thread: the exposure control moves
+    the kV while the trainee images, and no frame may wait for a fit."""
+    renderer = Renderer(rendered_fluoroscope(cfg, fallback=device == "cpu"), cfg.case.materials,
+                        contrast=cfg.case.contrast, device=device)
+    renderer.caster.fit_in_background = True
+    return ProgressiveRenderer(renderer, cfg.appliance.rendering)
 
 
 def device_label(renderer: Renderer | ProgressiveRenderer) -> str:

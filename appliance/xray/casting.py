@@ -36,7 +36,7 @@ from ..patient.materials import (
 )
 from ..patient.volume import Volume
 from .device import ClDevice
-from .energy_nodes import FIT_FACTORS, NodeQuadrature, fit_nodes
+from .energy_nodes import FIT_FACTORS, NodeQuadrature, fit_nodes, fit_soon
 from .pixel_geometry import (
     field_edge,
     field_mask,
@@ -109,6 +109,9 @@ class DetectorTables:
     mu_buf: cl.Buffer
     device_bins: int = 0
     quadrature: NodeQuadrature | None = None
+    #: Built while its kV's nodes were still being fitted on the side thread: every bin is
+    #: summed until the fit has come, then the tables are built again with the nodes.
+    awaiting_nodes: bool = False
 
     def transmission(self, lines: np.ndarray) -> np.ndarray:
         """I/I0 of (n, 4) material integrals (g/cm^3 * mm), as the polychromatic kernel computes it."""
@@ -176,6 +179,9 @@ class Caster:
         self._mat = np.array([dm.air_max_hu, dm.bone_min_hu, dm.contrast_min_hu, dm.offset[2], dm.slope[2], 0, 0, 0],
                              dtype=np.float32)
         self._mat_buf = dev.upload(self._mat)
+        #: Fit a new kV's energy nodes on a side thread (a live renderer: no frame waits for a
+        #: fit) instead of in the frame that first needs them (offline renders, benches, tests).
+        self.fit_in_background = False
         self.set_fluoroscope(fluoroscope)
 
     def set_fluoroscope(self, fluoroscope: FluoroscopeProfile) -> None:
@@ -187,6 +193,7 @@ class Caster:
         self.mu_water_per_mm = water_mu_per_mm(spectrum.effective_kev)
         self._tables: dict = {}
         self._quads: dict[float, NodeQuadrature | None] = {}
+        self._fitting: dict = {}          # kV -> the side thread's fit of it (fit_in_background)
         self._dirs: dict = {}
         self._masks: dict = {}
 
@@ -204,6 +211,9 @@ class Caster:
         kv = float(tube.kvp) if kvp is None else float(round(kvp))
         factor = None if concentration_factor is None else round(max(float(concentration_factor), 0.0), 4)
         key = (kv, factor, polychromatic, nodes)
+        table = self._tables.get(key)
+        if table is not None and table.awaiting_nodes and (kv not in self._fitting or self._fitting[kv].done()):
+            del self._tables[key]           # the nodes have come: build it again with them
         if key not in self._tables:
             if len(self._tables) > 512:
                 self._tables.clear()
@@ -225,7 +235,8 @@ class Caster:
             quad = self._quadrature(kv, spectrum, weights) if polychromatic and nodes else None
             on_device = (weights, mu) if quad is None else (quad.weights, np.ascontiguousarray(mu[quad.bins]))
             self._tables[key] = DetectorTables(spectrum, weights, mu, self.dev.upload(on_device[0]),
-                                               self.dev.upload(on_device[1]), len(on_device[0]), quad)
+                                               self.dev.upload(on_device[1]), len(on_device[0]), quad,
+                                               awaiting_nodes=polychromatic and nodes and kv in self._fitting)
         return self._tables[key]
 
     def _quadrature(self, kv: float, spectrum: Spectrum, weights: np.ndarray) -> NodeQuadrature | None:
@@ -234,11 +245,19 @@ class Caster:
         limits = self.fluoroscope.energy_nodes
         if not limits.enabled:
             return None
+        if kv in self._fitting:
+            if not self._fitting[kv].done():
+                return None
+            self._quads[kv] = self._fitting.pop(kv).result()
         if kv not in self._quads:
             c = self.contrast
             mus = [mass_attenuation(spectrum.energies_kev, None if f == 0.0 or c is None else Contrast(
                 agent=c.agent, concentration_mg_per_ml=c.concentration_mg_per_ml * f)) for f in FIT_FACTORS]
-            self._quads[kv] = fit_nodes(weights, mus if c is not None else mus[:1], limits)
+            mus = mus if c is not None else mus[:1]
+            if self.fit_in_background:
+                self._fitting[kv] = fit_soon(weights, mus, limits)
+                return None
+            self._quads[kv] = fit_nodes(weights, mus, limits)
         return self._quads[kv]
 
     @property

@@ -204,6 +204,7 @@ class Renderer:
             other._matrices = {}
             fl = at_resolution(self.fluoroscope, columns, rows)
             other.caster = Caster(self.dev, fl, self.materials, self.contrast, self.packet)
+            other.caster.fit_in_background = self.caster.fit_in_background
             other._adopt(fl)
             self._matrices[key] = other
         return self._matrices[key]
