@@ -108,13 +108,16 @@ def test_the_kernel_sums_the_nodes_and_matches_every_bin():
 
 
 def test_a_node_count_out_of_range_is_refused_with_its_line(tmp_path):
-    text = (CONFIGS / "generic-flat-detector.yaml").read_text() + "energy_nodes:\n  max_nodes: 30\n"
+    good = (CONFIGS / "generic-flat-detector.yaml").read_text()
+    assert "  max_nodes: 12 " in good
+    text = good.replace("  max_nodes: 12 ", "  max_nodes: 30 ", 1)
+    line = text[:text.index("  max_nodes: 30")].count("\n") + 1
     bad = tmp_path / "bad.yaml"
     bad.write_text(text)
     with pytest.raises(ProfileProblems) as err:
         load_profile(bad, FluoroscopeProfile)
     message = str(err.value)
-    assert "energy_nodes.max_nodes" in message and f"bad.yaml:{text.count(chr(10))}" in message
+    assert "energy_nodes.max_nodes" in message and f"bad.yaml:{line}" in message
 
 
 def test_a_display_frame_fits_nodes_only_at_the_kv_its_exposure_control_chose(monkeypatch):
