@@ -142,10 +142,10 @@ def test_a_bad_edge_width_is_one_line_naming_the_field(tmp_path, value):
     from appliance.config import ProfileProblems
 
     text = (CONFIGS / "generic-ii-carm.yaml").read_text()
-    assert "  voxel_edge_px: 1.0" in text
+    assert "  voxel_edge_px: 4.0" in text
     path = tmp_path / "fluoroscopes" / "f.yaml"
     path.parent.mkdir()
-    path.write_text(text.replace("  voxel_edge_px: 1.0", f"  voxel_edge_px: {value}", 1))
+    path.write_text(text.replace("  voxel_edge_px: 4.0", f"  voxel_edge_px: {value}", 1))
     with pytest.raises(ProfileProblems) as e:
         load_profile(path, FluoroscopeProfile)
     (problem,) = e.value.problems
