@@ -66,12 +66,12 @@ def test_before_any_band_no_gap_is_counted():
     assert bands(0.5, True, []).longest_gap_s == 0.0
 
 
-def test_a_cancel_at_the_first_ask_ends_the_save_with_no_wait():
-    for live in (True, False):
-        clock, asked = Clock(), []
-        pacer = SavePacer(0.5, lambda: asked.append(clock.t) or True, lambda: live, clock, clock.sleep)
-        clock.sleep(0.06)
-        assert pacer() is True and clock.t == pytest.approx(0.06) and len(asked) == 1
+@pytest.mark.parametrize("live", [True, False])
+def test_a_cancel_at_the_first_ask_ends_the_save_with_no_wait(live):
+    clock, asked = Clock(), []
+    pacer = SavePacer(0.5, lambda: asked.append(clock.t) or True, lambda: live, clock, clock.sleep)
+    clock.sleep(0.06)
+    assert pacer() is True and clock.t == pytest.approx(0.06) and len(asked) == 1
 
 
 @pytest.fixture(scope="module")
