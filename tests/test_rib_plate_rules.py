@@ -62,3 +62,17 @@ def test_only_bone_is_returned_though_the_widening_bridges_a_gap():
     cut = plates(bone, 1.0, (1.0, 1.0), 15.0, 3.0)
     assert cut[20:60, 10, 6:14].all() and cut[20:60, 13, 6:14].all()
     assert not cut[~bone].any()
+
+
+def test_a_short_piece_beside_a_plate_keeps_its_voxels_at_the_edge_of_the_bone():
+    """A plate one column (1 mm) thick and 50 mm tall, and 3 mm beside it a piece 4 mm tall (a
+    rib's end), the outermost bone along x. Widened by 3 mm the two touch, so the piece's
+    columns stand tall; shrunk back, the columns 1-3 mm beyond the piece (outside the bone's
+    extent) hold only the piece widened, 4 mm tall, so the piece is not cut. Measured as if
+    the bone stopped at the piece (its far side mirrored), it would be cut with the plate."""
+    bone = np.zeros((60, 20, 30), bool)
+    bone[5:55, 5:16, 20] = True
+    bone[28:32, 8:13, 23] = True
+    cut = plates(bone, 1.0, (1.0, 1.0), 15.0, 3.0)
+    assert cut[10:50, 5:16, 20].all()
+    assert not cut[28:32, 8:13, 23].any()
