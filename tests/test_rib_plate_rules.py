@@ -12,6 +12,7 @@ import math
 
 import numpy as np
 
+from appliance.config.case import Respiration
 from appliance.patient.breathing_motion import plates
 
 
@@ -76,3 +77,17 @@ def test_a_short_piece_beside_a_plate_keeps_its_voxels_at_the_edge_of_the_bone()
     cut = plates(bone, 1.0, (1.0, 1.0), 15.0, 3.0)
     assert cut[10:50, 5:16, 20].all()
     assert not cut[28:32, 8:13, 23].any()
+
+
+def test_the_defaults_tell_a_sloping_rib_from_a_leaning_scapula():
+    """respiration's defaults (a 15 mm limit, 3 mm widening) on 1 mm voxels. A rib 10 mm across
+    rising 20 degrees: its vertical runs are 10 / cos 20 = 10.6 mm, and widened 3 mm each way
+    along its run the rise adds 2 x 3 tan 20 = 2.2 mm: 12.8 mm, under the limit, so it is not
+    cut. A scapula 2 mm thick leaning 15 degrees: widened, (2 + 6) / tan 15 = 29.9 mm, over it."""
+    p = Respiration()
+    k, j, i = np.meshgrid(np.arange(80) * 1.0, np.arange(40) * 1.0, np.arange(120) * 1.0, indexing="ij")
+    axis_z = 40.0 + math.tan(math.radians(20.0)) * (i - 60.0)
+    rib = (np.hypot((k - axis_z) * math.cos(math.radians(20.0)), j - 20.0) <= 5.0) & (np.abs(i - 60.0) <= 50.0)
+    assert not plates(rib, 1.0, (1.0, 1.0), p.rib_max_height_mm, p.rib_plate_widen_mm).any()
+    plate, middle = leaning_plate(spacing_x=1.0, spacing_y=1.0)
+    assert plates(plate, 1.0, (1.0, 1.0), p.rib_max_height_mm, p.rib_plate_widen_mm)[middle].all()
