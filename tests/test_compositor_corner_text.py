@@ -106,3 +106,36 @@ def test_the_top_left_lines_stand_one_line_pitch_apart(size):
     # The first letter of each line begins a margin in (its stroke's anti-aliased edge aside).
     cols = np.nonzero(ink.any(axis=0))[0]
     assert margin - stroke <= cols.min() <= margin + stroke
+
+
+def texts_of(comp: Compositor, overlay: Overlay) -> dict[str, object]:
+    return {t.text: t for t in comp.text_layout(overlay, now=0.0)}
+
+
+def test_the_corner_lines_read_the_overlay_as_written():
+    """What each corner says, typed here from the overlay: the mode in capitals, the technique
+    in whole kV and tenths of mA, the labels in capitals, the breathing line as given, and the
+    air kerma rate while exposing however small it is."""
+    comp = Compositor(1280, 1024)
+    lines = texts_of(comp, Overlay(live=True, mode="pulsed 15", technique=(81.4, 2.34), air_kerma_mgy=1.0,
+                                   air_kerma_rate_mgy_per_min=0.4, invert=True, breathing="BREATHING 12/min"))
+    for text in ("PULSED 15", "81 kV   2.3 mA", "AIR KERMA  1.00 mGy   0.4 mGy/min", "INVERT", "BREATHING 12/min", "LIVE"):
+        assert text in lines, (text, sorted(lines))
+    held = texts_of(comp, Overlay(live=False, breath_hold=True, breathing="BREATHING 12/min"))
+    assert "BREATH HOLD" in held and "BREATHING 12/min" not in held and "HOLD" in held
+
+
+def test_the_labels_stand_half_a_margin_above_the_live_marker_right_aligned():
+    """On 1280 x 1024 (margin 11 px): the lowest label's text ends (its baseline plus OpenCV's
+    depth of it) 5 px above the top of the LIVE marker's box; each label ends a margin from the
+    right edge; the next label one line (34 px) higher."""
+    line, stroke, margin = SCREENS[(1280, 1024)]
+    comp = Compositor(1280, 1024)
+    lines = texts_of(comp, Overlay(live=True, invert=True, breath_hold=True))
+    live, invert, hold = lines["LIVE"], lines["INVERT"], lines["BREATH HOLD"]
+    scale = cv2.getFontScaleFromHeight(FONT, round(line * 0.55), stroke)
+    (w_inv, _), base_inv = cv2.getTextSize("INVERT", FONT, scale, stroke)
+    (w_hold, _), base_hold = cv2.getTextSize("BREATH HOLD", FONT, scale, stroke)
+    assert invert.org[1] + base_inv == live.box[1] - margin // 2
+    assert invert.org[0] + w_inv == 1280 - margin and hold.org[0] + w_hold == 1280 - margin
+    assert (invert.org[1] + base_inv) - (hold.org[1] + base_hold) == line
