@@ -139,3 +139,24 @@ def test_the_labels_stand_half_a_margin_above_the_live_marker_right_aligned():
     assert invert.org[1] + base_inv == live.box[1] - margin // 2
     assert invert.org[0] + w_inv == 1280 - margin and hold.org[0] + w_hold == 1280 - margin
     assert (invert.org[1] + base_inv) - (hold.org[1] + base_hold) == line
+
+
+@pytest.mark.parametrize("live, fill", [(True, (255, 214, 0)), (False, (60, 60, 60))])
+def test_the_markers_box_is_padded_by_its_stroke_and_a_pixel(live, fill):
+    """On 640 x 512 (line 17 px, stroke 1, the marker's 2, margin 6, inset 3): the marker's
+    baseline 9 px in from the right and bottom less its width and depth; its box padded by its
+    stroke plus one (3 px) round OpenCV's measure of it, and widened half a margin (3 px) each
+    side: the filled pixels span exactly that, read from the screen."""
+    comp = Compositor(640, 512)
+    text = "LIVE" if live else "HOLD"
+    font = cv2.FONT_HERSHEY_DUPLEX
+    scale = cv2.getFontScaleFromHeight(font, 14, 2)
+    (w, h), base = cv2.getTextSize(text, font, scale, 2)
+    org = (640 - 9 - w, 512 - 9 - base)
+    frame = comp.compose(DARK, Overlay(live=live), now=0.0)
+    filled = np.all(frame == fill, axis=2)
+    filled[:, :320] = False                                  # the bottom-right corner only
+    filled[:256] = False
+    rows, cols = np.nonzero(filled)
+    assert (cols.min(), cols.max()) == (org[0] - 3 - 3, org[0] + w + 3 + 3)
+    assert (rows.min(), rows.max()) == (org[1] - h - 3, org[1] + base + 3)
