@@ -65,21 +65,27 @@ def main() -> int:
         print("no mutation results: run `mutmut run` first", file=sys.stderr)
         return 2
     ok = True
-    print(f"{'module':40s} {'mutants':>7s} {'killed':>7s} {'equiv':>6s} {'other':>6s} {'score':>6s}")
+    print(f"{'module':40s} {'mutants':>7s} {'run':>6s} {'killed':>7s} {'equiv':>6s} {'other':>6s} {'score':>6s}")
     for module, by_status in sorted(per_module.items()):
         total = sum(len(v) for v in by_status.values())
+        # A run stopped part way (or a mutant mutmut never reached) leaves "not checked": those
+        # are counted apart, as not run, and the score is over the mutants that ran; the target
+        # still fails until every one has run.
+        not_run = len(by_status.get("not checked", []))
         # A mutant whose tests hang or crash the interpreter (segfault: OpenCV handed None for an
         # array) is caught as surely as one that fails them.
         caught = ("killed", "timeout", "segfault")
         killed = sum(len(by_status.get(s, [])) for s in caught)
-        survivors = [n for s, names in by_status.items() if s not in caught for n in names]
+        survivors = [n for s, names in by_status.items() if s not in (*caught, "not checked") for n in names]
         equiv = [n for n in survivors if n in equivalent]
         unexplained = [n for n in survivors if n not in equivalent]
-        score = killed / max(total - len(equiv), 1)
-        print(f"{module:40s} {total:7d} {killed:7d} {len(equiv):6d} {len(unexplained):6d} {score:6.1%}")
+        score = killed / max(total - not_run - len(equiv), 1)
+        print(f"{module:40s} {total:7d} {total - not_run:6d} {killed:7d} {len(equiv):6d} {len(unexplained):6d} {score:6.1%}")
         for name in unexplained:
             print(f"    unexplained: {name} ({next(s for s, v in by_status.items() if name in v)})")
-        ok &= score >= BAR and not unexplained
+        if not_run:
+            print(f"    not run: {not_run} mutants")
+        ok &= score >= BAR and not unexplained and not not_run
     return 0 if ok else 1
 
 
