@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 
@@ -30,3 +31,27 @@ def test_the_first_frames_of_a_run_read_their_true_rate():
     stats.add(5.04, 0.05)                    # 25 fps from the second frame on
     assert stats.fps(5.04) == pytest.approx(25.0)
     assert fps_text(stats.fps(5.04)) == "25.0 fps"
+
+
+def test_the_rate_while_exposing_counts_continuous_frames_within_their_runs_only():
+    """Hand-worked: run 1, continuous, 1 s of frames at 10 fps; the pedal up for 3 s; run 2, 1 s
+    at 20 fps with one 0.4 s stall in it (the appliance's, so it counts); run 3 pulsed at 7.5
+    pulses a second for 2 s. Exposing continuously: (10 + 19) intervals over 1 + 1.3 s."""
+    from appliance.daemon.frame_stats import FrameStats
+    stats = FrameStats()
+    for k in range(11):
+        stats.add(0.1 * k, 0.05, continuous_run=1)
+    run2 = [4.0 + 0.05 * k for k in range(10)] + [4.45 + 0.4 + 0.05 * k for k in range(10)]   # 4.0 .. 5.3 s
+    for t in run2:
+        stats.add(t, 0.05, continuous_run=2)
+    pulsed = [6.0 + k / 7.5 for k in range(1, 16)]          # 6.133 .. 8.0 s
+    for t in pulsed:
+        stats.add(t, 0.05)
+    s = stats.summary()
+    assert s["fps_exposing"] == pytest.approx((10 + 19) / (1.0 + 1.3))
+    assert s["frames"] == 11 + 20 + 15
+    assert s["fps"] == pytest.approx((11 + 20 + 15 - 1) / 8.0)
+    empty = FrameStats()
+    empty.add(1.0, 0.05)
+    empty.add(1.1, 0.05)                                      # pulsed only: no continuous rate
+    assert np.isnan(empty.summary()["fps_exposing"])

@@ -216,7 +216,8 @@ def summary_lines(app, run_s: float, shots, sheet_path, exports, missing: list[s
     state, _ = app.console_state.get()
     lines = [
         f"frames on screen:   {int(s['frames'])} live in {run_s:.1f} s",
-        f"frame rate:         {s['fps']:.1f} fps",
+        f"frame rate:         {s['fps']:.1f} fps over the session; {s['fps_exposing']:.1f} fps while exposing in a "
+        "continuous mode (pulsed modes show their pulse rate)",
         f"latency:            median {s['latency_median_ms']:.0f} ms, p99 {s['latency_p99_ms']:.0f} ms "
         "(camera frame to framebuffer write)",
     ]

@@ -190,7 +190,7 @@ class RenderWorker(Worker):
         latency = None
         if live and tracked is not None and self._image is not None and self._image_T is not None:
             latency = t_shown - tracked.t_frame
-            self.stats.add(t_shown, latency)
+            self.stats.add(t_shown, latency, state.runs if state.pulse_rate_per_s is None else None)
             if tracked.t_picked is not None and tracked.t_tracked is not None:
                 self.stages.add(FrameStamps(tracked.t_frame, tracked.t_picked, tracked.t_tracked, tracked.filter_s,
                                             now, t_rendered, t_compose, t_composed, t_shown))
