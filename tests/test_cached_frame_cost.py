@@ -5,17 +5,16 @@ closed-form chords and against a control that gathers afresh."""
 import numpy as np
 import pytest
 
+# The projection cache's own scene: its grid and its oblique pose.
+from test_projection_cache import POSE, SHAPE, SPACING
+
 from appliance.config.case import Contrast, Materials
-from appliance.geometry import make_transform, rotation_about
 from appliance.patient.materials import density_model
 from appliance.xray.bench import flat_profile
 from appliance.xray.casting import BlendedLines
 from appliance.xray.projection_cache import ProjectionCache
 from appliance.xray.renderer import Renderer, View, zoomed_K
 from appliance.xray.truth.analytic import box_chords, box_volume, pixel_rays_ct
-
-SHAPE, SPACING = (40, 48, 48), (1.5, 1.25, 2.0)
-POSE = make_transform(rotation_about([1.0, 0.4, -0.3], np.radians(25)), [-5.0, 6.0, 700.0])
 
 
 @pytest.fixture(scope="module")

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_native_save import Clock
 
 from appliance.config.appliance import Daemon
 from appliance.config.case import Materials
@@ -27,17 +28,6 @@ from appliance.xray.renderer import Renderer, View, at_resolution
 from appliance.xray.truth.analytic import box_volume
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-class Clock:
-    def __init__(self):
-        self.t = 0.0
-
-    def __call__(self) -> float:
-        return self.t
-
-    def sleep(self, s: float) -> None:
-        self.t += s
 
 
 def bands(share: float, live: bool, lengths_s: list[float]) -> SavePacer:
