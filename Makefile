@@ -6,7 +6,9 @@
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
-# Debian packages: libsystemd-dev and pkg-config build systemd-python; dicom3tools gives
+# Debian packages: libsystemd-dev and pkg-config build systemd-python; pocl-opencl-icd is a
+# second CPU OpenCL whose compiler targets processors newer than the LLVM of the PoCL wheel
+# (which refuses to build anything there: 'unknown target CPU generic'); dicom3tools gives
 # dciodvfy, which checks exported dose reports; systemd gives systemd-analyze for unit checks;
 # gcc and linux-libc-dev let a test check the framebuffer structs against <linux/fb.h>;
 # alsa-utils gives aplay, which sounds the fluoroscopy-time alarm; dcmtk gives dsrdump and
@@ -15,7 +17,7 @@ BIN    := $(VENV)/bin
 # (iproute2 brings its lo up); openssl makes the certificates of the DICOM-over-TLS test;
 # grub-common gives Debian's grub.d scripts, grub-mkpasswd-pbkdf2 and grub-script-check, which
 # make and parse the locked boot menu provisioning writes.
-APT_PACKAGES := libsystemd-dev pkg-config dicom3tools systemd python3-venv gcc linux-libc-dev alsa-utils dcmtk orthanc iproute2 openssl grub-common
+APT_PACKAGES := libsystemd-dev pkg-config pocl-opencl-icd dicom3tools systemd python3-venv gcc linux-libc-dev alsa-utils dcmtk orthanc iproute2 openssl grub-common
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 .PHONY: demo test lint setup system-packages bench mutation mutation-console mutation-display clean

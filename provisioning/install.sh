@@ -32,6 +32,7 @@ APT_PACKAGES=(
     libsystemd-dev                                    # sd_notify and the journal from Python
     libhidapi-hidraw0 libusb-1.0-0                    # HID keypads
     ocl-icd-libopencl1                                # OpenCL loader for a GPU's ICD
+    pocl-opencl-icd                                   # the CPU's OpenCL where no GPU is, on any processor
     v4l-utils                                         # v4l2-ctl, to check the webcam
     alsa-utils                                        # the fluoroscopy time alarm
     fbset                                             # to check and set the framebuffer mode

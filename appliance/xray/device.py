@@ -16,7 +16,10 @@ from ..errors import FluorosimError
 
 
 def pick_device(device: str):
-    """An OpenCL device: "auto" prefers a GPU and falls back to PoCL's CPU device; "cpu" PoCL only."""
+    """An OpenCL device: "auto" prefers a GPU and falls back to PoCL's CPU device; "cpu" PoCL only.
+
+    Of several, the first whose compiler can build for this machine.
+    """
     import pyopencl as cl
 
     try:
@@ -40,7 +43,41 @@ def pick_device(device: str):
     if not choice:
         raise FluorosimError(f"no OpenCL {'device' if device == 'auto' else device + ' device'} found; "
                              "install PoCL (pip install 'pyopencl[pocl]') or the GPU's OpenCL driver")
-    return choice[0]
+    refusals = []
+    for d in choice:
+        why = _cannot_compile(d)
+        if why is None:
+            return d
+        refusals.append(f"{d.name.strip()} ({d.platform.version.strip()}): {why}")
+    raise FluorosimError("no OpenCL device here can compile kernels for this machine ("
+                         + "; ".join(refusals) + "); install Debian's pocl-opencl-icd (make setup does) "
+                         "or a PoCL whose LLVM knows this processor")
+
+
+_PROBE_KERNEL = "__kernel void probe(__global float *a) { a[get_global_id(0)] *= 2.0f; }"
+_compile_checked: dict[int, str | None] = {}
+
+
+def _cannot_compile(d) -> str | None:
+    """Why device `d` cannot build a kernel, or None if it can.
+
+    A PoCL is built against one LLVM, which names the host processor for code generation; on a
+    processor newer than that LLVM (PoCL 3.0's LLVM 14 on an AMD family 1Ah EPYC, say) it
+    names it 'generic', which LLVM's x86 back end refuses, so every build fails. Another PoCL
+    on the same machine (Debian's picks a kernel-library target by the processor's features)
+    may build fine: the first device that builds a trivial kernel is the one used.
+    """
+    import pyopencl as cl
+
+    key = d.int_ptr
+    if key not in _compile_checked:
+        try:
+            cl.Program(cl.Context([d]), _PROBE_KERNEL).build()
+            _compile_checked[key] = None
+        except cl.Error as e:
+            lines = [ln.strip() for ln in str(e).splitlines() if "error:" in ln]
+            _compile_checked[key] = lines[0] if lines else str(e).splitlines()[0]
+    return _compile_checked[key]
 
 
 class ClDevice:
