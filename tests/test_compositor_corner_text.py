@@ -143,16 +143,17 @@ def test_the_labels_stand_half_a_margin_above_the_live_marker_right_aligned():
 
 @pytest.mark.parametrize("live, fill", [(True, (255, 214, 0)), (False, (60, 60, 60))])
 def test_the_markers_box_is_padded_by_its_stroke_and_a_pixel(live, fill):
-    """On 640 x 512 (line 17 px, stroke 1, the marker's 2, margin 6, inset 3): the marker's
-    baseline 9 px in from the right and bottom less its width and depth; its box padded by its
-    stroke plus one (3 px) round OpenCV's measure of it, and widened half a margin (3 px) each
-    side: the filled pixels span exactly that, read from the screen."""
+    """On 640 x 512 (line 17 px, stroke 1, the marker's 2, margin 6, inset 3): the marker ends
+    9 px in from the right and stands on the dose line's baseline, a margin above that line's
+    depth; its box padded by its stroke plus one (3 px) round OpenCV's measure of it, and widened
+    half a margin (3 px) each side: the filled pixels span exactly that, read from the screen."""
     comp = Compositor(640, 512)
     text = "LIVE" if live else "HOLD"
     font = cv2.FONT_HERSHEY_DUPLEX
     scale = cv2.getFontScaleFromHeight(font, 14, 2)
     (w, h), base = cv2.getTextSize(text, font, scale, 2)
-    org = (640 - 9 - w, 512 - 9 - base)
+    _, dose_depth = cv2.getTextSize("DAP  0.000 Gy cm", FONT, cv2.getFontScaleFromHeight(FONT, 9, 1), 1)
+    org = (640 - 9 - w, 512 - 6 - dose_depth)
     frame = comp.compose(DARK, Overlay(live=live), now=0.0)
     filled = np.all(frame == fill, axis=2)
     filled[:, :320] = False                                  # the bottom-right corner only
@@ -160,3 +161,28 @@ def test_the_markers_box_is_padded_by_its_stroke_and_a_pixel(live, fill):
     rows, cols = np.nonzero(filled)
     assert (cols.min(), cols.max()) == (org[0] - 3 - 3, org[0] + w + 3 + 3)
     assert (rows.min(), rows.max()) == (org[1] - h - 3, org[1] + base + 3)
+
+
+@pytest.mark.parametrize("size", [*SCREENS, (640, 512)])
+@pytest.mark.parametrize("live", [True, False])
+def test_the_bottom_corners_stand_on_one_baseline(size, live):
+    """Read from the screen: the lowest row of the capitals "DAP" (bottom left, white) and of the
+    marker's letters (bottom right: white HOLD on grey, or black LIVE on yellow) is the same
+    row, to a pixel (the marker's stroke is one pixel wider, half of it below the baseline)."""
+    width, height = size
+    comp = Compositor(width, height)
+    frame = comp.compose(DARK, Overlay(live=live), now=0.0)
+    dap = next(t for t in comp.text_layout(Overlay(live=live), now=0.0) if t.text.startswith("DAP"))
+    x0, y0, x1, y1 = dap.box
+    (w_dap, _), _ = cv2.getTextSize("DAP", FONT, dap.scale, dap.thickness)
+    left = lit(frame)[y0:y1, x0:dap.org[0] + w_dap]
+    marker = next(t for t in comp.text_layout(Overlay(live=live), now=0.0) if t.text in ("LIVE", "HOLD"))
+    mx0, my0, mx1, my1 = marker.box
+    box = frame[my0:my1, mx0:mx1].astype(int)
+    if live:
+        letters = (box < 100).all(axis=2)          # black ink on the yellow box
+    else:
+        letters = (box > 200).all(axis=2)          # white ink on the grey box
+    feet_left = y0 + rows_of(left).max()
+    feet_right = my0 + rows_of(letters).max()
+    assert abs(feet_left - feet_right) <= 1, (feet_left, feet_right)

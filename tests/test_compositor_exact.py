@@ -376,15 +376,17 @@ def test_a_larger_image_is_averaged_down_and_a_smaller_one_interpolated_up():
 @pytest.mark.parametrize("live, fill, ink", [(True, (255, 214, 0), (0, 0, 0)), (False, (60, 60, 60), (255, 255, 255))])
 def test_the_live_and_hold_markers_are_lettered_in_the_bold_face(live, fill, ink):
     # Worked from the layout's rules on 640 x 512, not read from it: a line pitch of 512 / 30 -> 17
-    # px, thickness 1 (the marker's 2), margin 6 and the marker's inset 3, so its baseline sits
-    # 9 px in from the right and bottom edges less its width and depth; its letters are
-    # Hershey duplex 0.85 of a line (14 px) high, in a box padded 3 px, widened half a margin.
+    # px, thickness 1 (the marker's 2), margin 6 and the marker's inset 3, so it ends 9 px in from
+    # the right edge; it stands on the dose line's baseline, a margin (6 px) above that line's
+    # depth (its text in Hershey simplex 0.55 of a line, 9 px, high); its letters are Hershey
+    # duplex 0.85 of a line (14 px) high, in a box padded 3 px, widened half a margin.
     comp = Compositor(640, SIDE)
     text = "LIVE" if live else "HOLD"
     font = cv2.FONT_HERSHEY_DUPLEX
     scale = cv2.getFontScaleFromHeight(font, 14, 2)
     (w, h), base = cv2.getTextSize(text, font, scale, 2)
-    org = (640 - 9 - w, SIDE - 9 - base)
+    _, dose_depth = cv2.getTextSize("DAP  0.000 Gy cm", FONT, cv2.getFontScaleFromHeight(FONT, 9, 1), 1)
+    org = (640 - 9 - w, SIDE - 6 - dose_depth)
     x0, y0, x1, y1 = org[0] - 3, org[1] - h - 3, org[0] + w + 3, org[1] + base + 3
     expected = np.zeros((SIDE, 640, 3), np.uint8)
     cv2.rectangle(expected, (x0 - 3, y0), (x1 + 3, y1), fill, thickness=-1)

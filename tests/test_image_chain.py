@@ -349,6 +349,39 @@ def test_bar_pattern_limiting_resolution_follows_the_profile_and_rises_with_zoom
     assert figures[1][1] > 1.5 * figures[0][1]
 
 
+def test_flat_detector_bar_pattern_at_zoom_4_reads_the_profiles_limiting_resolution():
+    """The flat panel's zoom 4 (0.118 mm pixels, Nyquist 4.22 lp/mm): the stated 3.4 lp/mm
+    within 20 %, below the matrix's Nyquist frequency. Its finest groups lie 0.045-0.06 rad off
+    the axis, where Joseph steps along the pattern's 0.02 mm axis and samples across the
+    plate's faces (test_joseph_bone_faces): misread there, they stayed modulated to Nyquist."""
+    fd = load_profile(CONFIGS / "generic-flat-detector.yaml", FluoroscopeProfile)
+    (zoom, measured, stated), = bar_pattern.resolution_per_zoom(fd, "cpu", zooms=(4,))
+    nyquist = 0.5 / (fd.detector.pixel_pitch_mm * fd.zoom_levels[3].fov_mm / fd.zoom_levels[0].fov_mm)
+    assert measured == pytest.approx(stated, rel=0.2)
+    assert measured < 0.95 * nyquist
+
+
+def test_bar_groups_the_field_cuts_are_left_out():
+    """A row holding each group's fundamental at modulation 0.5 (I = 1 + 0.5 sin), the columns of
+    the coarsest group's first half outside the beam (0): that group is not measured, and
+    every other reads 0.5."""
+    groups = bar_pattern.layout()
+    scale = 10.0                                       # columns per mm, the pattern from column 100
+    x0 = groups[0][1]
+    cols = np.arange(int((groups[-1][2] - x0) * scale) + 200, dtype=float)
+    x = x0 + (cols - 100) / scale
+    row = np.ones_like(x)
+    for f, a, b in groups:
+        inside = (x >= a) & (x < b)
+        row[inside] = 1.0 + 0.5 * np.sin(2 * np.pi * f * (x[inside] - a))
+    row[x < 0.5 * (groups[0][1] + groups[0][2])] = 0.0
+    mods = bar_pattern.modulations(row, lambda xm: 100 + (xm - x0) * scale, 1.0, nyquist_lp_per_mm=scale / 2)
+    assert mods[0][0] == pytest.approx(groups[1][0])
+    measured = [m for f, m in mods if f < 0.8 * scale / 2]     # well below Nyquist: 6 columns a period or more
+    assert len(measured) > 10
+    np.testing.assert_allclose(measured, 0.5, rtol=0.02)
+
+
 def test_window_and_level_keys_reach_the_view():
     """F6 twice: the window 1.25^2 wider; F8: the level a twentieth of the width up; KP8 back to
     the automatic window. The exposure goes on: no dose event, no new run."""

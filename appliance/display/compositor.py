@@ -128,9 +128,10 @@ class Compositor:
     # ------------------------------------------------------------------ layout
 
     def _corner_lines(self, texts: list[tuple], corner: str, scale: float | None = None, font: int = FONT,
-                      thickness: int | None = None, inset: int = 0) -> list[TextLine]:
+                      thickness: int | None = None, inset: int = 0, baseline: int | None = None) -> list[TextLine]:
         """Lay out lines, (text, colour[, superscript]), in a screen corner ('tl', 'tr', 'bl', 'br'),
-        the first line nearest the corner, `inset` pixels further in than the margin."""
+        the first line nearest the corner, `inset` pixels further in than the margin; in a bottom
+        corner the first line on `baseline` (screen row) if given, else a margin above its depth."""
         scale = scale or self.scale
         thickness = thickness or self.thickness
         laid = []
@@ -143,7 +144,7 @@ class Compositor:
             if corner[0] == "t":
                 y = edge + h + i * pitch
             else:
-                y = self.height - edge - base - i * pitch
+                y = (self.height - edge - base if baseline is None else baseline) - i * pitch
             laid.append(TextLine(text, (x, y), scale, color, font, thickness, sup))
         return laid
 
@@ -193,10 +194,13 @@ class Compositor:
             left.append((f"SHOTS  {overlay.shots}", WHITE))
         if overlay.task:
             left.append((overlay.task.upper(), GREEN))
-        texts += self._corner_lines(left, "bl")
+        left = self._corner_lines(left, "bl")
+        texts += left
+        # The marker stands on the dose lines' baseline: its own depth (OpenCV measures it by
+        # the glyphs present, and the dose line's "Gy" descends) and inset would set it higher.
         marker = [("LIVE" if overlay.live else "HOLD", BLACK if overlay.live else WHITE)]
         texts += self._corner_lines(marker, "br", scale=self.big_scale, font=FONT_BOLD, thickness=self.thickness + 1,
-                                    inset=self.margin // 2)
+                                    inset=self.margin // 2, baseline=left[0].org[1])
         extra = []
         if overlay.invert:
             extra.append(("INVERT", WHITE))

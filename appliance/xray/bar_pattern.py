@@ -105,7 +105,8 @@ def modulations(profile_line: np.ndarray, u_of_x, magnification: float,
                 nyquist_lp_per_mm: float) -> list[tuple[float, float]]:
     """(frequency at the detector lp/mm, modulation of the fundamental) of each group along a
     row of the image; `u_of_x(x_mm)` gives the column of an object point, fractional. Groups
-    above the matrix's Nyquist frequency alias into coarser false bars and are left out."""
+    above the matrix's Nyquist frequency alias into coarser false bars and are left out, as are
+    groups not wholly inside the beam."""
     out = []
     cols = np.arange(profile_line.size, dtype=float)
     for f, a, b in layout():
@@ -113,7 +114,9 @@ def modulations(profile_line: np.ndarray, u_of_x, magnification: float,
             break
         ua, ub = sorted((u_of_x(a + 0.5 / f), u_of_x(b - 0.5 / f)))    # half a pair in from each end
         sel = (cols >= math.ceil(ua)) & (cols <= math.floor(ub))
-        if sel.sum() < 6:
+        # A group the field cuts (zero signal beyond the beam's edge) would read the edge's step
+        # as its bars' modulation: only groups wholly in the beam count.
+        if sel.sum() < 6 or ua < 0 or ub > profile_line.size - 1 or not np.all(profile_line[sel] > 0):
             continue
         # Object x of each column, then a sinusoid of the group's frequency fitted to it.
         xs = np.interp(cols[sel], [u_of_x(a), u_of_x(b)], [a, b]) if u_of_x(b) > u_of_x(a) else \
