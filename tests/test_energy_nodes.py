@@ -224,6 +224,10 @@ def test_a_side_threads_fit_is_kept_for_the_process(monkeypatch):
     q = energy_nodes.fit_soon(w, mus, LIMITS).result(timeout=60)
     assert q is not None and len(energy_nodes._FITS) == 1
     assert energy_nodes.fit_nodes(w, mus, LIMITS) is q
+    # Another kV's fit beside it does not push it out (the process keeps up to 256).
+    _, w60, _ = tables(60.0)
+    assert energy_nodes.fit_nodes(w60, [tables(60.0, f)[2] for f in (0.0, 0.5, 1.0)], LIMITS) is not None
+    assert len(energy_nodes._FITS) == 2 and energy_nodes.fit_nodes(w, mus, LIMITS) is q
 
 
 def test_a_renderer_with_contrast_fits_its_nodes_to_the_iodine_too():
