@@ -10,10 +10,11 @@ from appliance.display.compositor import Compositor, Overlay
 from drivers.pixel_format import PixelFormat
 
 
-@pytest.mark.parametrize("width, height", [(320, 256), (256, 320)])
+@pytest.mark.parametrize("width, height", [(320, 256), (256, 320), (256, 108), (108, 256)])
 def test_a_reused_screen_shows_exactly_what_a_fresh_one_does(width, height):
     """On a landscape screen the image square has borders left and right, on a portrait one
-    above and below: whatever the busy frame drew there is cleared for the next."""
+    above and below: whatever the busy frame drew there is cleared for the next. A 21:9 screen
+    (256 x 108, as 2560 x 1080) has borders wider than half the square, and so has its portrait."""
     comp = Compositor(width, height)
     rng = np.random.default_rng(4)
     busy = Overlay(live=True, case="Adult chest", operator="A. Trainee", fluoroscope="Generic", alarm=True,
