@@ -408,6 +408,14 @@ def test_before_the_first_image_the_field_is_dark_grey_and_says_starting_in_its_
     around = (slice(org[1] - h - 6, org[1] + base + 6), slice(org[0] - 6, org[0] + w + 6))
     assert np.array_equal(frame[around], expected[around])
     assert (frame[around] == 170).all(axis=2).sum() > 50          # the letters are there, in grey
+    # The field is the circle of radius 256 about the square's centre (319.5, 255.5 in pixel
+    # centres): grey inside, black beyond it in the square's corners, where no text lies.
+    y, x = np.mgrid[0:SIDE, 64:576]
+    r2 = (x - 319.5) ** 2 + (y - 255.5) ** 2
+    square = frame[:, 64:576]
+    corner = (r2 > 257.0 ** 2) & (y > 100) & (y < SIDE - 100)
+    assert corner.sum() > 1000 and not square[corner].any()
+    assert (square[(r2 < 250.0 ** 2) & (np.abs(y - 255.5) > 40)] == 24).all()
 
 
 def test_the_fourth_warning_banner_reads_how_many_more_there_are():
