@@ -32,7 +32,7 @@ GROUPS: dict[str, tuple[list[str], list[str]]] = {
                 ["tests/test_compositor.py", "tests/test_compositor_banners.py", "tests/test_compositor_blades.py",
                  "tests/test_compositor_dose_lines.py", "tests/test_compositor_exact.py",
                  "tests/test_compositor_markers.py", "tests/test_compositor_corner_text.py", "tests/test_compositor_sizes.py",
-                 "tests/test_teaching_overlay.py", "tests/test_text_cut_widths.py"]),
+                 "tests/test_teaching_overlay.py", "tests/test_text_cut_widths.py", "tests/test_screen_reuse.py"]),
 }
 
 

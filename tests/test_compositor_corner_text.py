@@ -18,7 +18,8 @@ from appliance.display.compositor import Compositor, Overlay
 from appliance.display.text import FONT
 
 #: (width, height) -> (line pitch, stroke, margin) in pixels, worked by hand from the height.
-SCREENS = {(1280, 1024): (34, 2, 11), (1920, 1080): (36, 2, 12)}
+#: On 780 lines a line is 26 px and its stroke 26 / 17 = 1.53, rounded: 2 px.
+SCREENS = {(1280, 1024): (34, 2, 11), (1920, 1080): (36, 2, 12), (1040, 780): (26, 2, 8)}
 DARK = np.zeros((64, 64), np.float32)
 
 

@@ -410,6 +410,14 @@ def test_before_the_first_image_the_field_is_dark_grey_and_says_starting_in_its_
     around = (slice(org[1] - h - 6, org[1] + base + 6), slice(org[0] - 6, org[0] + w + 6))
     assert np.array_equal(frame[around], expected[around])
     assert (frame[around] == 170).all(axis=2).sum() > 50          # the letters are there, in grey
+    # The field is the circle of radius 256 about the square's centre (319.5, 255.5 in pixel
+    # centres): grey inside, black beyond it in the square's corners, where no text lies.
+    y, x = np.mgrid[0:SIDE, 64:576]
+    r2 = (x - 319.5) ** 2 + (y - 255.5) ** 2
+    square = frame[:, 64:576]
+    corner = (r2 > 257.0 ** 2) & (y > 100) & (y < SIDE - 100)
+    assert corner.sum() > 1000 and not square[corner].any()
+    assert (square[(r2 < 250.0 ** 2) & (np.abs(y - 255.5) > 40)] == 24).all()
 
 
 def test_the_fourth_warning_banner_reads_how_many_more_there_are():
@@ -451,3 +459,23 @@ def test_the_corner_text_starts_a_margin_in_from_the_left_edge():
     # 640 x 512: a margin of max(6, 17 // 3) = 6 px; the left corners' lines begin there.
     lines = Compositor(640, SIDE).text_layout(Overlay(case="x"), now=0.0)
     assert {t.org[0] for t in lines if t.text.startswith(("CASE", "DAP", "AIR KERMA", "FLUORO"))} == {6}
+
+
+def test_a_line_that_changes_at_the_same_place_shows_its_new_text_not_the_cached_old():
+    """The blend layers of a line are kept from frame to frame; a figure that changes in place
+    (the dose rate ticking over) must show the new text: drawn after the old one at the same
+    origin, scale and colour, it is exactly the new text's coverage on black within the border,
+    and the old text's strokes that the new one does not cover show nothing of it."""
+    from appliance.display.text import TextLine, draw_text
+    canvas = np.full((80, 400, 3), 200, np.uint8)
+    old = TextLine("DAP 1.23 Gy cm", (10, 50), 1.0, (255, 214, 0), FONT, 2, "2")
+    new = TextLine("DAP 7.40 Gy cm", (10, 50), 1.0, (255, 214, 0), FONT, 2, "2")
+    draw_text(canvas.copy(), old)
+    got = canvas.copy()
+    draw_text(got, new)
+    core = text_coverage(canvas.shape[:2], [new])
+    near = distance_to(core >= 128) <= 2
+    on_black = np.rint(np.array(new.color, np.float64) * core[..., None] / 255.0)
+    assert np.array_equal(got[near], on_black[near])
+    gone = (text_coverage(canvas.shape[:2], [old]) >= 128) & (distance_to(core > 0) > 2 + 1e-3)
+    assert gone.sum() > 20 and (got[gone] == 200).all()

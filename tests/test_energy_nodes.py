@@ -164,3 +164,88 @@ def test_a_live_renderer_sums_every_bin_until_its_side_thread_has_fitted_the_kv(
     assert inside.sum() > 500
     assert np.abs(later[inside] / truth[inside] - 1.0).max() <= LIMITS.max_relative_error
     assert np.abs(later[inside] / truth[inside] - 1.0).max() > 0.0     # the nodes, not the bins
+
+
+def test_lawsons_rounds_reach_the_minimax_weights_of_two_bins():
+    """Two bins, the open beam holding v1 + v2 = 1, so each row's error is linear in t = v1:
+    e0 = 1.3 t + 0.9 (1 - t) - 1 = 0.4 t - 0.1 rises and e1 = 0.8 t + 1.02 (1 - t) - 1 =
+    0.02 - 0.22 t falls; the others stay smaller in between. The largest error is least where
+    e0 = e1: t = 0.12 / 0.62 = 6/31, |e| = 0.7/31 = 0.02258 (the least-squares weights give
+    0.0253)."""
+    from appliance.xray.energy_nodes import MINIMAX_ROUNDS, _minimax
+
+    terms = np.array([[1.3, 0.9], [0.8, 1.02], [1.0, 1.0], [1.05, 0.99], [0.9, 1.01]])
+    err, v = _minimax(terms, MINIMAX_ROUNDS)
+    assert err == pytest.approx(0.7 / 31, abs=1e-5)
+    np.testing.assert_allclose(v, [6 / 31, 25 / 31], atol=1e-4)
+    assert err == pytest.approx(float(np.abs(terms @ v - 1.0).max()), abs=1e-12)
+
+
+def test_a_bound_no_quadrature_of_max_nodes_reaches_sums_every_bin():
+    """One node cannot follow the beam's hardening: for every bin e alone (weight 1, the open
+    beam exact) the ratio exp(-0.1 mu_e . L) / T(L) over the profile's soft-tissue range, worked
+    here ray by ray, strays far beyond the 0.2 % bound. So at max_nodes 1 there is no fit (even
+    after the default limits' fit of the same spectrum), and the renderer sums all 24 bins:
+    its image is the exact one."""
+    sp, w, mu = tables(70.0)
+    mus = [tables(70.0, f)[2] for f in (0.0, 0.5, 1.0)]
+    one = EnergyNodes(max_nodes=1)
+    soft = np.zeros((50, 4))
+    soft[:, 1] = np.linspace(0.0, 10.0 * one.soft_tissue_max_g_per_cm2, 50)
+    whole = np.exp(-0.1 * soft @ mu.T) @ w
+    seen = whole >= one.min_transmission
+    for e in range(len(w)):
+        assert np.abs(np.exp(-0.1 * soft[seen] @ mu[e]) / whole[seen] - 1.0).max() > 10 * one.max_relative_error
+    q = fit_nodes(w, mus, LIMITS)
+    assert q is not None and (q.weights >= 0).all() and len(q.bins) <= LIMITS.max_nodes
+    assert fit_nodes(w, mus, one) is None
+    base = at_resolution(load_profile(CONFIGS / "generic-flat-detector.yaml", FluoroscopeProfile), 32, 32)
+    base = base.model_copy(update={"abc": base.abc.model_copy(update={"enabled": False})})
+    vol, _, _ = box_volume((16, 32, 32), (6.0, 6.0, 2.5), (0, 0, 0), (31, 31, 15), hu=700)
+    pose = make_transform(np.eye(3), [0.0, 0.0, 750.0])
+    view = View(quantity="intensity", noise=False)
+    images = []
+    for limits in (one, EnergyNodes(enabled=False)):
+        r = Renderer(base.model_copy(update={"energy_nodes": limits}), Materials(), device="cpu")
+        images.append(r.render(r.prepare(vol), pose, view).image)
+        assert r.caster.tables().device_bins == 24 and r.caster.tables().quadrature is None
+    assert images[0].max() > 0.01
+    np.testing.assert_array_equal(images[0], images[1])
+
+
+def test_a_side_threads_fit_is_kept_for_the_process(monkeypatch):
+    """fit_soon's result is fit_nodes's own: once it has come, the same spectrum and tables are
+    not fitted again (another matrix's renderer takes the same object)."""
+    import appliance.xray.energy_nodes as energy_nodes
+
+    monkeypatch.setattr(energy_nodes, "_FITS", {})
+    _, w, _ = tables(85.0)
+    mus = [tables(85.0, f)[2] for f in (0.0, 0.5, 1.0)]
+    q = energy_nodes.fit_soon(w, mus, LIMITS).result(timeout=60)
+    assert q is not None and len(energy_nodes._FITS) == 1
+    assert energy_nodes.fit_nodes(w, mus, LIMITS) is q
+    # Another kV's fit beside it does not push it out (the process keeps up to 256).
+    _, w60, _ = tables(60.0)
+    assert energy_nodes.fit_nodes(w60, [tables(60.0, f)[2] for f in (0.0, 0.5, 1.0)], LIMITS) is not None
+    assert len(energy_nodes._FITS) == 2 and energy_nodes.fit_nodes(w, mus, LIMITS) is q
+
+
+def test_a_renderer_with_contrast_fits_its_nodes_to_the_iodine_too():
+    """A renderer of a case with 150 mg/ml iodine: its nodes keep rays of iodinated contrast (up
+    to the profile's 4 g/cm^2, in 10 cm of soft tissue) within the bound of the every-bin sum
+    worked here from the mass attenuation tables, at the case's concentration and half of it."""
+    fl = at_resolution(load_profile(CONFIGS / "generic-flat-detector.yaml", FluoroscopeProfile), 32, 32)
+    r = Renderer(fl, Materials(), contrast=IODINE, device="cpu")
+    q = r.caster.tables().quadrature
+    assert q is not None
+    rays = np.zeros((200, 4))
+    rays[:, 1] = 100.0                                            # 10 cm of soft tissue
+    rays[:, 3] = np.linspace(0.0, 10.0 * LIMITS.contrast_max_g_per_cm2, 200)
+    sp = r.caster.tables().spectrum
+    w = sp.energy_weights()
+    for factor in (0.5, 1.0):
+        mu = mass_attenuation(sp.energies_kev, Contrast(concentration_mg_per_ml=IODINE.concentration_mg_per_ml * factor))
+        whole = np.exp(-0.1 * rays @ mu.T) @ w
+        nodes = np.exp(-0.1 * rays @ mu[q.bins].T) @ q.weights.astype(float)
+        assert whole.min() >= LIMITS.min_transmission
+        assert np.abs(nodes / whole - 1.0).max() <= LIMITS.max_relative_error

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import queue
+import time
 import types
 from pathlib import Path
 
@@ -165,3 +166,44 @@ def test_bench_save_measures_the_three_conditions(capsys):
     assert set(rows) == {"live alone", "save as before: 16 bands, share 1", "save paced: 64 bands, share 0.5"}
     assert len(rows["live alone"]) == 4 and all(len(v) == 6 for k, v in rows.items() if k != "live alone")
     assert all(float(v[4]) > 0 for k, v in rows.items() if k != "live alone")     # each save took some time
+
+
+@pytest.mark.parametrize("shown", ["never", "a second ago", "while saving"])
+def test_the_render_workers_save_waits_only_while_live_frames_are_shown(tmp_path, shown):
+    """RenderWorker.native_image in 6 bands at share 0.5: the cast asks `cancelled` before each
+    band, and the pacer asks it again after every slice it waits. With no frame shown, or the
+    last one shown a second ago (more than LIVE_GAP_S), no live frame is coming: 6 asks, no
+    wait. With a frame shown at each ask, the pacer waits after every band, at least one
+    slice each: at least 2 asks per band."""
+    from appliance.daemon.native_save import LIVE_GAP_S
+    from appliance.daemon.render_worker import RenderWorker
+
+    keeper = ProfileKeeper(REPO / "configs/appliance-demo.yaml", data_dir=tmp_path)
+    cfg = keeper.current
+    daemon = cfg.appliance.daemon.model_copy(update={"save_bands": 6, "save_device_share": 0.5})
+    fixed = II.model_copy(update={"abc": II.abc.model_copy(update={"enabled": False})})   # one spectrum's tables
+    keeper.current = dataclasses.replace(cfg, fluoroscope=at_resolution(fixed, 48, 48),
+                                         appliance=cfg.appliance.model_copy(update={"daemon": daemon}))
+    live = Renderer(at_resolution(fixed, 24, 24), Materials(), device="cpu")
+    worker = RenderWorker(types.SimpleNamespace(renderer=live), keeper, poses=LatestValue(), phases=LatestValue(),
+                          console_state=LatestValue(), saves=LatestValue(), shown=LatestValue(),
+                          exposure_factor=LatestValue(), banners=list, on_first_frame=lambda: None)
+    assert worker.native_image() is None                  # no live frame yet
+    volume = box_volume((40, 40, 40), (2.0, 2.0, 2.0), (5, 5, 5), (34, 34, 34))[0]
+    worker._request = (live.prepare(volume), acceptance.ap_pose(II.geometry.source_to_isocentre_mm),
+                       View(noise=False, temporal="live"), None)
+    if shown == "a second ago":
+        worker.stats.shown_at.append(time.monotonic() - 4 * LIVE_GAP_S)
+    asks = []
+
+    def cancelled() -> bool:
+        asks.append(time.monotonic())
+        if shown == "while saving":
+            worker.stats.shown_at.append(time.monotonic())
+        return False
+    image, native_fl = worker.native_image(cancelled)
+    assert image.shape == (48, 48) and image.dtype == np.uint16 and native_fl.detector.columns == 48
+    if shown == "while saving":
+        assert len(asks) >= 2 * 6 - 1
+    else:
+        assert len(asks) == 6

@@ -46,3 +46,26 @@ def test_the_screen_file_is_under_the_data_dir_in_force(tmp_path):
     written = screen_file(cfg.path, cfg.appliance)
     assert written is not None
     assert os.path.normpath(written) == os.path.normpath(profile.parent / ".." / "var" / "bench" / "screen.raw")
+
+
+def test_the_live_renderer_fits_a_new_kv_on_the_side_thread_at_every_matrix(monkeypatch):
+    """The daemon's renderer (and its renderers at other matrices) does not stall a frame for a kV's
+    energy-node fit: at a kV fitted nowhere yet its tables sum every bin, awaiting the nodes,
+    and once the side thread's fit is in, the same kV is summed at the nodes."""
+    import appliance.xray.energy_nodes as energy_nodes
+    from appliance.config import load_appliance
+    from appliance.daemon.parts import make_renderer
+
+    monkeypatch.setattr(energy_nodes, "_FITS", {})
+    cfg = load_appliance(CONFIGS / "appliance.yaml")
+    assert cfg.fluoroscope.energy_nodes.enabled
+    progressive = make_renderer(cfg, "cpu")
+    casters = [progressive.full.caster, progressive.full.at_matrix(64, 64).caster]
+    casters += [m.caster for m in progressive._movers.values()]
+    for caster in casters:
+        tables = caster.tables()
+        assert tables.awaiting_nodes and tables.quadrature is None
+        assert tables.device_bins == len(tables.weights)
+    kv = float(cfg.fluoroscope.tube.kvp)
+    progressive.full.caster._fitting[kv].result(timeout=60)
+    assert progressive.full.caster.tables().quadrature is not None

@@ -91,3 +91,14 @@ def test_the_defaults_tell_a_sloping_rib_from_a_leaning_scapula():
     assert not plates(rib, 1.0, (1.0, 1.0), p.rib_max_height_mm, p.rib_plate_widen_mm).any()
     plate, middle = leaning_plate(spacing_x=1.0, spacing_y=1.0)
     assert plates(plate, 1.0, (1.0, 1.0), p.rib_max_height_mm, p.rib_plate_widen_mm)[middle].all()
+
+
+def test_the_widening_rounds_to_the_nearest_whole_row():
+    """3 mm on 0.8 mm rows is 3.75 rows: widened by 4 (3.2 mm) each way the 2 mm plate is 8.4 mm
+    thick, its runs 8.4 / tan 15 = 31 mm, over a 28 mm limit; by 3 rows (2.4 mm) it would be
+    6.8 mm, 25 mm: under it. So the middle is cut at 3 mm, as at 3.2 mm, and not at 2.4 mm."""
+    plate, middle = leaning_plate(spacing_x=1.0, spacing_y=0.8)
+    assert middle.sum() > 1000
+    assert plates(plate, 1.0, (1.0, 0.8), 28.0, 3.0)[middle].all()
+    assert plates(plate, 1.0, (1.0, 0.8), 28.0, 3.2)[middle].all()
+    assert not plates(plate, 1.0, (1.0, 0.8), 28.0, 2.4)[middle].any()

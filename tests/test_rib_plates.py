@@ -49,3 +49,41 @@ def test_a_leaning_plate_stands_tall_and_a_tube_touching_it_does_not():
     assert off_plate.sum() > 1000 and not cut[off_plate].any()
     # Without the widening the leaning plate is as low as a rib: the rule needs it.
     assert not plates(bone, sp, (sp, sp, sp), 15.0, 0.0)[middle].any()
+
+
+def test_the_breathing_anatomy_widens_by_the_profiles_rib_plate_widen_mm():
+    """On the synthetic chest, a scapula-like plate 5 mm thick across y leaning 25 degrees,
+    joined to the left middle rib by a bony patch one slice (2.5 mm) tall. Its own vertical runs
+    are 5 / tan 25 = 10.7 mm (at most 12.5 mm on 2.5 mm slices, 15 mm with the patch): not
+    taller than the 15 mm limit, so bone unwidened would move it with the rib. Widened by the
+    default 3 mm (one 2.5 mm row each way) it is 10 mm thick, its runs 10 / tan 25 = 21 mm: a
+    plate, so it stays still and the rib still turns."""
+    import synthetic_chest as sc
+
+    from appliance.config.case import Materials, Respiration
+    from appliance.patient.breathing_motion import BreathingAnatomy
+    from appliance.patient.volume import Volume
+
+    T, x, y, z = sc.grid()
+    face = 30.0 + math.tan(math.radians(25.0)) * (z - 62.0)
+    plate = (np.abs(y - face) <= 2.5) & (z >= 45) & (z <= 90) & (x >= 50) & (x <= 80)
+    patch = (x >= 55) & (x <= 60) & (y >= 16) & (y <= 29) & (np.abs(z - 61.25) <= 1.0)
+    assert vertical_run_mm(plate | patch, sc.SPACING)[plate].max() <= 15.0
+    hu = sc.chest().hu.copy()
+    hu[plate | patch] = 700
+    ct = Volume(hu, T, source="synthetic chest with a leaning plate")
+
+    def held(params):
+        anatomy = BreathingAnatomy(ct, params, Materials())
+        cover = np.zeros(anatomy.shape, bool)
+        for rib in anatomy.ribs:
+            cover[rib.box] |= rib.alpha > 0
+        return anatomy, cover
+
+    assert Respiration().rib_plate_widen_mm == 3.0
+    anatomy, cover = held(Respiration())
+    assert len(anatomy.ribs) == len(sc.RIBS)
+    assert not cover[plate].any() and anatomy.still[plate].all()
+    # The control: unwidened, the leaning plate is as low as a rib and turns with it.
+    _, unwidened = held(Respiration(rib_plate_widen_mm=0.0))
+    assert unwidened[plate].all()

@@ -10,22 +10,28 @@ from appliance.display.compositor import Compositor, Overlay
 from drivers.pixel_format import PixelFormat
 
 
-def test_a_reused_screen_shows_exactly_what_a_fresh_one_does():
-    comp = Compositor(320, 256)
+@pytest.mark.parametrize("width, height", [(320, 256), (256, 320), (256, 108), (108, 256)])
+def test_a_reused_screen_shows_exactly_what_a_fresh_one_does(width, height):
+    """On a landscape screen the image square has borders left and right, on a portrait one
+    above and below: whatever the busy frame drew there is cleared for the next. A 21:9 screen
+    (256 x 108, as 2560 x 1080) has borders wider than half the square, and so has its portrait."""
+    comp = Compositor(width, height)
     rng = np.random.default_rng(4)
     busy = Overlay(live=True, case="Adult chest", operator="A. Trainee", fluoroscope="Generic", alarm=True,
                    alarm_since=0.0, saved_flash=True, warnings=["camera lost", "pedal unplugged"], cue="task met: PA",
                    collimation_mm=(120.0, 90.0), fps=14.0)
     plain = Overlay(live=False, case="Other case", operator="B", fluoroscope="Generic")
-    screen = np.full((256, 320, 3), 77, np.uint8)           # whatever was there before
+    screen = np.full((height, width, 3), 77, np.uint8)      # whatever was there before
     comp.compose(rng.random((64, 64), dtype=np.float32), busy, 0.1, out=screen)
     image = rng.random((48, 64), dtype=np.float32)           # letterboxed: the square's own black bars
     got = comp.compose(image, plain, 0.2, out=screen)
     assert got is screen
     assert np.array_equal(got, comp.compose(image, plain, 0.2))
     assert np.array_equal(comp.compose(None, plain, 0.3, out=screen), comp.compose(None, plain, 0.3))
-    with pytest.raises(ValueError, match=r"out must be \(256, 320, 3\) uint8"):
-        comp.compose(image, plain, 0.2, out=np.zeros((256, 320), np.uint8))
+    with pytest.raises(ValueError, match=rf"out must be \({height}, {width}, 3\) uint8"):
+        comp.compose(image, plain, 0.2, out=np.zeros((height, width), np.uint8))
+    with pytest.raises(ValueError, match=rf"out must be \({height}, {width}, 3\) uint8"):
+        comp.compose(image, plain, 0.2, out=np.zeros((height, width, 3), np.float32))
 
 
 @pytest.mark.parametrize("pad", [0, 24])

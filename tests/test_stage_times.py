@@ -37,3 +37,24 @@ def test_stages_add_up_to_the_latency_and_read_their_hand_worked_medians():
     assert late["pose wait"][0] == pytest.approx(80.0, abs=1e-6)
     assert times.summary(since=1e9) == {}
     assert breakdown_text(s).startswith("capture 2.0/2, tracking 9.5/10, pose filter 0.5/0, pose wait 50.0/99")
+
+
+def test_the_median_and_p99_of_a_skewed_stage_and_the_frames_kept():
+    """Pose waits 0, 0, 0, 0 and 100 ms: median 0 (the mean would be 20); p99 by linear
+    interpolation between the 4th and 5th of the sorted five, at 0.99 x 4 = 3.96: 96 ms. A frame
+    shown exactly at `since` counts ("at or after"). Keeping 3 frames, the last three count."""
+    from appliance.daemon.stage_times import StageTimes
+    times = StageTimes()
+    rows = [stamps(10.0 * n, k) for n, k in enumerate((0, 0, 100, 0, 0))]
+    for row in rows:
+        times.add(row)
+    s = times.summary()
+    assert s["pose wait"] == pytest.approx((0.0, 96.0), abs=1e-6)
+    assert s["render"] == pytest.approx((40.0, 40.0), abs=1e-6)
+    at = times.summary(since=rows[2].t_shown)          # frames 2, 3, 4: waits 100, 0, 0
+    assert at["pose wait"] == pytest.approx((0.0, 98.0), abs=1e-6)
+    kept = StageTimes(keep=3)
+    for row in rows:
+        kept.add(row)
+    assert kept.summary()["pose wait"] == pytest.approx((0.0, 98.0), abs=1e-6)
+    assert kept.summary(since=rows[3].t_shown)["pose wait"] == pytest.approx((0.0, 0.0), abs=1e-6)

@@ -1,0 +1,131 @@
+"""Which OpenCL device the renderer takes (appliance/xray/device.py `pick_device`): the first
+whose compiler builds drr.cl on this processor; one that cannot is skipped, and with none
+that can, the command says so in one line naming each device and what to install.
+
+Ground truth: each device's build of drr.cl tried here with pyopencl alone, in a process
+whose ICD loader sees only the vendor files the test chose (OCL_ICD_VENDORS): the pyopencl
+wheel's own PoCL (whose LLVM may not know a processor newer than it) first, then this
+machine's installed ones. On a machine where every device builds, the same tests hold with
+the first device picked.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import pyopencl as cl
+import pytest
+import SimpleITK as sitk
+
+from appliance.xray.device import ClDevice, pick_device
+from appliance.xray.truth.analytic import box_volume
+
+REPO = Path(__file__).resolve().parents[1]
+WHEEL_ICD = Path(cl.__file__).parent / ".libs" / "pocl.icd"
+SYSTEM_VENDORS = Path("/etc/OpenCL/vendors")
+
+#: Run with the chosen vendors: each CPU device's own build of drr.cl, and pick_device's answer.
+PROBE = """
+import json, sys
+from importlib import resources
+import pyopencl as cl
+from appliance.errors import FluorosimError
+from appliance.xray.device import pick_device
+source = resources.files("appliance.xray").joinpath("drr.cl").read_text()
+devices = []
+for p in cl.get_platforms():
+    for d in p.get_devices(device_type=cl.device_type.CPU):
+        try:
+            cl.Program(cl.Context([d]), source).build(options=["-DUNALIGNED_PAIRS"])
+            builds = True
+        except cl.Error:
+            builds = False
+        devices.append([d.name.strip(), p.version.strip(), builds])
+try:
+    d = pick_device("cpu")
+    picked = [d.name.strip(), d.platform.version.strip()]
+except FluorosimError as e:
+    picked = str(e)
+print(json.dumps({"devices": devices, "picked": picked}))
+"""
+
+
+def vendors(tmp_path: Path, system: bool) -> dict[str, str]:
+    """An environment whose ICD loader reads `tmp_path`'s vendor files: the wheel's PoCL first
+    (the loader takes them in file-name order), then, with `system`, this machine's."""
+    assert WHEEL_ICD.is_file(), f"pyopencl[pocl] ships its PoCL's vendor file as {WHEEL_ICD}"
+    folder = tmp_path / "vendors"
+    folder.mkdir()
+    (folder / "0-wheel.icd").write_text(WHEEL_ICD.read_text())
+    if system and SYSTEM_VENDORS.is_dir():
+        for icd in sorted(SYSTEM_VENDORS.glob("*.icd")):
+            (folder / f"1-{icd.name}").write_text(icd.read_text())
+    return {**os.environ, "OCL_ICD_VENDORS": str(folder)}
+
+
+def probe(env: dict[str, str]) -> dict:
+    out = subprocess.run([sys.executable, "-c", PROBE], cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout.splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def listed(tmp_path_factory) -> dict:
+    """The probe's answer with the wheel's PoCL first and this machine's vendors after it."""
+    return probe(vendors(tmp_path_factory.mktemp("icd"), system=True))
+
+
+def test_a_device_that_cannot_build_is_skipped_for_the_first_that_can(listed):
+    devices, picked = listed["devices"], listed["picked"]
+    assert devices and devices[0][1].startswith("OpenCL") and "PoCL" in devices[0][1]      # the wheel's, first
+    builders = [d[:2] for d in devices if d[2]]
+    if builders:
+        assert picked == builders[0]
+    else:
+        assert isinstance(picked, str) and "pocl-opencl-icd" in picked
+        assert all(name in picked for name, _, _ in devices)
+
+
+def test_with_no_device_that_builds_the_command_says_so_in_one_line(tmp_path, listed):
+    """`fluorosim render` with only the wheel's PoCL (the probe's first device): on a processor
+    its LLVM does not know, it cannot build, and the command exits with one line naming the
+    device and pocl-opencl-icd, no traceback; where it builds, the render succeeds."""
+    env = vendors(tmp_path, system=False)
+    wheel = listed["devices"][0]
+    vol, _, _ = box_volume((8, 8, 8), (5.0, 5.0, 5.0), (2, 2, 2), (5, 5, 5), hu=0)
+    img = sitk.GetImageFromArray(vol.hu)
+    img.SetSpacing((5.0, 5.0, 5.0))
+    img.SetOrigin(tuple(vol.T_ct_from_voxel[:3, 3]))
+    sitk.WriteImage(img, str(tmp_path / "box.nii.gz"))
+    (tmp_path / "pose.yaml").write_text("T_xray_from_ct:\n  - [1, 0, 0, 0]\n  - [0, 1, 0, 0]\n  - [0, 0, 1, 750]\n"
+                                        "  - [0, 0, 0, 1]\n")
+    out = subprocess.run([sys.executable, "-m", "appliance", "render", "--volume", "box.nii.gz", "--fluoroscope",
+                          str(REPO / "configs/fluoroscopes/generic-flat-detector.yaml"), "--pose", "pose.yaml",
+                          "--quantity", "line-integral", "--size", "32", "--output", "li.npy"],
+                         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    if wheel[2]:
+        assert out.returncode == 0, out.stderr
+        assert np.load(tmp_path / "li.npy").max() > 0
+        return
+    lines = out.stderr.strip().splitlines()
+    assert out.returncode != 0 and "Traceback" not in out.stderr
+    assert len(lines) == 1, lines
+    assert lines[0].startswith("fluorosim: no OpenCL device") and "pocl-opencl-icd" in lines[0]
+    assert f"{wheel[0]} ({wheel[1]})" in lines[0]
+    assert not (tmp_path / "li.npy").exists()
+
+
+@pytest.mark.parametrize("device", ["auto", "cpu"])
+def test_the_device_picked_here_builds_drr_cl_with_and_without_blending(device):
+    d = pick_device(device)
+    source = resources.files("appliance.xray").joinpath("drr.cl").read_text()
+    options = ["-DUNALIGNED_PAIRS"] if d.type & cl.device_type.CPU else []
+    for extra in ([], ["-DBLEND"]):
+        cl.Program(cl.Context([d]), source).build(options=options + extra)
+    assert ClDevice(device).device.int_ptr == d.int_ptr
