@@ -281,3 +281,26 @@ def test_a_pose_that_moves_on_cancels_the_cast_and_never_shows_the_old_pose(rend
         inner = cv2.erode((L_cm > 2.0).astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
         errors.append(_implied_chord_error(full, L_cm, inner, mu))
     assert errors[0] < 0.01 < errors[1], errors
+
+
+def test_jitter_about_the_resting_pose_does_not_cancel_the_cast(renderer, box):
+    """Two frames 0.4 px apart (the pose "moved") but each within the 0.25 px tolerance of the
+    pose the cast began at: that cast goes on and is what the full matrix shows."""
+    from appliance.xray.projection_cache import box_corners_ct, detector_shift_px
+
+    prepared, _, _ = box
+    clock = Clock()
+    pr = ProgressiveRenderer(renderer, Rendering(moving_matrix_px=64, settle_s=0.1, refine_bands=64), clock=clock)
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    px_per_mm = detector_shift_px(zoomed_K(renderer.fluoroscope, 1), box_corners_ct(prepared), shifted(0.0), shifted(1.0))
+    jitter_mm = 0.2 / px_per_mm
+    for _ in range(4):
+        clock.t += 0.04
+        pr.render(prepared, shifted(0.0), view)
+    first = pr.refine
+    assert first is not None
+    for dx in (jitter_mm, -jitter_mm):
+        clock.t += 0.04
+        pr.render(prepared, shifted(dx), view)
+    assert not first.cancel
+    assert pr.wait_refined(30.0) and pr.refine is first and pr.cache().counts.casts == 1

@@ -64,6 +64,11 @@ log = logging.getLogger(__name__)
 EDGE_FLOOR = 0.05
 
 
+def _geometry(view: View) -> tuple:
+    """What of a view a cast depends on beside the pose: (zoom, collimation_mm)."""
+    return view.zoom, None if view.collimation_mm is None else tuple(float(c) for c in view.collimation_mm)
+
+
 @dataclass
 class Refine:
     """The full matrix being cast beside the live frames at a resting pose (`rendering.refine_bands`)."""
@@ -170,7 +175,9 @@ class ProgressiveRenderer:
         if moved:
             self._last_motion = now
             self._last_pose = T
-            if self.refine is not None:
+            # A cast beside the live frames for a pose left behind stops at its next band; the
+            # tracker's jitter about the resting pose (within the tolerance of it) does not stop it.
+            if self.refine is not None and not self._fits(self.refine, volume, T, view):
                 self.refine.cancel = True
         resting = now - self._last_motion >= self.settings.settle_s
         moving = self.moving
@@ -229,22 +236,24 @@ class ProgressiveRenderer:
         bands = self.settings.refine_bands
         if bands is None or self.refine_fault is not None:
             return False
-        collimation = None if view.collimation_mm is None else tuple(float(c) for c in view.collimation_mm)
         refine = self.refine
         if refine is not None and not refine.done.is_set():
-            if refine.geometry != (view.zoom, collimation) or not pose_unchanged(
-                    self.full.fluoroscope, volume, view.zoom, refine.T_xray_from_ct, T,
-                    self.settings.cache_pose_tolerance_px):
+            if not self._fits(refine, volume, T, view):
                 refine.cancel = True        # it ends at its next band; the next frame begins this pose's
             return True
         circle = self.full._circle(None)
         if self.cache().adopted(T, view.zoom, view.collimation_mm, True, circle):
             return False
         phases = [volume] if blend is None or blend[1] == 0.0 else [volume, blend[0]]
-        refine = self.refine = Refine(T, (view.zoom, collimation))
+        refine = self.refine = Refine(T, _geometry(view))
         threading.Thread(target=self._cast_full, args=(refine, phases, view, circle, bands),
                          name="fluorosim-refine", daemon=True).start()
         return True
+
+    def _fits(self, refine: Refine, volume: PreparedVolume, T: np.ndarray, view: View) -> bool:
+        """Whether `refine` is this frame's full matrix: the same field, the pose within the tolerance."""
+        return refine.geometry == _geometry(view) and pose_unchanged(
+            self.full.fluoroscope, volume, view.zoom, refine.T_xray_from_ct, T, self.settings.cache_pose_tolerance_px)
 
     def _cast_full(self, refine: Refine, phases: list[PreparedVolume], view: View, circle: bool, bands: int) -> None:
         """The refine thread: the full matrix's phases into its cache, band by band."""
