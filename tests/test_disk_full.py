@@ -201,3 +201,31 @@ def test_built_in_patient_on_a_full_disk_is_refused_before_drawing(full_disk, ca
     assert "\n" not in str(refused.value) and str(full_disk / "cache") in str(refused.value)
     assert capfd.readouterr().err == ""
     assert sorted(p.name for p in (full_disk / "cache").iterdir()) == []
+
+
+def test_a_snapshot_written_beside_the_renderer_is_the_frame_and_a_refused_one_is_taken_again(tmp_path, caplog):
+    """With background=True the PNG is written on the snapshot thread: after flush() it holds the
+    frame's pixels exactly (PNG is lossless), even though the screen was drawn over since; a write
+    refused there (a folder where the PNG goes: the rename fails) leaves the moment untaken,
+    counted and logged once, and its next hit after the wait writes it."""
+    from appliance.daemon.snapshots import read_png
+
+    out = tmp_path / "snapshots"
+    out.mkdir()
+    screen = np.zeros((6, 10, 3), np.uint8)
+    screen[2:4, 3:7] = (200, 40, 10)
+    shown = SimpleNamespace(rgb_source=lambda: screen, state=SimpleNamespace(alarm_sounding=False))
+    (out / "00-first.png").mkdir()                # refused: a folder stands where the file goes
+    snapper = Snapshotter(out, [Moment("first", "first image", lambda f: True)], background=True)
+    snapper(shown)
+    snapper.flush()
+    assert "first" not in snapper.taken and snapper.failures == 1 and snapper.problem
+    assert len([r for r in caplog.records if "snapshot not written" in r.getMessage()]) == 1
+    (out / "00-first.png").rmdir()
+    snapper._retry_at = 0.0
+    expected = screen.copy()
+    snapper(shown)
+    screen[:] = 255                               # the next frame draws over the screen at once
+    snapper.flush()
+    assert snapper.taken["first"].is_file() and snapper.problem is None and snapper.failures == 1
+    np.testing.assert_array_equal(read_png(snapper.taken["first"]), expected)

@@ -211,3 +211,96 @@ def test_a_scaled_up_moving_frame_has_the_full_matrix_s_field_edge():
     assert band.sum() > 100
     shown_error, plain_error = np.abs(image - own)[band].mean(), np.abs(plain - own)[band].mean()
     assert shown_error < 0.5 * plain_error, (shown_error, plain_error)
+
+
+def _implied_chord_error(image, L_cm, inner, mu):
+    """Median relative error of the chord -ln(T)/mu implied by an intensity image against the box's."""
+    return float(np.median(np.abs(-np.log(image[inner]) / mu - L_cm[inner]) / L_cm[inner]))
+
+
+def test_at_rest_the_full_matrix_is_cast_beside_the_live_frames_and_then_shown(renderer, box):
+    """With refine_bands the frames at rest keep the moving matrix while the full one is cast on
+    its own thread; the first frame after that cast shows the full matrix without casting it
+    again, and it is the closed-form transmission exp(-mu L) of the box (xraylib's soft tissue)."""
+    prepared, lo, hi = box
+    clock = Clock()
+    pr = ProgressiveRenderer(renderer, Rendering(moving_matrix_px=64, settle_s=0.1, refine_bands=4), clock=clock)
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    for i in range(3):                          # moving
+        clock.t += 0.04
+        pr.render(prepared, shifted(2.0 * i), view)
+    assert pr.refine is None
+    for _ in range(3):                          # at rest past settle_s: the cast begins, the moving matrix stays
+        clock.t += 0.04
+        pr.render(prepared, shifted(4.0), view)
+    assert pr.refine is not None and pr.matrix == 64
+    assert pr.wait_refined(30.0)
+    assert pr.cache().counts.casts == 1 and pr.refine_fault is None
+    clock.t += 0.04
+    full = pr.render(prepared, shifted(4.0), view).image
+    assert pr.matrix == 128 and pr.cache().counts.casts == 1      # served from what the thread cast
+    assert pr.refined_after_s
+    s, d = pixel_rays_ct(zoomed_K(renderer.fluoroscope, 1), shifted(4.0), 128, 128)
+    L_cm = box_chords(s, d, lo, hi) / 10.0
+    inner = cv2.erode((L_cm > 2.0).astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
+    assert inner.sum() > 200
+    mu = xraylib.CS_Total_CP("Tissue, Soft (ICRP)", renderer.spectrum.effective_kev)
+    assert _implied_chord_error(full, L_cm, inner, mu) < 0.01
+    # The moving matrix at rest was cast once at that pose and then served from its cache.
+    assert pr.cache(pr.moving).counts.casts <= 1
+
+
+def test_a_pose_that_moves_on_cancels_the_cast_and_never_shows_the_old_pose(renderer, box):
+    """The C-arm moves on while the full matrix is cast: that cast is told to stop, and at the next
+    rest the full matrix shown is the new pose's (closed-form chords at the new pose, not the old)."""
+    prepared, lo, hi = box
+    clock = Clock()
+    pr = ProgressiveRenderer(renderer, Rendering(moving_matrix_px=64, settle_s=0.1, refine_bands=64), clock=clock)
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    for _ in range(4):
+        clock.t += 0.04
+        pr.render(prepared, shifted(0.0), view)
+    first = pr.refine
+    assert first is not None
+    clock.t += 0.04
+    pr.render(prepared, shifted(12.0), view)    # moved 12 mm: many pixels
+    assert first.cancel and pr.matrix == 64
+    assert pr.wait_refined(30.0)                # it ends (at its next band, or done if it was)
+    for _ in range(4):                          # at rest at the new pose: its own cast
+        clock.t += 0.04
+        pr.render(prepared, shifted(12.0), view)
+    assert pr.refine is not first and pr.wait_refined(30.0)
+    clock.t += 0.04
+    full = pr.render(prepared, shifted(12.0), view).image
+    assert pr.matrix == 128
+    mu = xraylib.CS_Total_CP("Tissue, Soft (ICRP)", renderer.spectrum.effective_kev)
+    errors = []
+    for dx in (12.0, 0.0):
+        s, d = pixel_rays_ct(zoomed_K(renderer.fluoroscope, 1), shifted(dx), 128, 128)
+        L_cm = box_chords(s, d, lo, hi) / 10.0
+        inner = cv2.erode((L_cm > 2.0).astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
+        errors.append(_implied_chord_error(full, L_cm, inner, mu))
+    assert errors[0] < 0.01 < errors[1], errors
+
+
+def test_jitter_about_the_resting_pose_does_not_cancel_the_cast(renderer, box):
+    """Two frames 0.4 px apart (the pose "moved") but each within the 0.25 px tolerance of the
+    pose the cast began at: that cast goes on and is what the full matrix shows."""
+    from appliance.xray.projection_cache import box_corners_ct, detector_shift_px
+
+    prepared, _, _ = box
+    clock = Clock()
+    pr = ProgressiveRenderer(renderer, Rendering(moving_matrix_px=64, settle_s=0.1, refine_bands=64), clock=clock)
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    px_per_mm = detector_shift_px(zoomed_K(renderer.fluoroscope, 1), box_corners_ct(prepared), shifted(0.0), shifted(1.0))
+    jitter_mm = 0.2 / px_per_mm
+    for _ in range(4):
+        clock.t += 0.04
+        pr.render(prepared, shifted(0.0), view)
+    first = pr.refine
+    assert first is not None
+    for dx in (jitter_mm, -jitter_mm):
+        clock.t += 0.04
+        pr.render(prepared, shifted(dx), view)
+    assert not first.cancel
+    assert pr.wait_refined(30.0) and pr.refine is first and pr.cache().counts.casts == 1

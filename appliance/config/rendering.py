@@ -44,6 +44,10 @@ class Rendering(Section):
         "(count).")
     settle_s: float = Field(
         0.12, ge=0, le=5, description="The pose must stay unchanged this long before the full matrix is rendered (s).")
+    refine_bands: int | None = Field(
+        None, ge=1, le=64, description="At rest, the full matrix is cast beside the live frames, on a thread of its own "
+        "in this many bands of rows (the live frames take the device between bands), while the moving matrix's "
+        "cached image stays on screen; none: the full matrix is cast within the frame that first shows it (count).")
     crossfade_s: float = Field(
         0.0, ge=0, le=5, description="After the switch to the full matrix its image is blended into the last moving one "
         "over this long (s); for a fluoroscope without a recursive filter, which otherwise hides the switch.")

@@ -33,7 +33,7 @@ def run_run(args) -> int:
 
 def run_demo(args) -> int:
     from .demo import run_demo as demo
-    return demo(Path(args.config), case=Path(args.case) if args.case else None, seconds=args.seconds)
+    return demo(Path(args.config), case=Path(args.case) if args.case else None, seconds=args.seconds, ct=args.ct)
 
 
 def run_bench_e2e(args) -> int:
@@ -68,6 +68,10 @@ def register(commands, benches) -> None:
                                                  "(configs/cases/X.yaml, which may point at your own CT)")
     d.add_argument("--config", default=_default("appliance-demo.yaml"), metavar="PATH",
                    help="the demo's appliance profile (default: configs/appliance-demo.yaml)")
+    d.add_argument("--ct", choices=("chest",), help="the real-size adult chest CT (512x512x136, drawn once into the "
+                                                   "data folder's cache) instead of the built-in patient, for the "
+                                                   "frame rate at that size; the path and the exercise are the child's, "
+                                                   "so the views are no chest examination's and no exercise is offered")
     d.add_argument("--seconds", type=float, default=None, metavar="S",
                    help="stop after this many wall-clock seconds (default: when the scripted session ends)")
 

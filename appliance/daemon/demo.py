@@ -74,9 +74,15 @@ def build_patient(cfg, say=_say) -> int:
     return len(phases)
 
 
-def run_demo(config_path: Path, *, case: Path | None = None, seconds: float | None = None) -> int:
+def run_demo(config_path: Path, *, case: Path | None = None, seconds: float | None = None,
+             ct: str | None = None) -> int:
+    """`ct` "chest": the real-size adult chest CT of `bench e2e --ct chest` instead of `case`."""
     from .pipeline import Appliance
 
+    if ct == "chest":
+        from .bench import adult_chest_case
+
+        case = adult_chest_case(ProfileKeeper(config_path).current.data_dir)
     keeper = ProfileKeeper(config_path, case=case)
     cfg = keeper.current
     devices = cfg.appliance.devices
@@ -94,7 +100,9 @@ def run_demo(config_path: Path, *, case: Path | None = None, seconds: float | No
         snap_dir.mkdir(parents=True, exist_ok=True)
         for old in snap_dir.glob("*.png"):
             old.unlink()
-        snapper = Snapshotter(snap_dir, key_moments(), reserve_mb=cfg.appliance.daemon.records_reserve_mb)
+        # The PNGs are written beside the render worker, not in its frame (snapshots.py).
+        snapper = Snapshotter(snap_dir, key_moments(), reserve_mb=cfg.appliance.daemon.records_reserve_mb,
+                              background=True)
         _say("[2/4] starting the appliance: phases onto the OpenCL device, kernels built, camera started")
         t_open = time.monotonic()
         app = Appliance(keeper, Notifier(), on_shown=snapper)
@@ -126,6 +134,7 @@ def run_demo(config_path: Path, *, case: Path | None = None, seconds: float | No
 
         app.run(until=until)
         run_s = time.monotonic() - t_run
+        snapper.flush()
 
         _say("[3/4] contact sheet and dose logs")
         captions = snapper.captions()

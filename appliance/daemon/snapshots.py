@@ -12,6 +12,9 @@ from __future__ import annotations
 import hashlib
 import logging
 import math
+import os
+import queue
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -207,12 +210,22 @@ class Snapshotter:
     A snapshot is a side task: it runs on the render worker, so a write the disk refuses
     (full, read-only) is logged once, counted in `failures`, and tried again at the next hit
     of that moment after `RETRY_S` - never raised into the renderer.
+
+    With `background`, the render worker only picks the frame (and copies its pixels); the PNG
+    is encoded and written on a thread of its own at a lower priority (`WRITER_NICE`), because
+    the encoding (about 25 cpu ms for a 1280 x 1024 screen) and the fsync (30-110 ms in all on a
+    busy two-core machine) would otherwise hold up the next live frame. A write refused there
+    is handled as above: the moment is taken again at its next hit after `RETRY_S`. `flush()`
+    waits for the writes still queued.
     """
 
     #: After a refused write, wait this long before writing a snapshot again (s).
     RETRY_S = 5.0
+    #: The background writer runs this many nice steps below the render worker: a snapshot may
+    #: be on disk a little later, a live frame must not be (nice steps).
+    WRITER_NICE = 10
 
-    def __init__(self, out_dir: Path, moments: list[Moment], reserve_mb: float = 0.0):
+    def __init__(self, out_dir: Path, moments: list[Moment], reserve_mb: float = 0.0, *, background: bool = False):
         self.out_dir = Path(out_dir)
         #: Free space (MiB) below which no snapshot is written: it is the dose ledger's.
         self.reserve_mb = reserve_mb
@@ -225,16 +238,52 @@ class Snapshotter:
         self._digests: set[bytes] = set()
         #: The breathing pair's frames as rendered (image, pose, breath), for checking the dome's motion.
         self.kept: dict[str, KeptFrame] = {}
+        self._lock = threading.Lock()       # taken, kept, the digests and the failure record, shared with the writer
+        self._queue: queue.Queue | None = queue.Queue() if background else None
+        self._writer: threading.Thread | None = None
 
     def __call__(self, frame) -> None:
         try:
             self._look(frame)
         except (OSError, FluorosimError, ValueError) as e:
+            self._failed(e)
+
+    def _failed(self, e: Exception) -> None:
+        with self._lock:
             self.failures += 1
             self._retry_at = time.monotonic() + self.RETRY_S
             if self.problem is None:
                 log.warning("snapshot not written (rendering and dose recording go on): %s", e)
             self.problem = str(e)
+
+    def flush(self) -> None:
+        """Wait until every snapshot taken so far is on disk (or has failed); ends the writer."""
+        if self._queue is not None and self._writer is not None:
+            self._queue.put(None)
+            self._writer.join()
+            self._writer = None
+
+    def _write_queued(self) -> None:
+        try:
+            tid = threading.get_native_id()
+            os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + self.WRITER_NICE)
+        except (AttributeError, OSError):
+            pass            # elsewhere than Linux the writer keeps the render worker's priority
+        assert self._queue is not None
+        while (item := self._queue.get()) is not None:
+            name, path, rgb, digest = item
+            try:
+                write_png(path, rgb)
+            except (OSError, FluorosimError, ValueError) as e:
+                with self._lock:            # not taken after all: the moment's next frame is tried
+                    self.taken.pop(name, None)
+                    self.kept.pop(name, None)
+                    self._digests.discard(digest)
+                self._failed(e)
+            else:
+                with self._lock:
+                    self.problem = None
+                log.info("snapshot %s: %s", name, path)
 
     def _look(self, frame) -> None:
         if time.monotonic() < self._retry_at:
@@ -268,15 +317,25 @@ class Snapshotter:
         path = self.out_dir / f"{index:02d}-{moment.name}.png"
         check_reserve(self.out_dir, self.reserve_mb, f"snapshot {path.name}")
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        write_png(path, rgb)
-        self.taken[moment.name] = path
+        if self._queue is None:
+            write_png(path, rgb)
         T = _pose_matrix(frame) if moment.name in KEPT else None
-        if T is not None and frame.image is not None:
-            self.kept[moment.name] = KeptFrame(np.array(frame.image, dtype=np.float32), T, frame.inspired,
-                                               int(frame.state.zoom))
-        self.problem = None
-        self._digests.add(digest)
-        log.info("snapshot %s: %s", moment.name, path)
+        with self._lock:
+            self.taken[moment.name] = path
+            if T is not None and frame.image is not None:
+                self.kept[moment.name] = KeptFrame(np.array(frame.image, dtype=np.float32), T, frame.inspired,
+                                                   int(frame.state.zoom))
+            self._digests.add(digest)
+            if self._queue is None:
+                self.problem = None
+        if self._queue is None:
+            log.info("snapshot %s: %s", moment.name, path)
+            return True
+        if self._writer is None:
+            self._writer = threading.Thread(target=self._write_queued, name="fluorosim-snapshots", daemon=True)
+            self._writer.start()
+        # A copy: the screen the pixels came from is drawn over by the next frame.
+        self._queue.put((moment.name, path, rgb.copy(), digest))
         return True
 
     def captions(self) -> dict[str, str]:

@@ -27,25 +27,56 @@ jumping; in the other direction the moving matrix takes over the sharp state and
 the motion. Where a profile runs without the filter, `rendering.crossfade_s` blends the first
 full-matrix frames into the last moving one instead (linearly, so the refine takes a known
 time).
+
+On a CPU device the full matrix's cast takes several frame periods (three to six at 512 on
+two cores): cast within one frame, it holds the screen that long each time the C-arm comes to
+rest. With `rendering.refine_bands` it is cast on a thread of its own in bands of rows, the
+live frames taking the device between bands, while the moving matrix's image of the resting
+pose (cast once, then from its cache) stays on screen; the first frame after the cast shows
+the full matrix. A pose that moves on cancels the cast at its next band. Only the switch
+waits so: a phase that comes while the view is held at the full matrix (breathing, a 4D CT)
+is cast within the frame that first needs it, as without the setting, so a held view never
+drops back to the coarser matrix.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import logging
+import threading
 import time
 from collections import Counter
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..config.rendering import Rendering
+from .casting import CastCancelled
 from .matrix_control import MatrixController
 from .projection_cache import ProjectionCache, pose_unchanged
 from .renderer import Frame, PreparedVolume, Renderer, View, at_resolution
 from .slabs import SlabCache, slab_cast
 
+log = logging.getLogger(__name__)
+
 #: A scaled-up moving frame's own field edge below this is taken as no image (fraction).
 EDGE_FLOOR = 0.05
+
+
+def _geometry(view: View) -> tuple:
+    """What of a view a cast depends on beside the pose: (zoom, collimation_mm)."""
+    return view.zoom, None if view.collimation_mm is None else tuple(float(c) for c in view.collimation_mm)
+
+
+@dataclass
+class Refine:
+    """The full matrix being cast beside the live frames at a resting pose (`rendering.refine_bands`)."""
+
+    T_xray_from_ct: np.ndarray
+    geometry: tuple                # (zoom, collimation_mm) it is cast for
+    cancel: bool = False           # set by the renderer when the pose or the field moves on
+    done: threading.Event = field(default_factory=threading.Event)
 
 
 class ProgressiveRenderer:
@@ -76,13 +107,19 @@ class ProgressiveRenderer:
         self._last_image: np.ndarray | None = None
         self._fade_from: np.ndarray | None = None
         self._fade_t0 = 0.0
-        #: When the full matrix was first shown after the last motion (s, `clock`), and how long
-        #: after the pose came to rest that was: the "native matrix within 500 ms" figure.
+        #: How long after the pose came to rest (the start of the last frame that moved) the first
+        #: full-matrix image after it was ready for the screen, its cast included (s, `clock`): the
+        #: "native matrix within 500 ms" figure.
         self.refined_after_s: list[float] = []
         #: Moving frames cast straight through the renderer, past the cache (count).
         self.moving_casts = 0
         #: Moving frames cast at a new pose, per matrix (pixels -> count): what the controller chose.
         self.moving_frames: Counter[int] = Counter()
+        #: The full matrix's cast beside the live frames, the last one begun (None before any).
+        self.refine: Refine | None = None
+        #: Why a cast beside the live frames failed (None while none has): the full matrix is then
+        #: cast within the frame again, where the fault reaches the caller.
+        self.refine_fault: str | None = None
 
     def __getattr__(self, name):
         # Everything but rendering (prepare, device, fluoroscope, photons_per_pixel, ...) is the
@@ -138,9 +175,16 @@ class ProgressiveRenderer:
         if moved:
             self._last_motion = now
             self._last_pose = T
+            # A cast beside the live frames for a pose left behind stops at its next band; the
+            # tracker's jitter about the resting pose (within the tolerance of it) does not stop it.
+            if self.refine is not None and not self._fits(self.refine, volume, T, view):
+                self.refine.cancel = True
         resting = now - self._last_motion >= self.settings.settle_s
         moving = self.moving
         use = self.full if resting or moving is None or view.quantity == "line-integral" else moving
+        if (use is self.full and moving is not None and view.quantity != "line-integral"
+                and self._refining(volume, T, view, blend)):
+            use = moving
         # Only a frame cast at a new pose tells what a moving frame costs; one the cache served
         # while the pose settles would make the matrix look cheaper than it is.
         self._timed = use.shape[1] if use is not self.full and moved else None
@@ -169,7 +213,7 @@ class ProgressiveRenderer:
             if view.quantity == "display":
                 image = cv2.multiply(image, self._edge_fix(use, view))
         if use is self.full and self._last_used is not self.full:
-            self.refined_after_s.append(now - self._last_motion)
+            self.refined_after_s.append(self.clock() - self._last_motion)
             if self.settings.crossfade_s > 0 and self._last_image is not None:
                 self._fade_from, self._fade_t0 = self._last_image, now
         elif use is not self.full:
@@ -183,6 +227,51 @@ class ProgressiveRenderer:
         self._last_used = use
         self._last_image = image
         return frame if image is frame.image else dataclasses.replace(frame, image=image)
+
+    def _refining(self, volume: PreparedVolume, T: np.ndarray, view: View,
+                  blend: tuple[PreparedVolume, float] | None) -> bool:
+        """Whether the full matrix of this resting pose is still being cast beside the live frames
+        (begun here when its cache holds no projection of this pose and field). False without
+        `rendering.refine_bands` or after a fault of that cast."""
+        bands = self.settings.refine_bands
+        if bands is None or self.refine_fault is not None:
+            return False
+        refine = self.refine
+        if refine is not None and not refine.done.is_set():
+            if not self._fits(refine, volume, T, view):
+                refine.cancel = True        # it ends at its next band; the next frame begins this pose's
+            return True
+        circle = self.full._circle(None)
+        if self.cache().adopted(T, view.zoom, view.collimation_mm, True, circle):
+            return False
+        phases = [volume] if blend is None or blend[1] == 0.0 else [volume, blend[0]]
+        refine = self.refine = Refine(T, _geometry(view))
+        threading.Thread(target=self._cast_full, args=(refine, phases, view, circle, bands),
+                         name="fluorosim-refine", daemon=True).start()
+        return True
+
+    def _fits(self, refine: Refine, volume: PreparedVolume, T: np.ndarray, view: View) -> bool:
+        """Whether `refine` is this frame's full matrix: the same field, the pose within the tolerance."""
+        return refine.geometry == _geometry(view) and pose_unchanged(
+            self.full.fluoroscope, volume, view.zoom, refine.T_xray_from_ct, T, self.settings.cache_pose_tolerance_px)
+
+    def _cast_full(self, refine: Refine, phases: list[PreparedVolume], view: View, circle: bool, bands: int) -> None:
+        """The refine thread: the full matrix's phases into its cache, band by band."""
+        try:
+            self.cache().fill(phases, refine.T_xray_from_ct, view.zoom, view.collimation_mm, True, circle, bands,
+                              lambda: refine.cancel)
+        except CastCancelled:
+            pass
+        except Exception as e:  # noqa: BLE001 - reported by the frame that casts it inline next
+            log.error("the full matrix's cast beside the live frames failed (%s); casting it within the frame", e)
+            self.refine_fault = f"{type(e).__name__}: {e}"
+        finally:
+            refine.done.set()
+
+    def wait_refined(self, timeout_s: float) -> bool:
+        """Wait up to `timeout_s` (s) for a cast beside the live frames to end; True when none is left."""
+        refine = self.refine
+        return refine is None or refine.done.wait(timeout_s)
 
     def _edge_fix(self, use: Renderer, view: View) -> np.ndarray:
         """The factor that gives a scaled-up display frame the full matrix's field edge: the

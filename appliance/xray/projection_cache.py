@@ -14,6 +14,7 @@ patient's content box moves by more than `cache_pose_tolerance_px` on the detect
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -113,6 +114,33 @@ class ProjectionCache:
             self._samples.clear()
             self._key = key
             self._pose = np.array(T_xray_from_ct, dtype=np.float64)
+
+    def adopted(self, T_xray_from_ct, zoom: int, collimation_mm, distorted: bool, circle) -> bool:
+        """Whether the cache holds projections of this field at this pose (within the tolerance):
+        a frame here casts at most the phases it has not cast yet."""
+        volume = next(iter(self._lines), None)
+        return (volume is not None and self._geometry_key(zoom, collimation_mm, distorted, circle) == self._key
+                and self.unchanged(volume, T_xray_from_ct, zoom))
+
+    def fill(self, phases: list[PreparedVolume], T_xray_from_ct, zoom: int, collimation_mm, distorted: bool, circle,
+             bands: int, cancelled: Callable[[], bool]) -> bool:
+        """Cast `phases` at this pose in `bands` bands of rows each (Caster.cast: the device's lock
+        is held one band at a time, so live frames of other matrices go on in between) and keep
+        them as `render` would have. Meant for a thread of its own while nobody else renders
+        through this cache; `cancelled()` true between bands ends it (CastCancelled). False when
+        the fluoroscope profile was replaced meanwhile (nothing kept)."""
+        r = self.renderer
+        key = self._geometry_key(zoom, collimation_mm, distorted, circle)
+        lines = {p: r.caster.cast(p, T_xray_from_ct, zoom, collimation_mm, None, distorted, circle,
+                                  bands=(r._lock, bands, cancelled))[0] for p in dict.fromkeys(phases)}
+        if self._geometry_key(zoom, collimation_mm, distorted, circle) != key:
+            return False
+        self._adopt(phases[0], T_xray_from_ct, zoom, collimation_mm, distorted, circle)
+        self._lines.update(lines)
+        self.counts.casts += len(lines)
+        while len(self._lines) > self.max_phases:
+            del self._lines[next(k for k in self._lines if k not in lines)]
+        return True
 
     # -- the cast the renderer calls -------------------------------------------------------
     def _cast_phases(self, phases: list[PreparedVolume], T, zoom, collimation_mm, distorted, circle) -> None:
