@@ -1,7 +1,8 @@
 // Digitally reconstructed radiographs: rays from the focal spot through detector pixels.
 //
 // Volumes are int16 Hounsfield units, padded by PAD voxels of air on every side and laid
-// out [k][j][i] (i fastest). All geometry arrives in padded voxel-index coordinates:
+// out [k][j][i] (i fastest), or, a slab copy's (quad_axis >= 0, see slab_quads), as pairs of
+// neighbours for that dominant axis, so one 64-bit load reads a sample's four voxels. All geometry arrives in padded voxel-index coordinates:
 // voxel v spans [v - 0.5, v + 0.5] along each axis, the focal spot is `src`, and the ray
 // of a pixel with normalised direction (x, y, 1) in the xray frame runs along A * (x, y, 1)
 // with parameter t in units of the xray frame's z, so one unit of t is |(x, y, 1)| mm.
@@ -62,6 +63,19 @@ inline bool clip_box(float3 s, float3 d, float3 lo, float3 hi, float *t0, float 
 #define BLOCKS(wanted) (wanted)
 #endif
 
+// A sample's voxel (ib, ic) of slice k along the dominant axis a is at k * sa + ib * sb + ic * sc
+// (shorts), its neighbours across b and c `sb` and `oc` further on. The plain layout [z][y][x]:
+// the axes' strides, oc = sc. The quad layout of a slab copy along a (slab_quads): rows along b,
+// then slices along a, then c; each element the pair (voxel at c, voxel at c + 1), so the four
+// voxels of a sample are the shorts i, i + 1 (c + 1), i + 2 (b + 1) and i + 3.
+#define LAYOUT(quad_axis, dims, a, b, c, sa, sb, sc, oc) do { \
+    if ((quad_axis) < 0) { \
+        const int st_[3] = {1, (dims)[0], (dims)[0] * (dims)[1]}; \
+        sa = st_[a]; sb = st_[b]; sc = st_[c]; oc = sc; \
+    } else { \
+        sb = 2; sa = 2 * (dims)[b]; sc = sa * (dims)[a]; oc = 1; \
+    } } while (0)
+
 // Joseph's method: one bilinear sample per slice along the ray's dominant axis, the HU
 // interpolated then split into materials. out[p] = integral of each material's density
 // along the ray (g/cm^3 * mm), as float4 (air, soft tissue, bone, contrast).
@@ -69,7 +83,7 @@ kernel void joseph_materials(global const short *vol,
 #ifdef BLEND
                              global const short *vol_b, const float w_b,
 #endif
-                             const int nx, const int ny, const int nz,
+                             const int nx, const int ny, const int nz, const int quad_axis,
                              global const float2 *dirs, global const uchar *mask,
                              constant float *geo, constant int *box, constant float *mat,
                              global float4 *out)
@@ -91,13 +105,14 @@ kernel void joseph_materials(global const short *vol,
     if (!clip_box(s, d, lo, hi, &t0, &t1)) { out[p] = acc; return; }
 
     const float3 ad = fabs(d);
-    int a, b, c;           // dominant axis a, in-slice axes b and c
-    if (ad.x >= ad.y && ad.x >= ad.z) { a = 0; b = 1; c = 2; }
-    else if (ad.y >= ad.z)            { a = 1; b = 0; c = 2; }
-    else                              { a = 2; b = 0; c = 1; }
+    // Dominant axis a (a quad layout's own), in-slice axes b and c.
+    const int a = quad_axis >= 0 ? quad_axis : ad.x >= ad.y && ad.x >= ad.z ? 0 : ad.y >= ad.z ? 1 : 2;
+    const int b = a == 0 ? 1 : 0, c = a == 2 ? 1 : 2;
     const float sv[3] = {s.x, s.y, s.z};
     const float dv[3] = {d.x, d.y, d.z};
-    const int stride[3] = {1, nx, nx * ny};
+    const int dims[3] = {nx, ny, nz};
+    int sa, sb, sc, oc;
+    LAYOUT(quad_axis, dims, a, b, c, sa, sb, sc, oc);
     const int lo_i[3] = {box[0], box[1], box[2]};
     const int hi_i[3] = {box[4], box[5], box[6]};
 
@@ -111,11 +126,10 @@ kernel void joseph_materials(global const short *vol,
     const float db = dv[b] * inv_da, dc = dv[c] * inv_da;
     const float b0 = sv[b] - sv[a] * db, c0 = sv[c] - sv[a] * dc;
     const float step_mm = fabs(inv_da) * mm_per_t;
-    const int sa = stride[a], sb = stride[b], sc = stride[c];
     const float air_max = mat[0], bone_min = mat[1], con_min = mat[2];
     const float bone_off = mat[3], bone_slope = mat[4];
     // In-slice coordinates stay inside the padding: clamp guards float rounding at the edges.
-    const float bmax = (float)((b == 0 ? nx : ny) - 2), cmax = (float)((c == 1 ? ny : nz) - 2);
+    const float bmax = (float)(dims[b] - 2), cmax = (float)(dims[c] - 2);
     // The pixel's footprint in voxels along b and c at the middle of the ray's path through the
     // volume: the steps to the neighbouring column's and row's rays there (t is depth in mm).
     float inv_b = 1.0f, inv_c = 1.0f;
@@ -141,11 +155,11 @@ kernel void joseph_materials(global const short *vol,
         if (blocks_c) wc = VOXEL_WEIGHT(wc, inv_c, off_c);
         const int base = k * sa + ib * sb + ic * sc;
         float h0 = mix((float)vol[base], (float)vol[base + sb], wb);
-        float h1 = mix((float)vol[base + sc], (float)vol[base + sb + sc], wb);
+        float h1 = mix((float)vol[base + oc], (float)vol[base + sb + oc], wb);
         float h = mix(h0, h1, wc);
 #ifdef BLEND
         h0 = mix((float)vol_b[base], (float)vol_b[base + sb], wb);
-        h1 = mix((float)vol_b[base + sc], (float)vol_b[base + sb + sc], wb);
+        h1 = mix((float)vol_b[base + oc], (float)vol_b[base + sb + oc], wb);
         h = mix(h, mix(h0, h1, wc), w_b);
 #endif
         const float rho_w = fmax(1.0f + 0.001f * h, 0.0f);
@@ -193,8 +207,23 @@ typedef int v16si __attribute__((vector_size(64)));
 #endif
 #define PAIR(v, i, lo, hi) do { const int16 w_ = WORDS(v, i); \
     lo = convert_float16((w_ << 16) >> 16); hi = convert_float16(w_ >> 16); } while (0)
+#if defined(__AVX512F__) && !defined(NO_HW_GATHER)
+// The quad layout's four voxels of a sample as one 64-bit word per lane: two hardware gathers
+// of eight (short index i, scale 2), whose words split into (g00, g01) and (g10, g11) pairs.
+typedef long v8di __attribute__((vector_size(64)));
+typedef int v8si __attribute__((vector_size(32)));
+#define QWORDS(v, i8) as_int16(__builtin_astype(__builtin_ia32_gathersiv8di(__builtin_astype((long8)(0), v8di), \
+    (const void *)(ulong)(v), __builtin_astype((i8), v8si), (uchar)0xff, 2), long8))
+#define QUAD(v, i, g00, g10, g01, g11) do { const int16 q0_ = QWORDS(v, (i).lo), q1_ = QWORDS(v, (i).hi); \
+    const int16 c_ = (int16)(q0_.even, q1_.even), b_ = (int16)(q0_.odd, q1_.odd); \
+    g00 = convert_float16((c_ << 16) >> 16); g01 = convert_float16(c_ >> 16); \
+    g10 = convert_float16((b_ << 16) >> 16); g11 = convert_float16(b_ >> 16); } while (0)
+#else
+#define QUAD(v, i, g00, g10, g01, g11) do { PAIR(v, i, g00, g01); PAIR(v, (i) + 2, g10, g11); } while (0)
+#endif
 #define CORNERS(v, g00, g10, g01, g11) do { \
-    if (sb == 1) { PAIR(v, i00, g00, g10); PAIR(v, i01, g01, g11); } \
+    if (quad_axis >= 0) QUAD(v, i00, g00, g10, g01, g11); \
+    else if (sb == 1) { PAIR(v, i00, g00, g10); PAIR(v, i01, g01, g11); } \
     else { g00 = GATHER(v, i00); g10 = GATHER(v, i10); g01 = GATHER(v, i01); g11 = GATHER(v, i11); } } while (0)
 #else
 #define CORNERS(v, g00, g10, g01, g11) do { \
@@ -211,7 +240,7 @@ kernel void joseph_packet(global const short *vol,
 #ifdef SPLIT
                           global const short *vol_b,
 #endif
-                          const int nx, const int ny, const int nz,
+                          const int nx, const int ny, const int nz, const int quad_axis,
                           global const float2 *dirs, global const uchar *mask,
                           constant float *geo, constant int *box, constant float *mat,
                           const int cols, global float4 *out
@@ -237,15 +266,14 @@ kernel void joseph_packet(global const short *vol,
     const float s[3] = {geo[9], geo[10], geo[11]};
     const float16 mm_per_t = sqrt(nxv * nxv + nyv * nyv + 1.0f);
     const float3 dm = fabs((float3)(dx[LANES / 2], dy[LANES / 2], dz[LANES / 2]));
-    int a, b, c;
-    if (dm.x >= dm.y && dm.x >= dm.z) { a = 0; b = 1; c = 2; }
-    else if (dm.y >= dm.z)            { a = 1; b = 0; c = 2; }
-    else                              { a = 2; b = 0; c = 1; }
+    const int a = quad_axis >= 0 ? quad_axis : dm.x >= dm.y && dm.x >= dm.z ? 0 : dm.y >= dm.z ? 1 : 2;
+    const int b = a == 0 ? 1 : 0, c = a == 2 ? 1 : 2;
     const float16 dv[3] = {dx, dy, dz};
     const int lo_i[3] = {box[0], box[1], box[2]};
     const int hi_i[3] = {box[4], box[5], box[6]};
     const int dims[3] = {nx, ny, nz};
-    const int stride[3] = {1, nx, nx * ny};
+    int sa, sb, sc, oc;
+    LAYOUT(quad_axis, dims, a, b, c, sa, sb, sc, oc);
 
     // Clip every lane to the content box grown by one voxel (slab method, as clip_box).
     float16 t0 = 0.0f, t1 = INFINITY;
@@ -274,7 +302,6 @@ kernel void joseph_packet(global const short *vol,
     const float16 db = dv[b] * inv_da, dc = dv[c] * inv_da;
     const float16 b0 = s[b] - s[a] * db, c0 = s[c] - s[a] * dc;
     const float16 step_mm = fabs(inv_da) * mm_per_t;
-    const int sa = stride[a], sb = stride[b], sc = stride[c];
     const float air_max = mat[0], bone_min = mat[1], con_min = mat[2];
     const float bone_off = mat[3], bone_slope = mat[4];
     const float bmax = (float)(dims[b] - 2), cmax = (float)(dims[c] - 2);
@@ -319,7 +346,7 @@ kernel void joseph_packet(global const short *vol,
         float16 wb = fb - convert_float16(ib), wc = fc - convert_float16(ic);
         if (blocks_b) wb = VOXEL_WEIGHT(wb, inv_b, off_b);
         if (blocks_c) wc = VOXEL_WEIGHT(wc, inv_c, off_c);
-        const int16 i00 = k * sa + ib * sb + ic * sc, i10 = i00 + sb, i01 = i00 + sc, i11 = i01 + sb;
+        const int16 i00 = k * sa + ib * sb + ic * sc, i10 = i00 + sb, i01 = i00 + oc, i11 = i01 + sb;
         float16 g00, g10, g01, g11;
         CORNERS(vol, g00, g10, g01, g11);
         float16 h = mix(mix(g00, g10, wb), mix(g01, g11, wb), wc);
@@ -578,41 +605,41 @@ kernel void gather_lines(global const float4 *lines, global const int *index, gl
 
 // Pre-integrated slabs (slabs.py): pairs of slices along `axis` averaged into one slab, so a
 // cast through the slab grid steps two voxels at a time yet every voxel counts (HU, hence
-// density, is averaged: the line integral through a pair is kept). The slab grid's padded
-// shape is (ox, oy, get_global_size(0)); slab q >= PAD holds the padded input slices
-// 2q - PAD and 2q - PAD + 1, the last maybe a slice and the padding's air. One work-item per
-// z plane of the slab grid, looping over its rows: PoCL gives each tiny work-item a
-// work-group of its own. Rounded half to even in integers (rint on floats was a library
-// call per voxel, ten times the copy itself): the int16 average is unbiased.
+// density, is averaged: the line integral through a pair is kept). Slab q >= PAD along the
+// axis holds the padded input slices 2q - PAD and 2q - PAD + 1, the last maybe a slice and the
+// padding's air. Rounded half to even in integers (rint on floats was a library call per
+// voxel, ten times the copy itself): the int16 average is unbiased.
 inline short mean_even(int a, int b)
 {
     const int s = a + b, h = s >> 1;       // floor(s / 2), negative sums included
     return (short)(h + (s & h & 1));       // x.5 goes to the even neighbour
 }
 
-kernel void slab_pairs(global const short *vol, const int nx, const int ny, const int axis, const int ox,
-                       const int oy, global short *out)
+// The slab grid (padded shape ox, oy, oz) of the volume `vol` (plain layout, nx x ny x ...)
+// along `axis`, in the quad layout for rays along it (see LAYOUT): rows along b, then slabs along
+// a, then c; each element the slab at c and at c + 1 (air past the last c). One work-item per c,
+// looping over its slabs and rows: PoCL gives each tiny work-item a work-group of its own.
+kernel void slab_quads(global const short *vol, const int nx, const int ny, const int axis, const int ox,
+                       const int oy, const int oz, global short *out)
 {
-    const int k = get_global_id(0), oz = get_global_size(0);
-    for (int j = 0; j < oy; ++j) {
-        global short *row = out + ((size_t)k * oy + j) * ox;
-        if (axis == 0) {
-            global const short *in = vol + ((size_t)k * ny + j) * nx;
-            for (int i = 0; i < ox; ++i) {
-                const int p = clamp(2 * i - PAD, 0, nx - 2);
-                const bool slab = i >= PAD && i < ox - PAD;
-                row[i] = slab ? mean_even(in[p], in[p + 1]) : (short)(-1000);
-            }
+    const int ic = get_global_id(0);
+    const int dims[3] = {ox, oy, oz};
+    const size_t stride[3] = {1, (size_t)nx, (size_t)nx * ny};
+    const int b = axis == 0 ? 1 : 0, c = axis == 2 ? 1 : 2;
+    const int na = dims[axis], nb = dims[b];
+    const bool next = ic + 1 < dims[c];
+    const size_t sa = stride[axis], sb = stride[b], sc = stride[c];
+    for (int k = 0; k < na; ++k) {
+        global short *row = out + 2 * ((size_t)ic * na + k) * nb;
+        if (k < PAD || k >= na - PAD) {
+            for (int i = 0; i < 2 * nb; ++i) row[i] = -1000;
             continue;
         }
-        const int q = axis == 1 ? j : k, n = axis == 1 ? oy : oz;
-        if (q < PAD || q >= n - PAD) {
-            for (int i = 0; i < ox; ++i) row[i] = -1000;
-            continue;
+        global const short *s0 = vol + (size_t)(2 * k - PAD) * sa + ic * sc, *s1 = s0 + sa;
+        for (int ib = 0; ib < nb; ++ib) {
+            const size_t at = ib * sb;
+            row[2 * ib] = mean_even(s0[at], s1[at]);
+            row[2 * ib + 1] = next ? mean_even(s0[at + sc], s1[at + sc]) : (short)(-1000);
         }
-        const int p = 2 * q - PAD;
-        global const short *r0 = vol + (axis == 1 ? ((size_t)k * ny + p) * nx : ((size_t)p * ny + j) * nx);
-        global const short *r1 = r0 + (axis == 1 ? (size_t)nx : (size_t)nx * ny);
-        for (int i = 0; i < ox; ++i) row[i] = mean_even(r0[i], r1[i]);
     }
 }
