@@ -195,13 +195,18 @@ def test_slab_samples_interpolate_a_linear_density_exactly_across_the_slice(rend
     assert rel.mean() < 0.001 and rel.max() < 0.003
 
 
-@pytest.mark.parametrize("pose", [ALONG_X, OBLIQUE])
+# ALONG_X with the detector's rows turned 4 degrees across the slices: a packet's rays cross
+# from one row of a slice into the next.
+ROLLED = make_transform(rotation_about([0.0, 0.0, 1.0], np.radians(4.0)) @ ALONG_X[:3, :3], ALONG_X[:3, 3])
+
+
+@pytest.mark.parametrize("pose", [ALONG_X, ROLLED, OBLIQUE])
 def test_the_quad_layouts_loads_agree_on_every_path(renderer, pose):
-    """A slab copy's casts by the hardware gathers of 64-bit words, by the portable 32-bit pair
-    loads, by single voxels (no unaligned loads) and by the one-ray-per-work-item kernel (the
-    GPU's) read the same four voxels per sample: the same integrals, the three packet paths to
-    the bit. (The oblique view's rays cross the slabs at a slant: every sample's neighbours
-    differ.)"""
+    """A slab copy's casts by the hardware's loads (vector windows where a packet's samples lie in
+    one or two rows of a slice, else gathers of 64-bit words), by the portable 32-bit pair loads,
+    by single voxels (no unaligned loads) and by the one-ray-per-work-item kernel (the GPU's)
+    read the same four voxels per sample: the same integrals, the three packet paths to the bit.
+    (The oblique view's rays cross the slabs at a slant: every sample's neighbours differ.)"""
     import pyopencl as cl
 
     rng = np.random.default_rng(5)

@@ -214,8 +214,42 @@ typedef long v8di __attribute__((vector_size(64)));
 typedef int v8si __attribute__((vector_size(32)));
 #define QWORDS(v, i8) as_int16(__builtin_astype(__builtin_ia32_gathersiv8di(__builtin_astype((long8)(0), v8di), \
     (const void *)(ulong)(v), __builtin_astype((i8), v8si), (uchar)0xff, 2), long8))
-#define QUAD(v, i, g00, g10, g01, g11) do { const int16 q0_ = QWORDS(v, (i).lo), q1_ = QWORDS(v, (i).hi); \
-    const int16 c_ = (int16)(q0_.even, q1_.even), b_ = (int16)(q0_.odd, q1_.odd); \
+// Where a packet's sixteen samples lie, at every slice, in two neighbouring rows of the slice and
+// within 29 voxels along them (`windows`, see PACKET_WINDOWS), two vector loads and two permutes
+// per row fetch the words instead: the rows are those of lane `lane_c`, whose ray is the lowest
+// across c at every slice, and the next; the words start at lane `lane_b`'s, the lowest across b.
+// (The slab buffer ends in a window's spare words.) The lanes' (ib, ic) are their voxels in slice k.
+#define WINDOWS_AVAILABLE
+#define PERMUTE2(lo, idx, hi) __builtin_astype(__builtin_ia32_vpermi2vard512(__builtin_astype((lo), v16si), \
+    __builtin_astype((idx), v16si), __builtin_astype((hi), v16si)), int16)
+#define BROADCAST(x, lane) __builtin_astype(__builtin_ia32_permvarsi512(__builtin_astype((x), v16si), \
+    __builtin_astype((int16)(lane), v16si)), int16)
+#define WINDOW(v, row, o, c_, b_) do { \
+    global const int *w_ = (global const int *)(v) + (row); \
+    const int16 lo_ = vload16(0, w_), hi_ = vload16(1, w_); \
+    c_ = PERMUTE2(lo_, o, hi_); b_ = PERMUTE2(lo_, (o) + 1, hi_); } while (0)
+// A lane whose ray all but ties with the lowest may still round to the voxel below it: such a
+// slice is gathered.
+#define QUAD(v, i, g00, g10, g01, g11) do { \
+    int16 c_, b_; \
+    bool gather_ = !windows; \
+    if (windows) { \
+        const int16 bm_ = BROADCAST(ib, lane_b), cm_ = BROADCAST(ic, lane_c); \
+        const int16 o_ = ib - bm_, first_ = (ic == cm_) & (o_ >= 0); \
+        const int row_ = (k * sa + cm_.s0 * sc) / 2 + bm_.s0; \
+        WINDOW(v, row_, o_, c_, b_); \
+        if (!all(first_)) { \
+            if (all(first_ | ((ic == cm_ + 1) & (o_ >= 0)))) { \
+                int16 cn_, bn_; \
+                WINDOW(v, row_ + sc / 2, o_, cn_, bn_); \
+                c_ = select(cn_, c_, first_); b_ = select(bn_, b_, first_); \
+            } else gather_ = true; \
+        } \
+    } \
+    if (gather_) { \
+        const int16 q0_ = QWORDS(v, (i).lo), q1_ = QWORDS(v, (i).hi); \
+        c_ = (int16)(q0_.even, q1_.even); b_ = (int16)(q0_.odd, q1_.odd); \
+    } \
     g00 = convert_float16((c_ << 16) >> 16); g01 = convert_float16(c_ >> 16); \
     g10 = convert_float16((b_ << 16) >> 16); g11 = convert_float16(b_ >> 16); } while (0)
 #else
@@ -305,6 +339,29 @@ kernel void joseph_packet(global const short *vol,
     const float air_max = mat[0], bone_min = mat[1], con_min = mat[2];
     const float bone_off = mat[3], bone_slope = mat[4];
     const float bmax = (float)(dims[b] - 2), cmax = (float)(dims[c] - 2);
+#ifdef WINDOWS_AVAILABLE
+    // All rays pass through the focal spot, outside the volume, so along the ray the lanes keep
+    // their order across b and across c, and their spread across either is largest at the first
+    // or the last slice (a difference of two lines): the spreads and the lowest lanes there
+    // decide `windows` for all the slices between (with a voxel's margin below QUAD's limits).
+    bool windows = false;
+    int lane_b = 0, lane_c = 0;
+    if (quad_axis >= 0 && kmin <= kmax) {
+        const float16 fb0 = b0 + (float)kmin * db, fb1 = b0 + (float)kmax * db;
+        const float16 fc0 = c0 + (float)kmin * dc, fc1 = c0 + (float)kmax * dc;
+        int last_b = 0, last_c = 0;
+        float hb0 = fb0[0], hb1 = fb1[0], hc0 = fc0[0], hc1 = fc1[0];       // the highest
+        for (int l = 1; l < LANES; ++l) {
+            if (fb0[l] < fb0[lane_b]) lane_b = l;
+            if (fb1[l] < fb1[last_b]) last_b = l;
+            if (fc0[l] < fc0[lane_c]) lane_c = l;
+            if (fc1[l] < fc1[last_c]) last_c = l;
+            hb0 = fmax(hb0, fb0[l]); hb1 = fmax(hb1, fb1[l]); hc0 = fmax(hc0, fc0[l]); hc1 = fmax(hc1, fc1[l]);
+        }
+        windows = lane_b == last_b && lane_c == last_c && hb0 - fb0[lane_b] < 28.0f && hb1 - fb1[lane_b] < 28.0f &&
+                  hc0 - fc0[lane_c] < 0.99f && hc1 - fc1[lane_c] < 0.99f;
+    }
+#endif
     // Each lane's pixel footprint along b and c, as joseph_materials takes it (see VOXEL_WEIGHT).
     float16 inv_b = 1.0f, inv_c = 1.0f;
     if (geo[12] > 0.0f) {

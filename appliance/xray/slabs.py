@@ -33,6 +33,9 @@ from .pixel_geometry import zoomed_K
 
 #: Slices averaged into one slab (count): `slab_quads` averages pairs.
 SLAB = 2
+#: Bytes after a slab copy's voxels: the packet kernel loads a window of 32 words (4 bytes)
+#: from any voxel's (drr.cl's QUAD), the last voxel's included.
+WINDOW_SPARE_BYTES = 32 * 4
 
 
 def slab_index_from_index(shape_xyz: tuple[int, int, int], axis: int) -> tuple[np.ndarray, tuple[int, int, int]]:
@@ -110,7 +113,7 @@ class SlabCache:
             return hit[1]
         S, shape = slab_index_from_index(volume.shape_xyz, axis)
         nbytes = 2 * 2 * shape[0] * shape[1] * shape[2]          # int16, each voxel twice (the quad layout)
-        out = self.dev.scratch(nbytes)
+        out = self.dev.scratch(nbytes + WINDOW_SPARE_BYTES)
         nx, ny, _ = volume.shape_xyz
         slowest = shape[2] if axis != 2 else shape[1]              # the quad layout's c axis: one work-item each
         self._kernel(self.dev.queue, (slowest,), None, volume.buffer, np.int32(nx), np.int32(ny), np.int32(axis),
