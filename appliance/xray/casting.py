@@ -139,7 +139,8 @@ class PreparedVolume:
     quad_axis: int = -1
 
     def same_grid(self, other: PreparedVolume) -> bool:
-        return self.shape_xyz == other.shape_xyz and self.quad_axis == other.quad_axis and np.allclose(self.T_index_from_ct, other.T_index_from_ct, atol=1e-6)
+        return (self.shape_xyz == other.shape_xyz and self.quad_axis == other.quad_axis
+                and np.allclose(self.T_index_from_ct, other.T_index_from_ct, atol=1e-6))
 
 
 @dataclass(frozen=True, eq=False)

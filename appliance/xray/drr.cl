@@ -207,7 +207,7 @@ typedef int v16si __attribute__((vector_size(64)));
 #endif
 #define PAIR(v, i, lo, hi) do { const int16 w_ = WORDS(v, i); \
     lo = convert_float16((w_ << 16) >> 16); hi = convert_float16(w_ >> 16); } while (0)
-#if defined(__AVX512F__) && !defined(NO_HW_GATHER)
+#if defined(__AVX512BW__) && !defined(NO_HW_GATHER)
 // The quad layout's four voxels of a sample as one 64-bit word per lane: two hardware gathers
 // of eight (short index i, scale 2), whose words split into (g00, g01) and (g10, g11) pairs.
 typedef long v8di __attribute__((vector_size(64)));
@@ -215,11 +215,15 @@ typedef int v8si __attribute__((vector_size(32)));
 #define QWORDS(v, i8) as_int16(__builtin_astype(__builtin_ia32_gathersiv8di(__builtin_astype((long8)(0), v8di), \
     (const void *)(ulong)(v), __builtin_astype((i8), v8si), (uchar)0xff, 2), long8))
 // Where a packet's sixteen samples lie, at every slice, in two neighbouring rows of the slice and
-// within 29 voxels along them (`windows`, see PACKET_WINDOWS), two vector loads and two permutes
-// per row fetch the words instead: the rows are those of lane `lane_c`, whose ray is the lowest
-// across c at every slice, and the next; the words start at lane `lane_b`'s, the lowest across b.
-// (The slab buffer ends in a window's spare words.) The lanes' (ib, ic) are their voxels in slice k.
+// within a few tens of voxels along them (`windows`, decided before the packet's loop), two vector
+// loads and a permute per row fetch the words instead: the rows are those of lane `lane_c`, whose
+// ray is the lowest across c at every slice, and the next; the words start at lane `lane_b`'s,
+// the lowest across b. The lanes' (ib, ic) are their voxels in slice k. A slab copy's buffer
+// ends in a window's spare words; a plain volume's windows read rows of slice k, which has
+// PAD slices after it.
 #define WINDOWS_AVAILABLE
+#define ROW_WORDS 32           // quad layout: 64-bit words (b, b + 1) in a window of 32 32-bit ones
+#define ROW_SHORTS 64          // plain layout: 32-bit words (b, b + 1) in a window of 64 shorts
 #define PERMUTE2(lo, idx, hi) __builtin_astype(__builtin_ia32_vpermi2vard512(__builtin_astype((lo), v16si), \
     __builtin_astype((idx), v16si), __builtin_astype((hi), v16si)), int16)
 #define BROADCAST(x, lane) __builtin_astype(__builtin_ia32_permvarsi512(__builtin_astype((x), v16si), \
@@ -252,12 +256,38 @@ typedef int v8si __attribute__((vector_size(32)));
     } \
     g00 = convert_float16((c_ << 16) >> 16); g01 = convert_float16(c_ >> 16); \
     g10 = convert_float16((b_ << 16) >> 16); g11 = convert_float16(b_ >> 16); } while (0)
+// The plain layout where b is x: a row's 64 shorts and a permute of shorts (AVX-512 BW) put each
+// lane's voxel and its b-neighbour into its 32-bit word, as PAIR's gather does. A lane in the
+// second row needs a third (c + 2).
+typedef short v32hi __attribute__((vector_size(64)));
+#define SHORT_PAIRS(v, at, idx) ({ global const int *w_ = (global const int *)((v) + (at)); \
+    __builtin_astype(__builtin_ia32_vpermi2varhi512(__builtin_astype(vload16(0, w_), v32hi), \
+        __builtin_astype((idx), v32hi), __builtin_astype(vload16(1, w_), v32hi)), int16); })
+#define ROWS(v, g00, g10, g01, g11) do { \
+    int16 r0_, r1_; \
+    bool gather_ = !windows; \
+    if (windows) { \
+        const int16 bm_ = BROADCAST(ib, lane_b), cm_ = BROADCAST(ic, lane_c); \
+        const int16 o_ = ib - bm_, first_ = (ic == cm_) & (o_ >= 0), idx_ = o_ | ((o_ + 1) << 16); \
+        const int row_ = k * sa + cm_.s0 * sc + bm_.s0; \
+        r0_ = SHORT_PAIRS(v, row_, idx_); r1_ = SHORT_PAIRS(v, row_ + sc, idx_); \
+        if (!all(first_)) { \
+            if (all(first_ | ((ic == cm_ + 1) & (o_ >= 0)))) { \
+                const int16 r2_ = SHORT_PAIRS(v, row_ + 2 * sc, idx_); \
+                r0_ = select(r1_, r0_, first_); r1_ = select(r2_, r1_, first_); \
+            } else gather_ = true; \
+        } \
+    } \
+    if (gather_) { r0_ = WORDS(v, i00); r1_ = WORDS(v, i01); } \
+    g00 = convert_float16((r0_ << 16) >> 16); g10 = convert_float16(r0_ >> 16); \
+    g01 = convert_float16((r1_ << 16) >> 16); g11 = convert_float16(r1_ >> 16); } while (0)
 #else
 #define QUAD(v, i, g00, g10, g01, g11) do { PAIR(v, i, g00, g01); PAIR(v, (i) + 2, g10, g11); } while (0)
+#define ROWS(v, g00, g10, g01, g11) do { PAIR(v, i00, g00, g10); PAIR(v, i01, g01, g11); } while (0)
 #endif
 #define CORNERS(v, g00, g10, g01, g11) do { \
     if (quad_axis >= 0) QUAD(v, i00, g00, g10, g01, g11); \
-    else if (sb == 1) { PAIR(v, i00, g00, g10); PAIR(v, i01, g01, g11); } \
+    else if (sb == 1) ROWS(v, g00, g10, g01, g11); \
     else { g00 = GATHER(v, i00); g10 = GATHER(v, i10); g01 = GATHER(v, i01); g11 = GATHER(v, i11); } } while (0)
 #else
 #define CORNERS(v, g00, g10, g01, g11) do { \
@@ -346,7 +376,8 @@ kernel void joseph_packet(global const short *vol,
     // decide `windows` for all the slices between (with a voxel's margin below QUAD's limits).
     bool windows = false;
     int lane_b = 0, lane_c = 0;
-    if (quad_axis >= 0 && kmin <= kmax) {
+    if ((quad_axis >= 0 || sb == 1) && kmin <= kmax) {
+        const float span_b = quad_axis >= 0 ? ROW_WORDS - 4 : ROW_SHORTS - 4;     // a voxel's margin and more
         const float16 fb0 = b0 + (float)kmin * db, fb1 = b0 + (float)kmax * db;
         const float16 fc0 = c0 + (float)kmin * dc, fc1 = c0 + (float)kmax * dc;
         int last_b = 0, last_c = 0;
@@ -358,7 +389,7 @@ kernel void joseph_packet(global const short *vol,
             if (fc1[l] < fc1[last_c]) last_c = l;
             hb0 = fmax(hb0, fb0[l]); hb1 = fmax(hb1, fb1[l]); hc0 = fmax(hc0, fc0[l]); hc1 = fmax(hc1, fc1[l]);
         }
-        windows = lane_b == last_b && lane_c == last_c && hb0 - fb0[lane_b] < 28.0f && hb1 - fb1[lane_b] < 28.0f &&
+        windows = lane_b == last_b && lane_c == last_c && hb0 - fb0[lane_b] < span_b && hb1 - fb1[lane_b] < span_b &&
                   hc0 - fc0[lane_c] < 0.99f && hc1 - fc1[lane_c] < 0.99f;
     }
 #endif
