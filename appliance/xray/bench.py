@@ -239,9 +239,9 @@ def run(args) -> int:
                         cpus.append(_cpu_s() - c0)
                 for label, (walls, cpus) in timings.items():
                     ms = 1000 * float(np.median(walls))
-                    frames = f" ({len(walls)} of {args.frames} frames)" if len(walls) < args.frames else ""
+                    share = f" ({len(walls)} of {args.frames} frames)" if len(walls) < args.frames else ""
                     print(f"{size:>5}x{size:<4} {'poly' if poly else 'mono':>6} {name:>8} {ms:9.1f} "
-                          f"{1000 * float(np.median(cpus)):8.1f} {1000 / ms:6.1f}  {label}{frames}")
+                          f"{1000 * float(np.median(cpus)):8.1f} {1000 / ms:6.1f}  {label}{share}")
             del prepared, renderer, slabs
         print(f"OpenCL device: {_device_name(args.device)}")
 
