@@ -314,7 +314,7 @@ def run(args) -> int:
                   f"frame median {1000 * float(np.median(frames)):.0f} ms, max {1000 * max(frames):.0f} ms "
                   "(the loader shares the two cores)")
         # The moving frames' slab copies as the shipped profiles keep them (rendering.slab_phases: 4),
-        # on top: the phases blended now and the last two, each a phase's size (drr.cl's quad layout).
+        # on top: the phases blended now and the last two, each half a phase.
         slabs = SlabCache(renderer.dev, 4)
         for p in [p for p in timeline._prepared if p is not None][:4]:
             slabs.get(p, 1)

@@ -1,8 +1,8 @@
 // Digitally reconstructed radiographs: rays from the focal spot through detector pixels.
 //
 // Volumes are int16 Hounsfield units, padded by PAD voxels of air on every side and laid
-// out [k][j][i] (i fastest), or, a slab copy's (quad_axis >= 0, see slab_quads), as pairs of
-// neighbours for that dominant axis, so one 64-bit load reads a sample's four voxels. All geometry arrives in padded voxel-index coordinates:
+// out [k][j][i] (i fastest), or, a slab copy's (slab_axis >= 0, see slab_rows), with the rows of
+// its slices along that dominant axis contiguous, whatever the axis (see LAYOUT). All geometry arrives in padded voxel-index coordinates:
 // voxel v spans [v - 0.5, v + 0.5] along each axis, the focal spot is `src`, and the ray
 // of a pixel with normalised direction (x, y, 1) in the xray frame runs along A * (x, y, 1)
 // with parameter t in units of the xray frame's z, so one unit of t is |(x, y, 1)| mm.
@@ -65,16 +65,16 @@ inline bool clip_box(float3 s, float3 d, float3 lo, float3 hi, float *t0, float 
 
 // A sample's voxel (ib, ic) of slice k along the dominant axis a is at k * sa + ib * sb + ic * sc
 // (shorts), its neighbours across b and c `sb` and `oc` further on. The plain layout [z][y][x]:
-// the axes' strides, oc = sc. The quad layout of a slab copy along a (slab_quads): rows along b,
-// then slices along a, then c; each element the pair (voxel at c, voxel at c + 1), so the four
-// voxels of a sample are the shorts i, i + 1 (c + 1), i + 2 (b + 1) and i + 3.
-#define LAYOUT(quad_axis, dims, a, b, c, sa, sb, sc, oc) do { \
-    if ((quad_axis) < 0) { \
+// the axes' strides. A slab copy along a (slab_rows): rows along b, then slices along a, then c,
+// so that rays along a read rows along b (sb = 1) whatever a is (see ROWS).
+#define LAYOUT(slab_axis, dims, a, b, c, sa, sb, sc, oc) do { \
+    if ((slab_axis) < 0) { \
         const int st_[3] = {1, (dims)[0], (dims)[0] * (dims)[1]}; \
-        sa = st_[a]; sb = st_[b]; sc = st_[c]; oc = sc; \
+        sa = st_[a]; sb = st_[b]; sc = st_[c]; \
     } else { \
-        sb = 2; sa = 2 * (dims)[b]; sc = sa * (dims)[a]; oc = 1; \
-    } } while (0)
+        sb = 1; sa = (dims)[b]; sc = sa * (dims)[a]; \
+    } \
+    oc = sc; } while (0)
 
 // Joseph's method: one bilinear sample per slice along the ray's dominant axis, the HU
 // interpolated then split into materials. out[p] = integral of each material's density
@@ -83,7 +83,7 @@ kernel void joseph_materials(global const short *vol,
 #ifdef BLEND
                              global const short *vol_b, const float w_b,
 #endif
-                             const int nx, const int ny, const int nz, const int quad_axis,
+                             const int nx, const int ny, const int nz, const int slab_axis,
                              global const float2 *dirs, global const uchar *mask,
                              constant float *geo, constant int *box, constant float *mat,
                              global float4 *out)
@@ -105,14 +105,14 @@ kernel void joseph_materials(global const short *vol,
     if (!clip_box(s, d, lo, hi, &t0, &t1)) { out[p] = acc; return; }
 
     const float3 ad = fabs(d);
-    // Dominant axis a (a quad layout's own), in-slice axes b and c.
-    const int a = quad_axis >= 0 ? quad_axis : ad.x >= ad.y && ad.x >= ad.z ? 0 : ad.y >= ad.z ? 1 : 2;
+    // Dominant axis a (a slab copy's own), in-slice axes b and c.
+    const int a = slab_axis >= 0 ? slab_axis : ad.x >= ad.y && ad.x >= ad.z ? 0 : ad.y >= ad.z ? 1 : 2;
     const int b = a == 0 ? 1 : 0, c = a == 2 ? 1 : 2;
     const float sv[3] = {s.x, s.y, s.z};
     const float dv[3] = {d.x, d.y, d.z};
     const int dims[3] = {nx, ny, nz};
     int sa, sb, sc, oc;
-    LAYOUT(quad_axis, dims, a, b, c, sa, sb, sc, oc);
+    LAYOUT(slab_axis, dims, a, b, c, sa, sb, sc, oc);
     const int lo_i[3] = {box[0], box[1], box[2]};
     const int hi_i[3] = {box[4], box[5], box[6]};
 
@@ -208,57 +208,19 @@ typedef int v16si __attribute__((vector_size(64)));
 #define PAIR(v, i, lo, hi) do { const int16 w_ = WORDS(v, i); \
     lo = convert_float16((w_ << 16) >> 16); hi = convert_float16(w_ >> 16); } while (0)
 #if defined(__AVX512BW__) && !defined(NO_HW_GATHER)
-// The quad layout's four voxels of a sample as one 64-bit word per lane: two hardware gathers
-// of eight (short index i, scale 2), whose words split into (g00, g01) and (g10, g11) pairs.
-typedef long v8di __attribute__((vector_size(64)));
-typedef int v8si __attribute__((vector_size(32)));
-#define QWORDS(v, i8) as_int16(__builtin_astype(__builtin_ia32_gathersiv8di(__builtin_astype((long8)(0), v8di), \
-    (const void *)(ulong)(v), __builtin_astype((i8), v8si), (uchar)0xff, 2), long8))
 // Where a packet's sixteen samples lie, at every slice, in two neighbouring rows of the slice and
-// within a few tens of voxels along them (`windows`, decided before the packet's loop), two vector
-// loads and a permute per row fetch the words instead: the rows are those of lane `lane_c`, whose
-// ray is the lowest across c at every slice, and the next; the words start at lane `lane_b`'s,
-// the lowest across b. The lanes' (ib, ic) are their voxels in slice k. A slab copy's buffer
-// ends in a window's spare words; a plain volume's windows read rows of slice k, which has
-// PAD slices after it.
+// within a few tens of voxels along them (`windows`, decided before the packet's loop), a row's
+// 64 shorts (two vector loads) and a permute of shorts (AVX-512 BW) put each lane's voxel and its
+// b-neighbour into its 32-bit word, as PAIR's gather does: the rows are those of lane `lane_c`,
+// whose ray is the lowest across c at every slice, and the next two (a lane in the second row
+// needs the third, c + 2); the shorts start at lane `lane_b`'s voxel, the lowest across b. The
+// lanes' (ib, ic) are their voxels in slice k. A lane that rounds to the voxel below the lowest
+// lane's (a near-tie) makes that slice gathered. A window reads rows of slice k, which has PAD
+// slices after it in the buffer, so it never runs past the buffer's end.
 #define WINDOWS_AVAILABLE
-#define ROW_WORDS 32           // quad layout: 64-bit words (b, b + 1) in a window of 32 32-bit ones
-#define ROW_SHORTS 64          // plain layout: 32-bit words (b, b + 1) in a window of 64 shorts
-#define PERMUTE2(lo, idx, hi) __builtin_astype(__builtin_ia32_vpermi2vard512(__builtin_astype((lo), v16si), \
-    __builtin_astype((idx), v16si), __builtin_astype((hi), v16si)), int16)
+#define ROW_SHORTS 64
 #define BROADCAST(x, lane) __builtin_astype(__builtin_ia32_permvarsi512(__builtin_astype((x), v16si), \
     __builtin_astype((int16)(lane), v16si)), int16)
-#define WINDOW(v, row, o, c_, b_) do { \
-    global const int *w_ = (global const int *)(v) + (row); \
-    const int16 lo_ = vload16(0, w_), hi_ = vload16(1, w_); \
-    c_ = PERMUTE2(lo_, o, hi_); b_ = PERMUTE2(lo_, (o) + 1, hi_); } while (0)
-// A lane whose ray all but ties with the lowest may still round to the voxel below it: such a
-// slice is gathered.
-#define QUAD(v, i, g00, g10, g01, g11) do { \
-    int16 c_, b_; \
-    bool gather_ = !windows; \
-    if (windows) { \
-        const int16 bm_ = BROADCAST(ib, lane_b), cm_ = BROADCAST(ic, lane_c); \
-        const int16 o_ = ib - bm_, first_ = (ic == cm_) & (o_ >= 0); \
-        const int row_ = (k * sa + cm_.s0 * sc) / 2 + bm_.s0; \
-        WINDOW(v, row_, o_, c_, b_); \
-        if (!all(first_)) { \
-            if (all(first_ | ((ic == cm_ + 1) & (o_ >= 0)))) { \
-                int16 cn_, bn_; \
-                WINDOW(v, row_ + sc / 2, o_, cn_, bn_); \
-                c_ = select(cn_, c_, first_); b_ = select(bn_, b_, first_); \
-            } else gather_ = true; \
-        } \
-    } \
-    if (gather_) { \
-        const int16 q0_ = QWORDS(v, (i).lo), q1_ = QWORDS(v, (i).hi); \
-        c_ = (int16)(q0_.even, q1_.even); b_ = (int16)(q0_.odd, q1_.odd); \
-    } \
-    g00 = convert_float16((c_ << 16) >> 16); g01 = convert_float16(c_ >> 16); \
-    g10 = convert_float16((b_ << 16) >> 16); g11 = convert_float16(b_ >> 16); } while (0)
-// The plain layout where b is x: a row's 64 shorts and a permute of shorts (AVX-512 BW) put each
-// lane's voxel and its b-neighbour into its 32-bit word, as PAIR's gather does. A lane in the
-// second row needs a third (c + 2).
 typedef short v32hi __attribute__((vector_size(64)));
 #define SHORT_PAIRS(v, at, idx) ({ global const int *w_ = (global const int *)((v) + (at)); \
     __builtin_astype(__builtin_ia32_vpermi2varhi512(__builtin_astype(vload16(0, w_), v32hi), \
@@ -282,12 +244,10 @@ typedef short v32hi __attribute__((vector_size(64)));
     g00 = convert_float16((r0_ << 16) >> 16); g10 = convert_float16(r0_ >> 16); \
     g01 = convert_float16((r1_ << 16) >> 16); g11 = convert_float16(r1_ >> 16); } while (0)
 #else
-#define QUAD(v, i, g00, g10, g01, g11) do { PAIR(v, i, g00, g01); PAIR(v, (i) + 2, g10, g11); } while (0)
 #define ROWS(v, g00, g10, g01, g11) do { PAIR(v, i00, g00, g10); PAIR(v, i01, g01, g11); } while (0)
 #endif
 #define CORNERS(v, g00, g10, g01, g11) do { \
-    if (quad_axis >= 0) QUAD(v, i00, g00, g10, g01, g11); \
-    else if (sb == 1) ROWS(v, g00, g10, g01, g11); \
+    if (sb == 1) ROWS(v, g00, g10, g01, g11); \
     else { g00 = GATHER(v, i00); g10 = GATHER(v, i10); g01 = GATHER(v, i01); g11 = GATHER(v, i11); } } while (0)
 #else
 #define CORNERS(v, g00, g10, g01, g11) do { \
@@ -304,7 +264,7 @@ kernel void joseph_packet(global const short *vol,
 #ifdef SPLIT
                           global const short *vol_b,
 #endif
-                          const int nx, const int ny, const int nz, const int quad_axis,
+                          const int nx, const int ny, const int nz, const int slab_axis,
                           global const float2 *dirs, global const uchar *mask,
                           constant float *geo, constant int *box, constant float *mat,
                           const int cols, global float4 *out
@@ -330,14 +290,14 @@ kernel void joseph_packet(global const short *vol,
     const float s[3] = {geo[9], geo[10], geo[11]};
     const float16 mm_per_t = sqrt(nxv * nxv + nyv * nyv + 1.0f);
     const float3 dm = fabs((float3)(dx[LANES / 2], dy[LANES / 2], dz[LANES / 2]));
-    const int a = quad_axis >= 0 ? quad_axis : dm.x >= dm.y && dm.x >= dm.z ? 0 : dm.y >= dm.z ? 1 : 2;
+    const int a = slab_axis >= 0 ? slab_axis : dm.x >= dm.y && dm.x >= dm.z ? 0 : dm.y >= dm.z ? 1 : 2;
     const int b = a == 0 ? 1 : 0, c = a == 2 ? 1 : 2;
     const float16 dv[3] = {dx, dy, dz};
     const int lo_i[3] = {box[0], box[1], box[2]};
     const int hi_i[3] = {box[4], box[5], box[6]};
     const int dims[3] = {nx, ny, nz};
     int sa, sb, sc, oc;
-    LAYOUT(quad_axis, dims, a, b, c, sa, sb, sc, oc);
+    LAYOUT(slab_axis, dims, a, b, c, sa, sb, sc, oc);
 
     // Clip every lane to the content box grown by one voxel (slab method, as clip_box).
     float16 t0 = 0.0f, t1 = INFINITY;
@@ -373,11 +333,11 @@ kernel void joseph_packet(global const short *vol,
     // All rays pass through the focal spot, outside the volume, so along the ray the lanes keep
     // their order across b and across c, and their spread across either is largest at the first
     // or the last slice (a difference of two lines): the spreads and the lowest lanes there
-    // decide `windows` for all the slices between (with a voxel's margin below QUAD's limits).
+    // decide `windows` for all the slices between (with a few voxels' margin below ROWS' limits).
     bool windows = false;
     int lane_b = 0, lane_c = 0;
-    if ((quad_axis >= 0 || sb == 1) && kmin <= kmax) {
-        const float span_b = quad_axis >= 0 ? ROW_WORDS - 4 : ROW_SHORTS - 4;     // a voxel's margin and more
+    if (sb == 1 && kmin <= kmax) {
+        const float span_b = ROW_SHORTS - 4;
         const float16 fb0 = b0 + (float)kmin * db, fb1 = b0 + (float)kmax * db;
         const float16 fc0 = c0 + (float)kmin * dc, fc1 = c0 + (float)kmax * dc;
         int last_b = 0, last_c = 0;
@@ -704,30 +664,25 @@ inline short mean_even(int a, int b)
 }
 
 // The slab grid (padded shape ox, oy, oz) of the volume `vol` (plain layout, nx x ny x ...)
-// along `axis`, in the quad layout for rays along it (see LAYOUT): rows along b, then slabs along
-// a, then c; each element the slab at c and at c + 1 (air past the last c). One work-item per c,
-// looping over its slabs and rows: PoCL gives each tiny work-item a work-group of its own.
-kernel void slab_quads(global const short *vol, const int nx, const int ny, const int axis, const int ox,
-                       const int oy, const int oz, global short *out)
+// along `axis`, laid out for rays along it (see LAYOUT): rows along b, then slabs along a, then c.
+// One work-item per c, looping over its slabs and rows: PoCL gives each tiny work-item a
+// work-group of its own.
+kernel void slab_rows(global const short *vol, const int nx, const int ny, const int axis, const int ox,
+                      const int oy, const int oz, global short *out)
 {
     const int ic = get_global_id(0);
     const int dims[3] = {ox, oy, oz};
     const size_t stride[3] = {1, (size_t)nx, (size_t)nx * ny};
     const int b = axis == 0 ? 1 : 0, c = axis == 2 ? 1 : 2;
     const int na = dims[axis], nb = dims[b];
-    const bool next = ic + 1 < dims[c];
     const size_t sa = stride[axis], sb = stride[b], sc = stride[c];
     for (int k = 0; k < na; ++k) {
-        global short *row = out + 2 * ((size_t)ic * na + k) * nb;
+        global short *row = out + ((size_t)ic * na + k) * nb;
         if (k < PAD || k >= na - PAD) {
-            for (int i = 0; i < 2 * nb; ++i) row[i] = -1000;
+            for (int i = 0; i < nb; ++i) row[i] = -1000;
             continue;
         }
         global const short *s0 = vol + (size_t)(2 * k - PAD) * sa + ic * sc, *s1 = s0 + sa;
-        for (int ib = 0; ib < nb; ++ib) {
-            const size_t at = ib * sb;
-            row[2 * ib] = mean_even(s0[at], s1[at]);
-            row[2 * ib + 1] = next ? mean_even(s0[at + sc], s1[at + sc]) : (short)(-1000);
-        }
+        for (int ib = 0; ib < nb; ++ib) row[ib] = mean_even(s0[ib * sb], s1[ib * sb]);
     }
 }
