@@ -14,6 +14,7 @@ from appliance.config.fluoroscope import FluoroscopeProfile
 from appliance.config.loading import load_profile
 from appliance.errors import FluorosimError
 from appliance.geometry import make_transform, rotation_about
+from appliance.patient.volume import Volume
 from appliance.xray.renderer import Renderer, View, at_resolution, zoomed_K
 from appliance.xray.truth.analytic import box_chords, box_volume, pixel_rays_ct
 
@@ -317,13 +318,23 @@ def test_profile_reload_takes_the_new_tube(flat, slab):
     assert flat.mu_water_per_mm == before
 
 
-def test_portable_pair_loads_match_hardware_gathers():
+# Posterior-anterior (rays along the volume's y, detector rows along its x) with the rows turned
+# a degree across the slices, and a view 17 degrees off the volume's z.
+PA_ROLLED = make_transform(rotation_about([0, 0, 1], np.radians(1.0)) @ np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]]),
+                           [1.0, 2.0, 750.0])
+OFF_AXIS = make_transform(rotation_about([1, 0.2, 0], 0.3), [0.0, 0.0, 750.0])
+
+
+@pytest.mark.parametrize("T", [OFF_AXIS, PA_ROLLED])
+def test_portable_pair_loads_match_hardware_gathers(T):
+    """The packet kernel's hardware loads (row windows where a packet's samples lie in one or two
+    rows of a slice, gathers elsewhere) against the portable 32-bit pair loads, on noise (every
+    voxel differs from its neighbours): the same integrals to the bit."""
     import pyopencl as cl
 
     r = Renderer(profile("generic-flat-detector.yaml", size=64), Materials(), device="cpu")
-    vol, _, _ = box_volume((20, 24, 24), (2.0, 2.0, 2.5), (3, 4, 2), (20, 18, 15), hu=400)
-    prepared = r.prepare(vol)
-    T = make_transform(rotation_about([1, 0.2, 0], 0.3), [0.0, 0.0, 750.0])
+    hu = np.random.default_rng(3).integers(-900, 1500, size=(20, 24, 24)).astype(np.int16)
+    prepared = r.prepare(Volume(hu=hu, T_ct_from_voxel=np.diag([2.0, 2.0, 2.5, 1.0]), source="noise"))
     a = r.material_integrals(prepared, T, View())
     program = cl.Program(r.dev.ctx, r.dev.source).build(options=["-DUNALIGNED_PAIRS", "-DNO_HW_GATHER"])
     r.caster._joseph = cl.Kernel(program, "joseph_packet")

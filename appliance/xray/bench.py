@@ -197,6 +197,7 @@ def run(args) -> int:
     print(f"fluorosim bench drr: {os.cpu_count()} CPU(s) visible, load average {os.getloadavg()[0]:.2f}")
 
     from .frame_cost import bench_ct, cached_frames, centred, next_phase, plastimatch_side_by_side, slab_frames
+    from .slabs import SlabCache, slab_cast
 
     ct = centred(bench_ct(args.ct)) if not {"speed", "sampling", "cache", "plastimatch", "memory"} <= skip else None
     if "speed" not in skip and ct is not None:
@@ -206,26 +207,42 @@ def run(args) -> int:
               f"{ii.name} profile, PA view with the pose moving 0-6 degrees between frames,\n"
               f"display quantity with noise, focal-spot blur and vignetting; {args.frames} frames each, medians.")
         print("'cpu ms' is the process's CPU time per frame (all threads): on an otherwise idle machine with N cores\n"
-              "the wall time approaches cpu ms / N; 'ms/frame' is what this run measured, other load included.")
-        print(f"{'image':>10} {'beam':>6} {'view':>8} {'ms/frame':>9} {'cpu ms':>8} {'fps':>6}")
+              "the wall time approaches cpu ms / N; 'ms/frame' is what this run measured, other load included.\n"
+              f"'through slabs': the same frames, alternating with those, as the appliance casts a moving frame where the\n"
+              f"steepest ray shifts at most {SLAB_MAX_SHIFT_PX:g} px within a slab (rendering.slab_max_shift_px; "
+              "slabs.py), polychromatic with noise as the others.")
+        print(f"{'image':>10} {'beam':>6} {'view':>8} {'ms/frame':>9} {'cpu ms':>8} {'fps':>6}  cast")
         for size in [int(s) for s in args.sizes.split(",") if s.strip()]:
             renderer = Renderer(at_resolution(ii, size, size), materials, contrast, device=args.device)
             prepared = renderer.prepare(torso)
+            slabs = SlabCache(renderer.dev, 1)
             views = [(False, "PA", 0.0), (True, "PA", 0.0)] + ([(True, "lateral", 90.0)] if size == 512 else [])
             for poly, name, base_deg in views:
                 view = View(polychromatic=poly, seed=0)
-                renderer.render(prepared, pa_pose(620.0, base_deg), view)      # builds per-view caches
-                walls, cpus = [], []
+                first = pa_pose(620.0, base_deg)
+                renderer.render(prepared, first, view)      # builds per-view caches
+                if poly:                                    # and the slab copy
+                    renderer.render(prepared, first, view, cast=slab_cast(renderer.caster, slabs, prepared, first, 1,
+                                                                          None, np.inf))
+                timings: dict[str, tuple[list, list]] = {"full volume": ([], [])}
                 for f in range(args.frames):
                     T = pa_pose(620.0, tilt_deg=base_deg + (f * 1.7) % 6.0)
-                    t0, c0 = time.perf_counter(), _cpu_s()
-                    renderer.render(prepared, T, view)
-                    walls.append(time.perf_counter() - t0)
-                    cpus.append(_cpu_s() - c0)
-                ms = 1000 * float(np.median(walls))
-                print(f"{size:>5}x{size:<4} {'poly' if poly else 'mono':>6} {name:>8} {ms:9.1f} "
-                      f"{1000 * float(np.median(cpus)):8.1f} {1000 / ms:6.1f}")
-            del prepared, renderer
+                    casts = {"full volume": None}
+                    slab = slab_cast(renderer.caster, slabs, prepared, T, 1, None, SLAB_MAX_SHIFT_PX) if poly else None
+                    if slab is not None:
+                        casts["through slabs"] = slab
+                    for label, cast in casts.items():
+                        walls, cpus = timings.setdefault(label, ([], []))
+                        t0, c0 = time.perf_counter(), _cpu_s()
+                        renderer.render(prepared, T, view, cast=cast)
+                        walls.append(time.perf_counter() - t0)
+                        cpus.append(_cpu_s() - c0)
+                for label, (walls, cpus) in timings.items():
+                    ms = 1000 * float(np.median(walls))
+                    share = f" ({len(walls)} of {args.frames} frames)" if len(walls) < args.frames else ""
+                    print(f"{size:>5}x{size:<4} {'poly' if poly else 'mono':>6} {name:>8} {ms:9.1f} "
+                          f"{1000 * float(np.median(cpus)):8.1f} {1000 / ms:6.1f}  {label}{share}")
+            del prepared, renderer, slabs
         print(f"OpenCL device: {_device_name(args.device)}")
 
     if "sampling" not in skip and ct is not None:
@@ -298,8 +315,6 @@ def run(args) -> int:
                   "(the loader shares the two cores)")
         # The moving frames' slab copies as the shipped profiles keep them (rendering.slab_phases: 4),
         # on top: the phases blended now and the last two, each half a phase.
-        from .slabs import SlabCache
-
         slabs = SlabCache(renderer.dev, 4)
         for p in [p for p in timeline._prepared if p is not None][:4]:
             slabs.get(p, 1)

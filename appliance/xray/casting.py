@@ -123,7 +123,9 @@ class PreparedVolume:
     """One phase on the device: padded int16 HU and where it lies.
 
     `T_index_from_ct` maps the `ct` frame (mm) into padded voxel indices; `box` holds the
-    inclusive padded-index bounds (lo, hi) of the voxels denser than EMPTY_MAX_HU.
+    inclusive padded-index bounds (lo, hi) of the voxels denser than EMPTY_MAX_HU. `slab_axis`:
+    -1 for the plain layout [z][y][x]; 0-2 for a slab copy laid out for rays along that axis,
+    which they are cast along (drr.cl's LAYOUT: the rows of its slices contiguous).
     """
 
     buffer: cl.Buffer
@@ -134,9 +136,11 @@ class PreparedVolume:
     source: str = ""
     time_s: float = 0.0
     _renderer_id: int = field(default=0, repr=False)
+    slab_axis: int = -1
 
     def same_grid(self, other: PreparedVolume) -> bool:
-        return self.shape_xyz == other.shape_xyz and np.allclose(self.T_index_from_ct, other.T_index_from_ct, atol=1e-6)
+        return (self.shape_xyz == other.shape_xyz and self.slab_axis == other.slab_axis
+                and np.allclose(self.T_index_from_ct, other.T_index_from_ct, atol=1e-6))
 
 
 @dataclass(frozen=True, eq=False)
@@ -377,8 +381,8 @@ class Caster:
             if self._joseph_blend is None:
                 self._joseph_blend = dev.kernel(self._joseph_name, blend=True)
             kernel, first = self._joseph_blend, (volume.buffer, blend[0].buffer, np.float32(blend[1]))
-        args = (*first, np.int32(nx), np.int32(ny), np.int32(nz), dirs, mask_buf, dev.upload(geo), dev.upload(box),
-                self._mat_buf)
+        args = (*first, np.int32(nx), np.int32(ny), np.int32(nz), np.int32(volume.slab_axis), dirs, mask_buf,
+                dev.upload(geo), dev.upload(box), self._mat_buf)
         tail = (np.int32(cols), lines) if self.packet else (lines,)
         width = -(-cols // PACKET) if self.packet else cols
         if bands is None:

@@ -1,7 +1,8 @@
 // Digitally reconstructed radiographs: rays from the focal spot through detector pixels.
 //
 // Volumes are int16 Hounsfield units, padded by PAD voxels of air on every side and laid
-// out [k][j][i] (i fastest). All geometry arrives in padded voxel-index coordinates:
+// out [k][j][i] (i fastest), or, a slab copy's (slab_axis >= 0, see slab_rows), with the rows of
+// its slices along that dominant axis contiguous, whatever the axis (see LAYOUT). All geometry arrives in padded voxel-index coordinates:
 // voxel v spans [v - 0.5, v + 0.5] along each axis, the focal spot is `src`, and the ray
 // of a pixel with normalised direction (x, y, 1) in the xray frame runs along A * (x, y, 1)
 // with parameter t in units of the xray frame's z, so one unit of t is |(x, y, 1)| mm.
@@ -62,6 +63,19 @@ inline bool clip_box(float3 s, float3 d, float3 lo, float3 hi, float *t0, float 
 #define BLOCKS(wanted) (wanted)
 #endif
 
+// A sample's voxel (ib, ic) of slice k along the dominant axis a is at k * sa + ib * sb + ic * sc
+// (shorts), its neighbours across b and c `sb` and `oc` further on. The plain layout [z][y][x]:
+// the axes' strides. A slab copy along a (slab_rows): rows along b, then slices along a, then c,
+// so that rays along a read rows along b (sb = 1) whatever a is (see ROWS).
+#define LAYOUT(slab_axis, dims, a, b, c, sa, sb, sc, oc) do { \
+    if ((slab_axis) < 0) { \
+        const int st_[3] = {1, (dims)[0], (dims)[0] * (dims)[1]}; \
+        sa = st_[a]; sb = st_[b]; sc = st_[c]; \
+    } else { \
+        sb = 1; sa = (dims)[b]; sc = sa * (dims)[a]; \
+    } \
+    oc = sc; } while (0)
+
 // One bilinear sample of the corner voxels g00..g11 (HU; in-slice weights wb, wc) into the
 // materials' sums air, soft, bone, con, in type T: float, or float16 for a packet's lanes, M its
 // comparisons' type (`on`: the lanes on their own ray). Each material's density is affine in
@@ -95,7 +109,7 @@ kernel void joseph_materials(global const short *vol,
 #ifdef BLEND
                              global const short *vol_b, const float w_b,
 #endif
-                             const int nx, const int ny, const int nz,
+                             const int nx, const int ny, const int nz, const int slab_axis,
                              global const float2 *dirs, global const uchar *mask,
                              constant float *geo, constant int *box, constant float *mat,
                              global float4 *out)
@@ -117,13 +131,14 @@ kernel void joseph_materials(global const short *vol,
     if (!clip_box(s, d, lo, hi, &t0, &t1)) { out[p] = acc; return; }
 
     const float3 ad = fabs(d);
-    int a, b, c;           // dominant axis a, in-slice axes b and c
-    if (ad.x >= ad.y && ad.x >= ad.z) { a = 0; b = 1; c = 2; }
-    else if (ad.y >= ad.z)            { a = 1; b = 0; c = 2; }
-    else                              { a = 2; b = 0; c = 1; }
+    // Dominant axis a (a slab copy's own), in-slice axes b and c.
+    const int a = slab_axis >= 0 ? slab_axis : ad.x >= ad.y && ad.x >= ad.z ? 0 : ad.y >= ad.z ? 1 : 2;
+    const int b = a == 0 ? 1 : 0, c = a == 2 ? 1 : 2;
     const float sv[3] = {s.x, s.y, s.z};
     const float dv[3] = {d.x, d.y, d.z};
-    const int stride[3] = {1, nx, nx * ny};
+    const int dims[3] = {nx, ny, nz};
+    int sa, sb, sc, oc;
+    LAYOUT(slab_axis, dims, a, b, c, sa, sb, sc, oc);
     const int lo_i[3] = {box[0], box[1], box[2]};
     const int hi_i[3] = {box[4], box[5], box[6]};
 
@@ -137,11 +152,10 @@ kernel void joseph_materials(global const short *vol,
     const float db = dv[b] * inv_da, dc = dv[c] * inv_da;
     const float b0 = sv[b] - sv[a] * db, c0 = sv[c] - sv[a] * dc;
     const float step_mm = fabs(inv_da) * mm_per_t;
-    const int sa = stride[a], sb = stride[b], sc = stride[c];
     const float air_max = mat[0], bone_min = mat[1], con_min = mat[2];
     const float bone_off = mat[3], bone_slope = mat[4];
     // In-slice coordinates stay inside the padding: clamp guards float rounding at the edges.
-    const float bmax = (float)((b == 0 ? nx : ny) - 2), cmax = (float)((c == 1 ? ny : nz) - 2);
+    const float bmax = (float)(dims[b] - 2), cmax = (float)(dims[c] - 2);
     // The pixel's footprint in voxels along b and c at the middle of the ray's path through the
     // volume: the steps to the neighbouring column's and row's rays there (t is depth in mm).
     float inv_b = 1.0f, inv_c = 1.0f;
@@ -166,12 +180,12 @@ kernel void joseph_materials(global const short *vol,
         if (blocks_b) wb = VOXEL_WEIGHT(wb, inv_b, off_b);
         if (blocks_c) wc = VOXEL_WEIGHT(wc, inv_c, off_c);
         const int base = k * sa + ib * sb + ic * sc;
-        float g00 = vol[base], g10 = vol[base + sb], g01 = vol[base + sc], g11 = vol[base + sb + sc];
+        float g00 = vol[base], g10 = vol[base + sb], g01 = vol[base + oc], g11 = vol[base + sb + oc];
 #ifdef BLEND
         g00 = mix(g00, (float)vol_b[base], w_b);
         g10 = mix(g10, (float)vol_b[base + sb], w_b);
-        g01 = mix(g01, (float)vol_b[base + sc], w_b);
-        g11 = mix(g11, (float)vol_b[base + sb + sc], w_b);
+        g01 = mix(g01, (float)vol_b[base + oc], w_b);
+        g11 = mix(g11, (float)vol_b[base + sb + oc], w_b);
 #endif
         SAMPLE(float, int, g00, g10, g01, g11, 1, acc.x, acc.y, acc.z, acc.w);
     }
@@ -213,8 +227,47 @@ typedef int v16si __attribute__((vector_size(64)));
 #endif
 #define PAIR(v, i, lo, hi) do { const int16 w_ = WORDS(v, i); \
     lo = convert_float16((w_ << 16) >> 16); hi = convert_float16(w_ >> 16); } while (0)
+#if defined(__AVX512BW__) && !defined(NO_HW_GATHER)
+// Where a packet's sixteen samples lie, at every slice, in two neighbouring rows of the slice and
+// within a few tens of voxels along them (`windows`, decided before the packet's loop), a row's
+// 64 shorts (two vector loads) and a permute of shorts (AVX-512 BW) put each lane's voxel and its
+// b-neighbour into its 32-bit word, as PAIR's gather does: the rows are those of lane `lane_c`,
+// whose ray is the lowest across c at every slice, and the next two (a lane in the second row
+// needs the third, c + 2); the shorts start at lane `lane_b`'s voxel, the lowest across b. The
+// lanes' (ib, ic) are their voxels in slice k. A lane that rounds to the voxel below the lowest
+// lane's (a near-tie) makes that slice gathered. A window reads rows of slice k, which has PAD
+// slices after it in the buffer, so it never runs past the buffer's end.
+#define WINDOWS_AVAILABLE
+#define ROW_SHORTS 64
+#define BROADCAST(x, lane) __builtin_astype(__builtin_ia32_permvarsi512(__builtin_astype((x), v16si), \
+    __builtin_astype((int16)(lane), v16si)), int16)
+typedef short v32hi __attribute__((vector_size(64)));
+#define SHORT_PAIRS(v, at, idx) ({ global const int *w_ = (global const int *)((v) + (at)); \
+    __builtin_astype(__builtin_ia32_vpermi2varhi512(__builtin_astype(vload16(0, w_), v32hi), \
+        __builtin_astype((idx), v32hi), __builtin_astype(vload16(1, w_), v32hi)), int16); })
+#define ROWS(v, g00, g10, g01, g11) do { \
+    int16 r0_, r1_; \
+    bool gather_ = !windows; \
+    if (windows) { \
+        const int16 bm_ = BROADCAST(ib, lane_b), cm_ = BROADCAST(ic, lane_c); \
+        const int16 o_ = ib - bm_, first_ = (ic == cm_) & (o_ >= 0), idx_ = o_ | ((o_ + 1) << 16); \
+        const int row_ = k * sa + cm_.s0 * sc + bm_.s0; \
+        r0_ = SHORT_PAIRS(v, row_, idx_); r1_ = SHORT_PAIRS(v, row_ + sc, idx_); \
+        if (!all(first_)) { \
+            if (all(first_ | ((ic == cm_ + 1) & (o_ >= 0)))) { \
+                const int16 r2_ = SHORT_PAIRS(v, row_ + 2 * sc, idx_); \
+                r0_ = select(r1_, r0_, first_); r1_ = select(r2_, r1_, first_); \
+            } else gather_ = true; \
+        } \
+    } \
+    if (gather_) { r0_ = WORDS(v, i00); r1_ = WORDS(v, i01); } \
+    g00 = convert_float16((r0_ << 16) >> 16); g10 = convert_float16(r0_ >> 16); \
+    g01 = convert_float16((r1_ << 16) >> 16); g11 = convert_float16(r1_ >> 16); } while (0)
+#else
+#define ROWS(v, g00, g10, g01, g11) do { PAIR(v, i00, g00, g10); PAIR(v, i01, g01, g11); } while (0)
+#endif
 #define CORNERS(v, g00, g10, g01, g11) do { \
-    if (sb == 1) { PAIR(v, i00, g00, g10); PAIR(v, i01, g01, g11); } \
+    if (sb == 1) ROWS(v, g00, g10, g01, g11); \
     else { g00 = GATHER(v, i00); g10 = GATHER(v, i10); g01 = GATHER(v, i01); g11 = GATHER(v, i11); } } while (0)
 #else
 #define CORNERS(v, g00, g10, g01, g11) do { \
@@ -231,7 +284,7 @@ kernel void joseph_packet(global const short *vol,
 #ifdef SPLIT
                           global const short *vol_b,
 #endif
-                          const int nx, const int ny, const int nz,
+                          const int nx, const int ny, const int nz, const int slab_axis,
                           global const float2 *dirs, global const uchar *mask,
                           constant float *geo, constant int *box, constant float *mat,
                           const int cols, global float4 *out
@@ -257,15 +310,14 @@ kernel void joseph_packet(global const short *vol,
     const float s[3] = {geo[9], geo[10], geo[11]};
     const float16 mm_per_t = sqrt(nxv * nxv + nyv * nyv + 1.0f);
     const float3 dm = fabs((float3)(dx[LANES / 2], dy[LANES / 2], dz[LANES / 2]));
-    int a, b, c;
-    if (dm.x >= dm.y && dm.x >= dm.z) { a = 0; b = 1; c = 2; }
-    else if (dm.y >= dm.z)            { a = 1; b = 0; c = 2; }
-    else                              { a = 2; b = 0; c = 1; }
+    const int a = slab_axis >= 0 ? slab_axis : dm.x >= dm.y && dm.x >= dm.z ? 0 : dm.y >= dm.z ? 1 : 2;
+    const int b = a == 0 ? 1 : 0, c = a == 2 ? 1 : 2;
     const float16 dv[3] = {dx, dy, dz};
     const int lo_i[3] = {box[0], box[1], box[2]};
     const int hi_i[3] = {box[4], box[5], box[6]};
     const int dims[3] = {nx, ny, nz};
-    const int stride[3] = {1, nx, nx * ny};
+    int sa, sb, sc, oc;
+    LAYOUT(slab_axis, dims, a, b, c, sa, sb, sc, oc);
 
     // Clip every lane to the content box grown by one voxel (slab method, as clip_box).
     float16 t0 = 0.0f, t1 = INFINITY;
@@ -294,10 +346,33 @@ kernel void joseph_packet(global const short *vol,
     const float16 db = dv[b] * inv_da, dc = dv[c] * inv_da;
     const float16 b0 = s[b] - s[a] * db, c0 = s[c] - s[a] * dc;
     const float16 step_mm = fabs(inv_da) * mm_per_t;
-    const int sa = stride[a], sb = stride[b], sc = stride[c];
     const float air_max = mat[0], bone_min = mat[1], con_min = mat[2];
     const float bone_off = mat[3], bone_slope = mat[4];
     const float bmax = (float)(dims[b] - 2), cmax = (float)(dims[c] - 2);
+#ifdef WINDOWS_AVAILABLE
+    // All rays pass through the focal spot, outside the volume, so along the ray the lanes keep
+    // their order across b and across c, and their spread across either is largest at the first
+    // or the last slice (a difference of two lines): the spreads and the lowest lanes there
+    // decide `windows` for all the slices between (with a few voxels' margin below ROWS' limits).
+    bool windows = false;
+    int lane_b = 0, lane_c = 0;
+    if (sb == 1 && kmin <= kmax) {
+        const float span_b = ROW_SHORTS - 4;
+        const float16 fb0 = b0 + (float)kmin * db, fb1 = b0 + (float)kmax * db;
+        const float16 fc0 = c0 + (float)kmin * dc, fc1 = c0 + (float)kmax * dc;
+        int last_b = 0, last_c = 0;
+        float hb0 = fb0[0], hb1 = fb1[0], hc0 = fc0[0], hc1 = fc1[0];       // the highest
+        for (int l = 1; l < LANES; ++l) {
+            if (fb0[l] < fb0[lane_b]) lane_b = l;
+            if (fb1[l] < fb1[last_b]) last_b = l;
+            if (fc0[l] < fc0[lane_c]) lane_c = l;
+            if (fc1[l] < fc1[last_c]) last_c = l;
+            hb0 = fmax(hb0, fb0[l]); hb1 = fmax(hb1, fb1[l]); hc0 = fmax(hc0, fc0[l]); hc1 = fmax(hc1, fc1[l]);
+        }
+        windows = lane_b == last_b && lane_c == last_c && hb0 - fb0[lane_b] < span_b && hb1 - fb1[lane_b] < span_b &&
+                  hc0 - fc0[lane_c] < 0.99f && hc1 - fc1[lane_c] < 0.99f;
+    }
+#endif
     // Each lane's pixel footprint along b and c, as joseph_materials takes it (see VOXEL_WEIGHT).
     float16 inv_b = 1.0f, inv_c = 1.0f;
     if (geo[12] > 0.0f) {
@@ -330,7 +405,7 @@ kernel void joseph_packet(global const short *vol,
         float16 wb = fb - convert_float16(ib), wc = fc - convert_float16(ic);
         if (blocks_b) wb = VOXEL_WEIGHT(wb, inv_b, off_b);
         if (blocks_c) wc = VOXEL_WEIGHT(wc, inv_c, off_c);
-        const int16 i00 = k * sa + ib * sb + ic * sc, i10 = i00 + sb, i01 = i00 + sc, i11 = i01 + sb;
+        const int16 i00 = k * sa + ib * sb + ic * sc, i10 = i00 + sb, i01 = i00 + oc, i11 = i01 + sb;
         float16 g00, g10, g01, g11;
         CORNERS(vol, g00, g10, g01, g11);
 #if defined(BLEND) || defined(SPLIT)
@@ -589,41 +664,36 @@ kernel void gather_lines(global const float4 *lines, global const int *index, gl
 
 // Pre-integrated slabs (slabs.py): pairs of slices along `axis` averaged into one slab, so a
 // cast through the slab grid steps two voxels at a time yet every voxel counts (HU, hence
-// density, is averaged: the line integral through a pair is kept). The slab grid's padded
-// shape is (ox, oy, get_global_size(0)); slab q >= PAD holds the padded input slices
-// 2q - PAD and 2q - PAD + 1, the last maybe a slice and the padding's air. One work-item per
-// z plane of the slab grid, looping over its rows: PoCL gives each tiny work-item a
-// work-group of its own. Rounded half to even in integers (rint on floats was a library
-// call per voxel, ten times the copy itself): the int16 average is unbiased.
+// density, is averaged: the line integral through a pair is kept). Slab q >= PAD along the
+// axis holds the padded input slices 2q - PAD and 2q - PAD + 1, the last maybe a slice and the
+// padding's air. Rounded half to even in integers (rint on floats was a library call per
+// voxel, ten times the copy itself): the int16 average is unbiased.
 inline short mean_even(int a, int b)
 {
     const int s = a + b, h = s >> 1;       // floor(s / 2), negative sums included
     return (short)(h + (s & h & 1));       // x.5 goes to the even neighbour
 }
 
-kernel void slab_pairs(global const short *vol, const int nx, const int ny, const int axis, const int ox,
-                       const int oy, global short *out)
+// The slab grid (padded shape ox, oy, oz) of the volume `vol` (plain layout, nx x ny x ...)
+// along `axis`, laid out for rays along it (see LAYOUT): rows along b, then slabs along a, then c.
+// One work-item per c, looping over its slabs and rows: PoCL gives each tiny work-item a
+// work-group of its own.
+kernel void slab_rows(global const short *vol, const int nx, const int ny, const int axis, const int ox,
+                      const int oy, const int oz, global short *out)
 {
-    const int k = get_global_id(0), oz = get_global_size(0);
-    for (int j = 0; j < oy; ++j) {
-        global short *row = out + ((size_t)k * oy + j) * ox;
-        if (axis == 0) {
-            global const short *in = vol + ((size_t)k * ny + j) * nx;
-            for (int i = 0; i < ox; ++i) {
-                const int p = clamp(2 * i - PAD, 0, nx - 2);
-                const bool slab = i >= PAD && i < ox - PAD;
-                row[i] = slab ? mean_even(in[p], in[p + 1]) : (short)(-1000);
-            }
+    const int ic = get_global_id(0);
+    const int dims[3] = {ox, oy, oz};
+    const size_t stride[3] = {1, (size_t)nx, (size_t)nx * ny};
+    const int b = axis == 0 ? 1 : 0, c = axis == 2 ? 1 : 2;
+    const int na = dims[axis], nb = dims[b];
+    const size_t sa = stride[axis], sb = stride[b], sc = stride[c];
+    for (int k = 0; k < na; ++k) {
+        global short *row = out + ((size_t)ic * na + k) * nb;
+        if (k < PAD || k >= na - PAD) {
+            for (int i = 0; i < nb; ++i) row[i] = -1000;
             continue;
         }
-        const int q = axis == 1 ? j : k, n = axis == 1 ? oy : oz;
-        if (q < PAD || q >= n - PAD) {
-            for (int i = 0; i < ox; ++i) row[i] = -1000;
-            continue;
-        }
-        const int p = 2 * q - PAD;
-        global const short *r0 = vol + (axis == 1 ? ((size_t)k * ny + p) * nx : ((size_t)p * ny + j) * nx);
-        global const short *r1 = r0 + (axis == 1 ? (size_t)nx : (size_t)nx * ny);
-        for (int i = 0; i < ox; ++i) row[i] = mean_even(r0[i], r1[i]);
+        global const short *s0 = vol + (size_t)(2 * k - PAD) * sa + ic * sc, *s1 = s0 + sa;
+        for (int ib = 0; ib < nb; ++ib) row[ib] = mean_even(s0[ib * sb], s1[ib * sb]);
     }
 }

@@ -4,7 +4,7 @@ that a moving frame's cast takes half the samples and still counts every voxel.
 Joseph's method samples a ray once per slice along its dominant axis. Sampling every second
 slice halves the cost but aliases: a face on a voxel boundary moves in steps of two voxels,
 and a thin structure between two samples is lost. A slab is the average of two slices, so a
-ray through the slab grid (voxels twice as deep along that axis, `slab_pairs` in drr.cl)
+ray through the slab grid (voxels twice as deep along that axis, `slab_rows` in drr.cl)
 integrates the same density: what the slab approximates is the ray's shift within a slab,
 where the two slices are read at the slab's middle instead of where the ray crosses each.
 That shift is (slab thickness) x (the ray's slope across the axis); it is used only where,
@@ -13,7 +13,10 @@ pixel, for every ray of the field (the corner rays are the steepest), and only f
 frames: a held view is cast from the full volume.
 
 A slab copy is half a phase on the device, made once per phase and axis when a moving frame
-first needs it and kept for the last `rendering.slab_phases` of them.
+first needs it and kept for the last `rendering.slab_phases` of them. It is laid out for rays
+along its axis (drr.cl's LAYOUT: rows across the rays contiguous, whatever the axis), so a
+lateral view's samples are read as a posterior-anterior view's are, a row at a time, not voxel
+by voxel.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ from ..geometry import invert
 from .casting import PAD, PreparedVolume
 from .pixel_geometry import zoomed_K
 
-#: Slices averaged into one slab (count): `slab_pairs` averages pairs.
+#: Slices averaged into one slab (count): `slab_rows` averages pairs.
 SLAB = 2
 
 
@@ -89,7 +92,7 @@ class SlabCache:
 
     def __init__(self, dev, keep: int):
         self.dev, self.keep = dev, keep
-        self._kernel = dev.kernel("slab_pairs")
+        self._kernel = dev.kernel("slab_rows")
         self._slabs: OrderedDict[tuple[int, int], tuple[weakref.ref[PreparedVolume], PreparedVolume]] = OrderedDict()
         #: Slab copies made (count): one per phase and axis while they stay in the cache.
         self.made = 0
@@ -108,11 +111,12 @@ class SlabCache:
         nbytes = 2 * shape[0] * shape[1] * shape[2]
         out = self.dev.scratch(nbytes)
         nx, ny, _ = volume.shape_xyz
-        self._kernel(self.dev.queue, (shape[2],), None, volume.buffer, np.int32(nx), np.int32(ny), np.int32(axis),
-                     np.int32(shape[0]), np.int32(shape[1]), out)
+        slowest = shape[2] if axis != 2 else shape[1]              # the layout's slowest axis c: one work-item each
+        self._kernel(self.dev.queue, (slowest,), None, volume.buffer, np.int32(nx), np.int32(ny), np.int32(axis),
+                     np.int32(shape[0]), np.int32(shape[1]), np.int32(shape[2]), out)
         slab = PreparedVolume(buffer=out, shape_xyz=shape, T_index_from_ct=S @ volume.T_index_from_ct,
                               box=slab_box(volume.box, axis), nbytes=nbytes, source=f"{volume.source} (slabs)",
-                              time_s=volume.time_s, _renderer_id=volume._renderer_id)
+                              time_s=volume.time_s, _renderer_id=volume._renderer_id, slab_axis=axis)
         self._slabs[key] = (weakref.ref(volume), slab)
         self.made += 1
         while len(self._slabs) > self.keep:
