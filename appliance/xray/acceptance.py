@@ -135,6 +135,7 @@ def patients(adult_size: str, thin: bool = True):
     from ..config.commands import default_config_dir
     from ..config.loading import load_profile
     from ..patient import builtin
+    from ..patient import adult_pelvis
     from ..patient.adult_chest import SIZES, build_adult_chest
     from .anatomy_reference import thin_slice_chest
 
@@ -152,6 +153,15 @@ def patients(adult_size: str, thin: bool = True):
     child_views = [("chest", (0.0, 0.0, 90.0)), ("abdomen", (0.0, 0.0, -30.0)), ("bladder", (0.0, 0.0, -140.0))]
     out: list[tuple] = [("child", child, child_views, child_case.materials, child_case.contrast, False),
                         ("adult chest", adult, adult_views, Materials(), None, False)]
+    # The abdomen-pelvis CT as a scanner writes it: the couch in the beam, -3024 HU padding
+    # outside the reconstruction circle, arms cut by the circle.
+    hu, spacing, origin = adult_pelvis.build_adult_pelvis(*adult_pelvis.SIZES[adult_size])
+    T = np.diag([spacing[2], spacing[1], spacing[0], 1.0])
+    T[:3, 3] = origin
+    pelvis = Volume(hu=hu, T_ct_from_voxel=T, source=f"adult abdomen-pelvis ({adult_size})")
+    del hu
+    pelvis_views = [("lumbar/bowel", (0.0, 0.0, 60.0)), ("pelvis", (0.0, 0.0, -100.0))]
+    out.append(("adult abdo-pelvis", pelvis, pelvis_views, Materials(), None, False))
     if thin:
         out.append(("adult thin-slice", thin_slice_chest, adult_views, Materials(), None, True))
     return out
