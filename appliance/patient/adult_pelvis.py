@@ -207,6 +207,7 @@ def _paint_table(layer: Layer) -> None:
     depth = lambda X, Y: Y - (BACK_Y + 1.0) + X * X / (2 * TABLE_CURVE_MM)       # mm below the couch's top
     width = lambda X: np.abs(X) - TABLE_HALF_WIDTH_MM
     thick = 2 * TABLE_SHELL_MM + TABLE_CORE_MM
+    # The couch is the same at every z: `0 * Z` spreads its (y, x) distance over the box's slices.
     layer.paint(lambda X, Y, Z: intersect(-depth(X, Y), depth(X, Y) - thick, width(X)) + 0 * Z, HU_TABLE_SHELL, *every)
     layer.paint(lambda X, Y, Z: intersect(TABLE_SHELL_MM - depth(X, Y), depth(X, Y) - thick + TABLE_SHELL_MM,
                                           width(X) + TABLE_SHELL_MM) + 0 * Z, HU_TABLE_CORE, *every)
@@ -235,7 +236,6 @@ def build_adult_pelvis(shape_zyx=(130, 512, 512), spacing_mm=(2.5, 0.8, 0.8), se
     layer.paint(lambda *box: outer, HU_SKIN, *every)
     layer.paint(lambda *box: outer + np.float32(SKIN_MM), HU_FAT, *every)
     layer.paint(lambda *box: outer + np.float32(SKIN_MM + SUBCUT_FAT_MM), HU_MUSCLE, *every)
-    del outer
     _paint_soft_tissue(layer, rng)
     _paint_lumbar_spine(layer)        # over the psoas and vessels it lies among
     zc, h, disc, _, _ = _lumbar_levels()[-1]
