@@ -20,6 +20,7 @@ from appliance.config.case import Materials
 from appliance.config.fluoroscope import FluoroscopeProfile
 from appliance.config.loading import load_profile
 from appliance.display.compositor import Compositor, Overlay
+from appliance.patient import adult_pelvis
 from appliance.patient.adult_chest import SIZES, build_adult_chest
 from appliance.patient.volume import Volume
 from appliance.xray import acceptance, bar_pattern
@@ -226,21 +227,36 @@ def test_exposure_control_moves_along_its_kv_ma_curve_to_the_reference_signal(wa
                                                   (II.tube.ma * spekpy_kerma(II.tube.kvp)), rel=0.02)
 
 
-@pytest.mark.parametrize("zoom", [1, 4])
-def test_adult_chest_keeps_its_anatomy_on_screen(ii128, adult, zoom):
-    prepared = ii128.prepare(adult)
-    for centre in ((0.0, 0.0, 30.0), (-90.0, 0.0, 60.0), (0.0, 0.0, -90.0)):
+def _keeps_its_anatomy_on_screen(renderer, volume, centres, zoom):
+    prepared = renderer.prepare(volume)
+    for centre in centres:
         T = acceptance.ap_pose(620.0, centre)
-        frame = ii128.render(prepared, T, View(zoom=zoom, seed=7))
-        mask = ii128.field_mask(zoom, None, True)
-        inside = acceptance.interior(mask, ii128.detector.edge(mask, zoom))
+        frame = renderer.render(prepared, T, View(zoom=zoom, seed=7))
+        mask = renderer.field_mask(zoom, None, True)
+        inside = acceptance.interior(mask, renderer.detector.edge(mask, zoom))
         assert acceptance.clipped_fraction(frame.image, inside) <= 0.01
         assert acceptance.grey_span(frame.image, inside) >= 0.5
-        clean = ii128.render(prepared, T, View(zoom=zoom, noise=False))
-        line = ii128.line_integral(prepared, T, zoom)
+        clean = renderer.render(prepared, T, View(zoom=zoom, noise=False))
+        line = renderer.line_integral(prepared, T, zoom)
         # Distortion bends the display's rays away from the pinhole line integral's at the
         # edge; the middle of the field still has to follow the anatomy.
         assert acceptance.detail_correlation(clean.image, line, inside) >= 0.6
+
+
+@pytest.mark.parametrize("zoom", [1, 4])
+def test_adult_chest_keeps_its_anatomy_on_screen(ii128, adult, zoom):
+    _keeps_its_anatomy_on_screen(ii128, adult, ((0.0, 0.0, 30.0), (-90.0, 0.0, 60.0), (0.0, 0.0, -90.0)), zoom)
+
+
+@pytest.mark.parametrize("zoom", [1, 4])
+def test_abdomen_and_pelvis_with_couch_and_padding_keep_their_anatomy_on_screen(ii128, zoom):
+    """Lumbar spine and bowel gas, then sacrum, iliac wings and femoral heads, the CT couch
+    in the beam and -3024 HU padding outside the reconstruction circle."""
+    hu, spacing, origin = adult_pelvis.build_adult_pelvis(*adult_pelvis.SIZES["small"], seed=1)
+    T = np.diag([spacing[2], spacing[1], spacing[0], 1.0])
+    T[:3, 3] = origin
+    pelvis = Volume(hu=hu, T_ct_from_voxel=T, source="adult abdomen-pelvis")
+    _keeps_its_anatomy_on_screen(ii128, pelvis, ((0.0, 0.0, 60.0), (0.0, 0.0, -100.0)), zoom)
 
 
 def test_invert_flips_every_screen_pixel(ii128, adult, tmp_path):

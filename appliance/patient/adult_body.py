@@ -80,7 +80,7 @@ def body_at(Z, values):
     return np.interp(Z, BODY_Z, values).astype(np.float32)
 
 
-def _superellipse(X, Y, a, b, yc):
+def superellipse(X, Y, a, b, yc):
     """Approximate distance (mm) to the superellipse of semi-axes a, b centred at (0, yc)."""
     u, w = np.abs(X) / a, np.abs(Y - yc) / b
     rho = (u ** BODY_POWER + w ** BODY_POWER) ** (1.0 / BODY_POWER)
@@ -89,7 +89,7 @@ def _superellipse(X, Y, a, b, yc):
 
 def skin(X, Y, Z, inset=0.0):
     """The skin of the trunk moved inward by `inset` mm (the whole grid is trunk along z)."""
-    return _superellipse(X, Y, body_at(Z, BODY_A) - inset, body_at(Z, BODY_B) - inset, body_at(Z, BODY_YC))
+    return superellipse(X, Y, body_at(Z, BODY_A) - inset, body_at(Z, BODY_B) - inset, body_at(Z, BODY_YC))
 
 
 def cavity(X, Y, Z):

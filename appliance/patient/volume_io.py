@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FluorosimError
-from .volume import Volume
+from .volume import Volume, padding_as_air
 from .volume_checks import check_header, check_hu, check_spacing
 from .volume_sampling import check_sampled_hu
 
@@ -101,6 +101,7 @@ def _from_image(image, source: str, hu_checked: bool = True) -> Volume:
         _refuse_or_warn(source, check_hu(arr))
     if arr.dtype != np.int16:
         arr = np.clip(np.rint(arr), -32768, 32767).astype(np.int16)
+    arr = padding_as_air(arr)
     spacing = np.array(image.GetSpacing(), dtype=np.float64)
     if np.any(spacing <= 0):
         raise FluorosimError(f"{source}: voxel spacing {tuple(spacing)} mm must be positive")

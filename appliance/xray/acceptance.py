@@ -128,13 +128,14 @@ def _blank(x: float) -> str:
 def patients(adult_size: str, thin: bool = True):
     """(name, volume, [(view name, centre in ct mm)], materials, contrast, fine voxels) of the
     built-in child (with its case's contrast-filled bladder, 1.5 mm voxels), the adult chest
-    on a clinical grid (2.5 mm slices of 0.8 mm pixels, or the small grid) and, with `thin`,
+    and the adult abdomen-pelvis on a clinical grid (2.5 mm slices of 0.8 mm pixels, or the
+    small grid) and, with `thin`,
     the same adult as a thin-slice CT (0.8 mm voxels). Fine voxels: a thin-slice CT's, a
     voxel no bigger than 1 mm in any direction."""
     from ..config.case import CaseProfile, Materials
     from ..config.commands import default_config_dir
     from ..config.loading import load_profile
-    from ..patient import builtin
+    from ..patient import adult_pelvis, builtin
     from ..patient.adult_chest import SIZES, build_adult_chest
     from .anatomy_reference import thin_slice_chest
 
@@ -152,6 +153,15 @@ def patients(adult_size: str, thin: bool = True):
     child_views = [("chest", (0.0, 0.0, 90.0)), ("abdomen", (0.0, 0.0, -30.0)), ("bladder", (0.0, 0.0, -140.0))]
     out: list[tuple] = [("child", child, child_views, child_case.materials, child_case.contrast, False),
                         ("adult chest", adult, adult_views, Materials(), None, False)]
+    # The abdomen-pelvis CT as a scanner writes it: the couch in the beam, -3024 HU padding
+    # outside the reconstruction circle, arms cut by the circle.
+    hu, spacing, origin = adult_pelvis.build_adult_pelvis(*adult_pelvis.SIZES[adult_size])
+    T = np.diag([spacing[2], spacing[1], spacing[0], 1.0])
+    T[:3, 3] = origin
+    pelvis = Volume(hu=hu, T_ct_from_voxel=T, source=f"adult abdomen-pelvis ({adult_size})")
+    del hu
+    pelvis_views = [("lumbar/bowel", (0.0, 0.0, 60.0)), ("pelvis", (0.0, 0.0, -100.0))]
+    out.append(("adult abdo-pelvis", pelvis, pelvis_views, Materials(), None, False))
     if thin:
         out.append(("adult thin-slice", thin_slice_chest, adult_views, Materials(), None, True))
     return out
@@ -356,8 +366,9 @@ def _water_slab(thickness_mm: float) -> Volume:
 
 def register(benches) -> None:
     b = benches.add_parser("image", help="acceptance figures of the displayed image (clipping, detail, noise, lag)",
-                           description="Render the built-in child and a synthetic adult chest (on a clinical grid and "
-                                       "as a thin-slice CT) at zooms and positions, a water slab and a step; print "
+                           description="Render the built-in child, a synthetic adult chest (on a clinical grid and "
+                                       "as a thin-slice CT) and an adult abdomen-pelvis CT (couch, padding) at zooms and "
+                                       "positions, a water slab and a step; print "
                                        "clipping, grey range, detail correlation, SNR against photon statistics and the "
                                        "lag step response. Exit 1 if a figure misses the issue's limits, the detail bar "
                                        "against the exact line integral on every CT, thin-slice or clinical grid.")
@@ -365,7 +376,7 @@ def register(benches) -> None:
                    help="fluoroscope profile (default: the shipped image-intensifier C-arm)")
     b.add_argument("--size", type=int, default=256, help="render matrix (pixels, default 256)")
     b.add_argument("--zooms", default="1,4", help="zoom levels for the patient figures (default 1,4)")
-    b.add_argument("--adult", choices=("small", "full"), default="full", help="adult chest grid (default full)")
+    b.add_argument("--adult", choices=("small", "full"), default="full", help="adult chest and abdomen-pelvis grid (default full)")
     b.add_argument("--no-thin", dest="thin", action="store_false",
                    help="leave out the adult as a thin-slice CT (0.8 mm voxels), the CT the detail bar is held on")
     b.add_argument("--no-anatomy", dest="anatomy", action="store_false",

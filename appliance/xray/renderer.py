@@ -22,7 +22,7 @@ import numpy as np
 from ..config.case import Contrast, Materials
 from ..config.fluoroscope import FluoroscopeProfile
 from ..errors import FluorosimError
-from ..patient.volume import Volume
+from ..patient.volume import Volume, padding_as_air
 from .casting import EMPTY_MAX_HU, ENERGY_BINS, PACKET, PAD, Caster, PreparedVolume
 from .detector import Detector, Exposure, RecursiveFilter, settled_noise_gain
 from .device import ClDevice, pick_device
@@ -112,7 +112,12 @@ class Renderer:
 
     # -- volumes and casting -----------------------------------------------------------
     def prepare(self, volume: Volume) -> PreparedVolume:
-        """Copy one phase to the device as padded int16 HU. Thread-safe (OpenCL calls are)."""
+        """Copy one phase to the device as padded int16 HU, padding below the CT scale read as
+        air (`padding_as_air`). Thread-safe (OpenCL calls are)."""
+        hu = np.asarray(volume.hu)
+        air = padding_as_air(hu)
+        if air is not hu:
+            volume = Volume(hu=air, T_ct_from_voxel=volume.T_ct_from_voxel, source=volume.source)
         return self.caster.prepare(volume, self._owner_id)
 
     def _check(self, *vols: PreparedVolume) -> None:
