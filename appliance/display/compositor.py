@@ -194,13 +194,13 @@ class Compositor:
             left.append((f"SHOTS  {overlay.shots}", WHITE))
         if overlay.task:
             left.append((overlay.task.upper(), GREEN))
-        left = self._corner_lines(left, "bl")
-        texts += left
+        dose_lines = self._corner_lines(left, "bl")
+        texts += dose_lines
         # The marker stands on the dose lines' baseline: its own depth (OpenCV measures it by
         # the glyphs present, and the dose line's "Gy" descends) and inset would set it higher.
         marker = [("LIVE" if overlay.live else "HOLD", BLACK if overlay.live else WHITE)]
         texts += self._corner_lines(marker, "br", scale=self.big_scale, font=FONT_BOLD, thickness=self.thickness + 1,
-                                    inset=self.margin // 2, baseline=left[0].org[1])
+                                    inset=self.margin // 2, baseline=dose_lines[0].org[1])
         extra = []
         if overlay.invert:
             extra.append(("INVERT", WHITE))
