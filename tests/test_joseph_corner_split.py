@@ -83,16 +83,22 @@ def _through(chords: np.ndarray) -> np.ndarray:
     return through
 
 
+#: A plate at exactly a class's bound: at or below air_max_hu (-800) air, at or above bone_min_hu
+#: (300) bone; either way of soft tissue's density there, 1 + HU / 1000 (0.2 and 1.3 g/cm^3).
+BOUNDS = [("air_max_hu", 0, 0.2), ("bone_min_hu", 2, 1.3)]
+
+
+@pytest.mark.parametrize("bound, column, density", BOUNDS, ids=[b[0] for b in BOUNDS])
 @pytest.mark.parametrize("packet", [True, False])
-def test_a_plate_at_exactly_bone_min_reads_as_bone_of_soft_tissues_density_there(rays, packet):
+def test_a_plate_at_exactly_a_class_bound_reads_as_that_class(rays, bound, column, density, packet):
     m = Materials()
-    vol, lo, hi = _plate(int(m.bone_min_hu))
+    vol, lo, hi = _plate(int(getattr(m, bound)))
     chords = box_chords(*rays, lo, hi)
     through = _through(chords)
     lines = _lines(_renderer(m, packet), vol)[through]
-    # "At or above bone_min_hu: bone", of density 1 + 300 / 1000 = 1.3 g/cm^3 there.
-    np.testing.assert_allclose(lines[:, 2] / 1.3, chords[through], rtol=RTOL)
-    assert np.abs(lines[:, [0, 1, 3]]).max() < 1e-3
+    np.testing.assert_allclose(lines[:, column] / density, chords[through], rtol=RTOL)
+    others = [c for c in range(4) if c != column]
+    assert np.abs(lines[:, others]).max() < 1e-3
 
 
 @pytest.mark.parametrize("packet", [True, False])
