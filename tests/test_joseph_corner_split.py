@@ -84,14 +84,17 @@ def _through(chords: np.ndarray) -> np.ndarray:
 
 
 #: A plate at exactly a class's bound: at or below air_max_hu (-800) air, at or above bone_min_hu
-#: (300) bone; either way of soft tissue's density there, 1 + HU / 1000 (0.2 and 1.3 g/cm^3).
-BOUNDS = [("air_max_hu", 0, 0.2), ("bone_min_hu", 2, 1.3)]
+#: (300) bone, either way of soft tissue's density there, 1 + HU / 1000 (0.2 and 1.3 g/cm^3); at
+#: or above contrast_min_hu contrast (its column is the iodinated water's volume, 1 g/cm^3).
+#: 2048 HU, a power of two, scales each sample's weights exactly, so a face's mixed samples meet
+#: the bound exactly too.
+BOUNDS = [("air_max_hu", Materials(), 0, 0.2), ("bone_min_hu", Materials(), 2, 1.3),
+          ("contrast_min_hu", Materials(contrast_min_hu=2048.0), 3, 1.0)]
 
 
-@pytest.mark.parametrize("bound, column, density", BOUNDS, ids=[b[0] for b in BOUNDS])
+@pytest.mark.parametrize("bound, m, column, density", BOUNDS, ids=[b[0] for b in BOUNDS])
 @pytest.mark.parametrize("packet", [True, False])
-def test_a_plate_at_exactly_a_class_bound_reads_as_that_class(rays, bound, column, density, packet):
-    m = Materials()
+def test_a_plate_at_exactly_a_class_bound_reads_as_that_class(rays, bound, m, column, density, packet):
     vol, lo, hi = _plate(int(getattr(m, bound)))
     chords = box_chords(*rays, lo, hi)
     through = _through(chords)
