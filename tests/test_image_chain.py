@@ -398,6 +398,33 @@ def test_bar_groups_the_field_cuts_are_left_out():
     np.testing.assert_allclose(measured, 0.5, rtol=0.02)
 
 
+def test_bar_groups_the_image_ends_cut_are_left_out():
+    """The same row of fundamentals, all in the beam, but cut by the image's ends less than a
+    column short of a group's fitted points (half a pair in from its ends): group 1's first lies
+    half a column before column 0, group 8's last between the last column and the next. Groups 2
+    to 7 are measured, each at 0.5, and neither end's group (nor group 0, wholly off the image)."""
+    groups = bar_pattern.layout()
+    scale = 10.0                                       # columns per mm
+    f1, a1, _ = groups[1]
+    x_start = a1 + 0.5 / f1 + 0.5 / scale              # column 0: half a column past group 1's first point
+
+    def u_of_x(xm):
+        return (xm - x_start) * scale
+    assert u_of_x(a1 + 0.5 / f1) == pytest.approx(-0.5)
+    f8, _, b8 = groups[8]
+    last = u_of_x(b8 - 0.5 / f8)                       # group 8's last fitted point, in columns
+    n = int(np.floor(last)) + 1
+    assert n - 1 < last < n
+    x = x_start + np.arange(n, dtype=float) / scale
+    row = np.ones_like(x)
+    for f, a, b in groups:
+        inside = (x >= a) & (x < b)
+        row[inside] = 1.0 + 0.5 * np.sin(2 * np.pi * f * (x[inside] - a))
+    mods = bar_pattern.modulations(row, u_of_x, 1.0, nyquist_lp_per_mm=scale / 2)
+    np.testing.assert_allclose([f for f, _ in mods], [g[0] for g in groups[2:8]])
+    np.testing.assert_allclose([m for _, m in mods], 0.5, rtol=0.02)
+
+
 def test_window_and_level_keys_reach_the_view():
     """F6 twice: the window 1.25^2 wider; F8: the level a twentieth of the width up; KP8 back to
     the automatic window. The exposure goes on: no dose event, no new run."""
