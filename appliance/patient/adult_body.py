@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..errors import FluorosimError
 from .shapes import grid_axis, grid_box, intersect
 
 # --- Hounsfield units (typical unenhanced adult CT values) ---
@@ -62,7 +63,12 @@ class AnisotropicGrid:
     mean of the three spacings: the width of a voxel on average over directions.
     """
 
-    def __init__(self, shape_zyx, spacing_zyx):
+    def __init__(self, shape_zyx, spacing_zyx, what: str = "CT"):
+        # `what` names the CT in the one-line refusal of a grid no CT can have.
+        if len(shape_zyx) != 3 or min(shape_zyx) < 2:
+            raise FluorosimError(f"{what}: shape_zyx {tuple(shape_zyx)} must be three counts of at least 2 voxels")
+        if len(spacing_zyx) != 3 or min(spacing_zyx) <= 0:
+            raise FluorosimError(f"{what}: spacing_mm {tuple(spacing_zyx)} must be three positive sizes (mm)")
         self.shape = tuple(int(n) for n in shape_zyx)
         self.spacing_zyx = tuple(float(s) for s in spacing_zyx)
         sz, sy, sx = self.spacing_zyx

@@ -200,12 +200,8 @@ def build_adult_chest(shape_zyx=(136, 512, 512), spacing_mm=(2.5, 0.8, 0.8), see
     grid: the same seed draws the same vessels and gas); `seed` picks the vessel branching,
     bowel gas and CT noise; `ct_noise` False leaves the CT's own noise out (the anatomy alone).
     """
-    if len(shape_zyx) != 3 or min(shape_zyx) < 2:
-        raise FluorosimError(f"adult chest: shape_zyx {tuple(shape_zyx)} must be three counts of at least 2 voxels")
-    if len(spacing_mm) != 3 or min(spacing_mm) <= 0:
-        raise FluorosimError(f"adult chest: spacing_mm {tuple(spacing_mm)} must be three positive sizes (mm)")
     rng = np.random.default_rng(seed)
-    grid = AnisotropicGrid(shape_zyx, spacing_mm)
+    grid = AnisotropicGrid(shape_zyx, spacing_mm, "adult chest")
     if origin_mm is not None:
         grid.origin_mm = tuple(float(o) for o in origin_mm)
     layer = Layer(grid, HU_AIR)

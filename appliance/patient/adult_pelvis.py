@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import FluorosimError
 from .adult_body import (
     HU_AIR,
     HU_BLOOD,
@@ -220,12 +219,8 @@ def build_adult_pelvis(shape_zyx=(130, 512, 512), spacing_mm=(2.5, 0.8, 0.8), se
     Returns (hu, spacing_mm, origin_mm) as `adult_chest.build_adult_chest` does: int16 HU
     [z, y, x], HU_PADDING outside the circle; `seed` draws the bowel and the CT noise.
     """
-    if len(shape_zyx) != 3 or min(shape_zyx) < 2:
-        raise FluorosimError(f"adult pelvis: shape_zyx {tuple(shape_zyx)} must be three counts of at least 2 voxels")
-    if len(spacing_mm) != 3 or min(spacing_mm) <= 0:
-        raise FluorosimError(f"adult pelvis: spacing_mm {tuple(spacing_mm)} must be three positive sizes (mm)")
     rng = np.random.default_rng(seed)
-    grid = AnisotropicGrid(shape_zyx, spacing_mm)
+    grid = AnisotropicGrid(shape_zyx, spacing_mm, "adult pelvis")
     layer = Layer(grid, HU_AIR)
     every = (-1e4, -1e4, -1e4), (1e4, 1e4, 1e4)
     for s in (-1, 1):       # the arms first, so the trunk's skin covers where they touch
