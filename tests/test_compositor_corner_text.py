@@ -109,6 +109,19 @@ def test_the_top_left_lines_stand_one_line_pitch_apart(size):
     assert margin - stroke <= cols.min() <= margin + stroke
 
 
+
+def test_a_small_screen_keeps_the_least_line_pitch_of_12_px():
+    """Under 375 lines a thirtieth of the height is under 12.5 px: the pitch stays 12 px, the
+    least at which the corner text (a cap height of 0.55 x 12 = 7 px) stays legible. On a
+    320 x 256 screen (256 / 30 = 8.5) the top-left lines end 12 px apart, read from the pixels
+    (threshold 100: the grey fluoroscope line's 1 px strokes are dimmer than 150)."""
+    comp = Compositor(320, 256)
+    frame = comp.compose(DARK, Overlay(case="CHEST", operator="AB", fluoroscope="ROOM 1"), now=0.0)
+    lines = runs(rows_of(lit(frame, 100)[:256 // 3, :6 + 40]))      # margin max(6, 12 // 3) = 6
+    assert len(lines) == 3, lines
+    assert np.diff([last for _, last in lines]).tolist() == [12, 12]
+    assert np.diff([first for first, _ in lines]).tolist() == [12, 12]
+
 def texts_of(comp: Compositor, overlay: Overlay) -> dict[str, object]:
     return {t.text: t for t in comp.text_layout(overlay, now=0.0)}
 
