@@ -138,8 +138,7 @@ class ProjectionCache:
         self._adopt(phases[0], T_xray_from_ct, zoom, collimation_mm, distorted, circle)
         self._lines.update(lines)
         self.counts.casts += len(lines)
-        while len(self._lines) > self.max_phases:
-            del self._lines[next(k for k in self._lines if k not in lines)]
+        self._keep_at_most(lines)
         return True
 
     # -- the cast the renderer calls -------------------------------------------------------
@@ -157,9 +156,12 @@ class ProjectionCache:
         for p in missing:
             self._lines[p], _ = r.caster.cast(p, T, zoom, collimation_mm, None, distorted, circle)
             self.counts.casts += 1
+        self._keep_at_most(phases)
+
+    def _keep_at_most(self, wanted) -> None:
+        """Drop the oldest cached phases beyond `max_phases`, never one of `wanted` (this frame's)."""
         while len(self._lines) > self.max_phases:
-            stale = next(k for k in self._lines if k not in phases)
-            del self._lines[stale]
+            del self._lines[next(k for k in self._lines if k not in wanted)]
 
     def _cast_two(self, a: PreparedVolume, b: PreparedVolume, T, zoom, collimation_mm, distorted, circle):
         """Both phases' integrals from one pass of the SPLIT packet kernel over the two volumes."""
