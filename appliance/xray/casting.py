@@ -48,6 +48,8 @@ from .pixel_geometry import (
 if TYPE_CHECKING:
     import pyopencl as cl
 
+    from .slabs import SlabCache
+
 #: Voxels of air added on every side of a prepared volume, so bilinear samples never leave it.
 PAD = 2
 #: Voxels at or below this CT number are treated as empty when clipping rays to the
@@ -73,6 +75,11 @@ PACKET = 16
 ABC_SAMPLE_PIXELS = 1024
 #: Pause between the bands of a banded cast (s): long enough for a waiting thread to take the lock.
 BAND_YIELD_S = 0.002
+#: A field is cast through a phase laid out for rays along an axis only where every ray's step
+#: along it exceeds its steps across by this factor (dimensionless): the kernels would pick that
+#: axis for every ray anyway (then the integrals are the plain layout's to the bit), and float
+#: rounding on a near tie cannot make a kernel pick another.
+DOMINANCE_MARGIN = 1.0001
 
 
 @dataclass(frozen=True, eq=False)
@@ -167,8 +174,11 @@ class Caster:
     """Casts rays of one fluoroscope through prepared CT phases of one case's materials."""
 
     def __init__(self, dev: ClDevice, fluoroscope: FluoroscopeProfile, materials: Materials,
-                 contrast: Contrast | None = None, packet: bool | None = None):
+                 contrast: Contrast | None = None, packet: bool | None = None, layouts: SlabCache | None = None):
+        """`layouts`: copies of phases laid out for rays along x (slabs.py's SlabCache of one-slice
+        slabs), which a field whose every ray runs along x is cast through; None: never."""
         self.dev = dev
+        self.layouts = layouts
         self.packet = dev.is_cpu if packet is None else packet
         name = "joseph_packet" if self.packet else "joseph_materials"
         self._joseph_name = name
@@ -306,10 +316,43 @@ class Caster:
 
     # -- per-view caches -------------------------------------------------------------
     def _dirs_buffer(self, zoom: int, distorted: bool):
+        return self._rays(zoom, distorted)[0]
+
+    def _rays(self, zoom: int, distorted: bool):
+        """The pixels' ray directions on the device, and on the host those of the detector's outer
+        rows and columns (every pixel's ray lies within their convex hull, distorted or not)."""
         key = (zoom, distorted)
         if key not in self._dirs:
-            self._dirs[key] = self.dev.upload(ray_directions(self.fluoroscope, zoom, distorted))
+            dirs = ray_directions(self.fluoroscope, zoom, distorted)
+            rim = np.concatenate([dirs[0], dirs[-1], dirs[:, 0], dirs[:, -1]]).astype(np.float64)
+            self._dirs[key] = (self.dev.upload(dirs), rim)
         return self._dirs[key]
+
+    def dominant_axis_of_field(self, volume: PreparedVolume, T_xray_from_ct, zoom: int, distorted: bool) -> int | None:
+        """The voxel axis (0 x, 1 y, 2 z) every ray of the field steps along most (by
+        DOMINANCE_MARGIN), or None where the rays differ. A ray's step along index axis i is
+        linear in its direction (x, y, 1), so the condition holds for every pixel where it holds,
+        one sign throughout, at the rim's."""
+        rim = self._rays(zoom, distorted)[1]
+        A = (volume.T_index_from_ct @ invert(np.asarray(T_xray_from_ct, float)))[:3, :3]
+        d = np.abs(rim @ A[:, :2].T + A[:, 2])                          # (n, 3) index steps
+        axis = int(np.argmax(d[0]))
+        across = np.delete(d, axis, axis=1).max(axis=1)
+        signs = np.sign(rim @ A[axis, :2] + A[axis, 2])
+        if np.all(d[:, axis] > DOMINANCE_MARGIN * across) and np.all(signs == signs[0]):
+            return axis
+        return None
+
+    def laid_out(self, phases: list[PreparedVolume], T_xray_from_ct, zoom: int, distorted: bool) -> list[PreparedVolume]:
+        """The phases to cast the field through: their copies laid out for rays along x (`layouts`)
+        where every ray runs along x, whose samples a packet then reads a row at a time (the plain
+        layout has x fastest: its rows run along such rays, not across them) for the same
+        integrals; else the phases themselves. Call with the device's lock held (the copies'
+        cache is shared by the renderer's matrices)."""
+        if (self.layouts is None or any(p.slab_axis >= 0 for p in phases)
+                or self.dominant_axis_of_field(phases[0], T_xray_from_ct, zoom, distorted) != 0):
+            return phases
+        return [self.layouts.get(p, 0) for p in phases]
 
     def beam(self, zoom: int, collimation_mm, circle: bool) -> Beam:
         """The field's masks and their device buffers (see Beam), cached."""
@@ -362,13 +405,22 @@ class Caster:
         not wait for the whole cast)."""
         dev, cl = self.dev, self.dev.cl
         rows, cols = self.shape
+        if blend is not None and not volume.same_grid(blend[0]):
+            raise ValueError("phases to blend must share one voxel grid")
+        # The pose is checked before any copy is made; a copy laid out for the rays keeps the
+        # phase's voxel indices, hence this geometry.
         geo = self._geometry(volume, T_xray_from_ct)
+        phases = [volume] if blend is None else [volume, blend[0]]
+        if bands is None:
+            phases = self.laid_out(phases, T_xray_from_ct, zoom, distorted)
+        else:
+            with bands[0]:
+                phases = self.laid_out(phases, T_xray_from_ct, zoom, distorted)
+        volume, blend = phases[0], None if blend is None else (phases[1], blend[1])
         beam = self.beam(zoom, collimation_mm, circle)
         mask, mask_buf = beam.exposed, beam.exposed_buf
         dirs = self._dirs_buffer(zoom, distorted)
         vols = (volume,) if blend is None else (volume, blend[0])
-        if blend is not None and not volume.same_grid(blend[0]):
-            raise ValueError("phases to blend must share one voxel grid")
         box = self._box(*vols)
         lines = dev.scratch(rows * cols * 16)
         if box is None:

@@ -662,12 +662,15 @@ kernel void gather_lines(global const float4 *lines, global const int *index, gl
     out[i] = lines[index[i]];
 }
 
-// Pre-integrated slabs (slabs.py): pairs of slices along `axis` averaged into one slab, so a
-// cast through the slab grid steps two voxels at a time yet every voxel counts (HU, hence
-// density, is averaged: the line integral through a pair is kept). Slab q >= PAD along the
-// axis holds the padded input slices 2q - PAD and 2q - PAD + 1, the last maybe a slice and the
-// padding's air. Rounded half to even in integers (rint on floats was a library call per
-// voxel, ten times the copy itself): the int16 average is unbiased.
+// Pre-integrated slabs (slabs.py): `thick` slices along `axis` averaged into one slab, 2 or 1.
+// Two: a cast through the slab grid steps two voxels at a time yet every voxel counts (HU,
+// hence density, is averaged: the line integral through a pair is kept). One: the phase itself,
+// only laid out for rays along the axis (a lateral view's full-volume cast then reads rows as a
+// posterior-anterior one does). Slab q >= PAD along the axis holds the padded input slices from
+// thick * (q - PAD) + PAD on, the last slab maybe a slice and the padding's air. Rounded half to
+// even in integers (rint on floats was a library call per voxel, ten times the copy itself): the
+// int16 average is unbiased.
+#define SLAB_TILE 16
 inline short mean_even(int a, int b)
 {
     const int s = a + b, h = s >> 1;       // floor(s / 2), negative sums included
@@ -678,8 +681,8 @@ inline short mean_even(int a, int b)
 // along `axis`, laid out for rays along it (see LAYOUT): rows along b, then slabs along a, then c.
 // One work-item per c, looping over its slabs and rows: PoCL gives each tiny work-item a
 // work-group of its own.
-kernel void slab_rows(global const short *vol, const int nx, const int ny, const int axis, const int ox,
-                      const int oy, const int oz, global short *out)
+kernel void slab_rows(global const short *vol, const int nx, const int ny, const int axis, const int thick,
+                      const int ox, const int oy, const int oz, global short *out)
 {
     const int ic = get_global_id(0);
     const int dims[3] = {ox, oy, oz};
@@ -693,7 +696,28 @@ kernel void slab_rows(global const short *vol, const int nx, const int ny, const
             for (int i = 0; i < nb; ++i) row[i] = -1000;
             continue;
         }
-        global const short *s0 = vol + (size_t)(2 * k - PAD) * sa + ic * sc, *s1 = s0 + sa;
-        for (int ib = 0; ib < nb; ++ib) row[ib] = mean_even(s0[ib * sb], s1[ib * sb]);
+        global const short *s0 = vol + (size_t)(thick * (k - PAD) + PAD) * sa + ic * sc, *s1 = s0 + sa;
+        if (axis == 0 && k + SLAB_TILE <= na - PAD) {
+            // Along x the output's rows are the input's columns: SLAB_TILE of them at once, each
+            // input row read as a vector (one or two), so the reads run along memory, not across it.
+            for (int ib = 0; ib < nb; ++ib) {
+                global const short *src = s0 + ib * sb;
+                short16 v;
+                if (thick == 1) {
+                    v = vload16(0, src);
+                } else {
+                    const int16 lo = convert_int16(vload16(0, src)), hi = convert_int16(vload16(1, src));
+                    const int16 s_ = (int16)(lo.even, hi.even) + (int16)(lo.odd, hi.odd), h_ = s_ >> 1;
+                    v = convert_short16(h_ + (s_ & h_ & 1));       // mean_even, sixteen at a time
+                }
+                for (int l = 0; l < SLAB_TILE; ++l) row[(size_t)l * nb + ib] = v[l];
+            }
+            k += SLAB_TILE - 1;
+            continue;
+        }
+        if (thick == 1)
+            for (int ib = 0; ib < nb; ++ib) row[ib] = s0[ib * sb];
+        else
+            for (int ib = 0; ib < nb; ++ib) row[ib] = mean_even(s0[ib * sb], s1[ib * sb]);
     }
 }

@@ -28,6 +28,7 @@ from .detector import Detector, Exposure, RecursiveFilter, settled_noise_gain
 from .device import ClDevice, pick_device
 from .display_lut import auto_window, to_display, unsharp
 from .pixel_geometry import at_resolution, field_mask, measuring_field, pixel_pitch_at_zoom_mm, ray_directions, zoomed_K
+from .slabs import LAYOUT_PHASES, SlabCache
 
 __all__ = ["EMPTY_MAX_HU", "ENERGY_BINS", "PACKET", "PAD", "QUANTITIES", "Frame", "PreparedVolume", "Renderer", "View",
            "at_resolution", "field_mask", "measuring_field", "pick_device", "ray_directions", "zoomed_K"]
@@ -83,7 +84,8 @@ class Renderer:
         self._lock: threading.Lock = self.dev.lock
         self._noise = self.dev.kernel("quantum_noise_packet" if self.dev.is_cpu else "quantum_noise")
         self._seeds = np.random.default_rng()        # a fresh noise pattern each frame unless View.seed
-        self.caster = Caster(self.dev, fluoroscope, materials, contrast, packet)
+        self.caster = Caster(self.dev, fluoroscope, materials, contrast, packet,
+                             layouts=SlabCache(self.dev, LAYOUT_PHASES, thickness=1))
         self.packet = self.caster.packet
         self.materials, self.contrast = materials, contrast
         self._owner_id = id(self)                # prepared volumes serve this renderer and its other matrices
@@ -208,7 +210,7 @@ class Renderer:
             other.__dict__.update({k: v for k, v in self.__dict__.items() if k != "_matrices"})
             other._matrices = {}
             fl = at_resolution(self.fluoroscope, columns, rows)
-            other.caster = Caster(self.dev, fl, self.materials, self.contrast, self.packet)
+            other.caster = Caster(self.dev, fl, self.materials, self.contrast, self.packet, self.caster.layouts)
             other.caster.fit_in_background = self.caster.fit_in_background
             other._adopt(fl)
             self._matrices[key] = other

@@ -32,27 +32,33 @@ from .pixel_geometry import zoomed_K
 
 #: Slices averaged into one slab (count): `slab_rows` averages pairs.
 SLAB = 2
+#: Phases a renderer keeps laid out for rays along x (one-slice slabs, Caster.laid_out), each as
+#: large as the phase (39 MB for the adult chest's content box): the two a frame blends (count).
+#: Breathing changes the pair every few tenths of a second, one copy pass each (see README).
+LAYOUT_PHASES = 2
 
 
-def slab_index_from_index(shape_xyz: tuple[int, int, int], axis: int) -> tuple[np.ndarray, tuple[int, int, int]]:
-    """The map from a phase's padded voxel indices to its slab grid's along `axis`, and the
-    slab grid's padded shape (x, y, z). Slab q >= PAD spans padded slices 2q - PAD and
-    2q - PAD + 1, whose middle is index 2q - PAD + 0.5: q = (p + PAD - 0.5) / 2."""
+def slab_index_from_index(shape_xyz: tuple[int, int, int], axis: int,
+                          thickness: int = SLAB) -> tuple[np.ndarray, tuple[int, int, int]]:
+    """The map from a phase's padded voxel indices to its slab grid's along `axis` (slabs of
+    `thickness` slices), and the slab grid's padded shape (x, y, z). Slab q >= PAD spans padded
+    slices from n (q - PAD) + PAD on (n the thickness), whose middle is index
+    n (q - PAD) + PAD + (n - 1) / 2: q = (p - PAD - (n - 1) / 2) / n + PAD (the identity for n = 1)."""
     S = np.eye(4)
-    S[axis, axis] = 1.0 / SLAB
-    S[axis, 3] = (PAD - 0.5) / SLAB
+    S[axis, axis] = 1.0 / thickness
+    S[axis, 3] = PAD - (PAD + (thickness - 1) / 2.0) / thickness
     shape = list(shape_xyz)
-    shape[axis] = -(-(shape[axis] - 2 * PAD) // SLAB) + 2 * PAD
+    shape[axis] = -(-(shape[axis] - 2 * PAD) // thickness) + 2 * PAD
     return S, (shape[0], shape[1], shape[2])
 
 
-def slab_box(box, axis: int):
+def slab_box(box, axis: int, thickness: int = SLAB):
     """The content box (inclusive padded indices) in the slab grid along `axis`."""
     if box is None:
         return None
     lo, hi = list(box[0]), list(box[1])
-    lo[axis] = (lo[axis] - PAD) // SLAB + PAD
-    hi[axis] = (hi[axis] - PAD) // SLAB + PAD
+    lo[axis] = (lo[axis] - PAD) // thickness + PAD
+    hi[axis] = (hi[axis] - PAD) // thickness + PAD
     return (lo[0], lo[1], lo[2]), (hi[0], hi[1], hi[2])
 
 
@@ -88,13 +94,15 @@ def in_slab_shift_px(K: np.ndarray, shape: tuple[int, int], volume: PreparedVolu
 
 
 class SlabCache:
-    """Slab copies of phases on one renderer's device, the last `keep` (phase, axis) pairs."""
+    """Copies of phases on one renderer's device, slabs of `thickness` slices (SLAB for moving
+    frames' pre-integrated slabs, 1 for a phase laid out for rays along an axis), the last
+    `keep` (phase, axis) pairs."""
 
-    def __init__(self, dev, keep: int):
-        self.dev, self.keep = dev, keep
+    def __init__(self, dev, keep: int, thickness: int = SLAB):
+        self.dev, self.keep, self.thickness = dev, keep, thickness
         self._kernel = dev.kernel("slab_rows")
         self._slabs: OrderedDict[tuple[int, int], tuple[weakref.ref[PreparedVolume], PreparedVolume]] = OrderedDict()
-        #: Slab copies made (count): one per phase and axis while they stay in the cache.
+        #: Copies made (count): one per phase and axis while they stay in the cache.
         self.made = 0
 
     def get(self, volume: PreparedVolume, axis: int) -> PreparedVolume:
@@ -107,16 +115,18 @@ class SlabCache:
         if hit is not None and hit[0]() is volume:
             self._slabs.move_to_end(key)
             return hit[1]
-        S, shape = slab_index_from_index(volume.shape_xyz, axis)
+        S, shape = slab_index_from_index(volume.shape_xyz, axis, self.thickness)
         nbytes = 2 * shape[0] * shape[1] * shape[2]
         out = self.dev.scratch(nbytes)
         nx, ny, _ = volume.shape_xyz
         slowest = shape[2] if axis != 2 else shape[1]              # the layout's slowest axis c: one work-item each
         self._kernel(self.dev.queue, (slowest,), None, volume.buffer, np.int32(nx), np.int32(ny), np.int32(axis),
-                     np.int32(shape[0]), np.int32(shape[1]), np.int32(shape[2]), out)
+                     np.int32(self.thickness), np.int32(shape[0]), np.int32(shape[1]), np.int32(shape[2]), out)
+        what = "slabs" if self.thickness > 1 else "rows along the rays"
         slab = PreparedVolume(buffer=out, shape_xyz=shape, T_index_from_ct=S @ volume.T_index_from_ct,
-                              box=slab_box(volume.box, axis), nbytes=nbytes, source=f"{volume.source} (slabs)",
-                              time_s=volume.time_s, _renderer_id=volume._renderer_id, slab_axis=axis)
+                              box=slab_box(volume.box, axis, self.thickness), nbytes=nbytes,
+                              source=f"{volume.source} ({what})", time_s=volume.time_s,
+                              _renderer_id=volume._renderer_id, slab_axis=axis)
         self._slabs[key] = (weakref.ref(volume), slab)
         self.made += 1
         while len(self._slabs) > self.keep:
@@ -128,7 +138,7 @@ class SlabCache:
 
     @property
     def nbytes(self) -> int:
-        """Device memory the slab copies hold (bytes)."""
+        """Device memory the copies hold (bytes)."""
         return sum(slab.nbytes for _, slab in self._slabs.values())
 
 
