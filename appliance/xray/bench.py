@@ -196,8 +196,16 @@ def run(args) -> int:
     ii = load_profile(here, FluoroscopeProfile)
     print(f"fluorosim bench drr: {os.cpu_count()} CPU(s) visible, load average {os.getloadavg()[0]:.2f}")
 
-    from .frame_cost import bench_ct, cached_frames, centred, next_phase, plastimatch_side_by_side, slab_frames
-    from .slabs import SlabCache, slab_cast
+    from .frame_cost import (
+        bench_ct,
+        cached_frames,
+        centred,
+        layout_copy_line,
+        next_phase,
+        plastimatch_side_by_side,
+        slab_frames,
+    )
+    from .slabs import LAYOUT_PHASES, SlabCache, slab_cast
 
     ct = centred(bench_ct(args.ct)) if not {"speed", "sampling", "cache", "plastimatch", "memory"} <= skip else None
     if "speed" not in skip and ct is not None:
@@ -242,6 +250,8 @@ def run(args) -> int:
                     share = f" ({len(walls)} of {args.frames} frames)" if len(walls) < args.frames else ""
                     print(f"{size:>5}x{size:<4} {'poly' if poly else 'mono':>6} {name:>8} {ms:9.1f} "
                           f"{1000 * float(np.median(cpus)):8.1f} {1000 / ms:6.1f}  {label}{share}")
+                if name == "lateral":
+                    print(f"{'':>10} {layout_copy_line(renderer, prepared, args.frames)}")
             del prepared, renderer, slabs
         print(f"OpenCL device: {_device_name(args.device)}")
 
@@ -313,14 +323,21 @@ def run(args) -> int:
             print(f"While loading: {len(frames)} frames rendered, timeline lookup max {1000 * max(lookups):.2f} ms, "
                   f"frame median {1000 * float(np.median(frames)):.0f} ms, max {1000 * max(frames):.0f} ms "
                   "(the loader shares the two cores)")
-        # The moving frames' slab copies as the shipped profiles keep them (rendering.slab_phases: 4),
-        # on top: the phases blended now and the last two, each half a phase.
+        # The most the appliance holds on top: the moving frames' slab copies as the shipped profiles
+        # keep them (rendering.slab_phases: 4), the phases blended now and the last two, each half a
+        # phase; and the renderer's copies of the blended pair laid out for a lateral view's rays
+        # (LAYOUT_PHASES, each a whole phase), made by a lateral frame between them.
         slabs = SlabCache(renderer.dev, 4)
         for p in [p for p in timeline._prepared if p is not None][:4]:
             slabs.get(p, 1)
+        a, b, w = timeline.at(0.2)
+        renderer.render(a, pa_pose(620.0, 90.0), View(), blend=(b, w) if b is not None else None)
         renderer.dev.queue.finish()
         rss_slabs = proc.memory_info().rss
-        print(f"With 4 slab copies for moving frames: {slabs.nbytes / 1e9:.2f} GB more on the device; process resident "
+        layouts = renderer.caster.layouts
+        laid = 0 if layouts is None else layouts.nbytes
+        print(f"With 4 slab copies for moving frames and {LAYOUT_PHASES} phases laid out for a lateral view's rays: "
+              f"{slabs.nbytes / 1e9:.2f} + {laid / 1e9:.2f} GB more on the device; process resident "
               f"{rss_slabs / 1e9:.2f} GB; limit 1.0 GB")
         timeline.close()
     return 0

@@ -130,6 +130,28 @@ def slab_frames(renderer, volume: Volume, frames: int, pose, label: str) -> str:
             f"{s_ms:.1f} cpu ms ({f_ms / s_ms:.2f}x); steepest ray's shift within a slab {shift:.2f} px")
 
 
+def layout_copy_line(renderer, prepared, copies: int) -> str:
+    """A line of what a copy of `prepared` laid out for rays along x costs (slabs.py's one-slice
+    slabs, Caster.laid_out): made anew `copies` times, medians; a lateral view pays it once per
+    phase, when breathing brings the next phase into the blended pair."""
+    from .slabs import SlabCache
+
+    cache = SlabCache(renderer.dev, 1, thickness=1)
+    cache.get(prepared, 0)                                   # builds the kernel
+    walls, cpus = [], []
+    for _ in range(copies):
+        cache.clear()
+        renderer.dev.queue.finish()
+        t0, c0 = time.perf_counter(), time.process_time()
+        cache.get(prepared, 0)
+        renderer.dev.queue.finish()
+        walls.append(time.perf_counter() - t0)
+        cpus.append(time.process_time() - c0)
+    return (f"copy of the phase laid out for rays along x ({prepared.nbytes / 1e6:.0f} MB, made once per phase "
+            f"entering a lateral view's blend): {1000 * float(np.median(walls)):.1f} ms "
+            f"({1000 * float(np.median(cpus)):.1f} cpu ms)")
+
+
 def plastimatch_binary() -> str | None:
     """plastimatch's executable: on PATH, or beside this Python (the `bench` extra installs it)."""
     found = shutil.which("plastimatch")
