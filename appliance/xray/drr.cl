@@ -101,6 +101,25 @@ inline bool clip_box(float3 s, float3 d, float3 lo, float3 hi, float *t0, float 
         soft += select(rho_w, (T)(0.0f), is_air); \
         bone += select((T)(0.0f), bone_off * bone_w + bone_slope * bone_h, (on) && !is_con); \
         con += select((T)(0.0f), bone_w, (on) && is_con); } while (0)
+// A packet's SAMPLE, where none of its sixteen samples has a bone corner (most of a chest's: soft
+// tissue, lungs, air) without the bone parts, which are zero there: the same sums to the bit, a
+// twelfth less CPU time for a chest's cast (the bone path is taken in under a tenth of its steps).
+// Not for two phases (BLEND, SPLIT): there the test cost as much as it saved.
+#if defined(BLEND) || defined(SPLIT)
+#define SAMPLE_PACKET(g00, g10, g01, g11, on, air, soft, bone, con) \
+        SAMPLE(float16, int16, g00, g10, g01, g11, on, air, soft, bone, con)
+#else
+#define SAMPLE_PACKET(g00, g10, g01, g11, on, air, soft, bone, con) do { \
+        if (any((fmax(fmax(g00, g10), fmax(g01, g11)) >= bone_min) & (on))) { \
+            SAMPLE(float16, int16, g00, g10, g01, g11, on, air, soft, bone, con); \
+        } else { \
+            const float16 h = BILINEAR(HU, float16, g00, g10, g01, g11); \
+            const float16 rho_w = select((float16)(0.0f), fmax(1.0f + 0.001f * h, 0.0f), on); \
+            const int16 is_air = h <= air_max; \
+            air += select((float16)(0.0f), rho_w, is_air); \
+            soft += select(rho_w, (float16)(0.0f), is_air); \
+        } } while (0)
+#endif
 
 // Joseph's method: one bilinear sample per slice along the ray's dominant axis, the corners
 // split into materials at bone_min (see SAMPLE). out[p] = integral of each material's density
@@ -416,9 +435,9 @@ kernel void joseph_packet(global const short *vol,
         g00 = mix(g00, b00, w_b); g10 = mix(g10, b10, w_b); g01 = mix(g01, b01, w_b); g11 = mix(g11, b11, w_b);
 #endif
         const int16 on = (k >= k0) & (k <= k1);
-        SAMPLE(float16, int16, g00, g10, g01, g11, on, acc_air, acc_soft, acc_bone, acc_con);
+        SAMPLE_PACKET(g00, g10, g01, g11, on, acc_air, acc_soft, acc_bone, acc_con);
 #ifdef SPLIT
-        SAMPLE(float16, int16, b00, b10, b01, b11, on, bcc_air, bcc_soft, bcc_bone, bcc_con);
+        SAMPLE_PACKET(b00, b10, b01, b11, on, bcc_air, bcc_soft, bcc_bone, bcc_con);
 #endif
     }
     for (int l = 0; l < LANES; ++l)
