@@ -324,3 +324,18 @@ def test_other_views_read_the_plain_layout_and_the_copies_follow_the_blended_pai
     assert layouts.made == 3 and LAYOUT_PHASES == 2 and layouts.nbytes == 2 * phases[0].nbytes
     fresh.caster.layouts = None
     np.testing.assert_allclose(first, cast_lines(fresh, phases[0], ALONG_X, (phases[1], 0.3)), rtol=1e-5, atol=1e-3)
+
+
+def test_a_phase_let_go_frees_its_layout_copy_at_the_next_cast_whatever_its_view():
+    import gc
+
+    fresh = Renderer(flat_profile(128), Materials(), device="cpu")
+    vol, _, _ = box_volume((48, 64, 64), (1.5, 1.25, 2.5), (9, 14, 5), (52, 47, 40))
+    gone, kept = fresh.prepare(vol), fresh.prepare(vol)
+    cast_lines(fresh, gone, ALONG_X)
+    layouts = fresh.caster.layouts
+    assert layouts.nbytes == gone.nbytes
+    del gone
+    gc.collect()
+    cast_lines(fresh, kept, ALONG_Y)             # a view that makes no copy
+    assert layouts.nbytes == 0 and layouts.made == 1

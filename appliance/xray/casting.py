@@ -349,6 +349,8 @@ class Caster:
         layout has x fastest: its rows run along such rays, not across them) for the same
         integrals; else the phases themselves. Call with the device's lock held (the copies'
         cache is shared by the renderer's matrices)."""
+        if self.layouts is not None:
+            self.layouts.drop_dead()        # a case switched to views of other axes frees them too
         if (self.layouts is None or any(p.slab_axis >= 0 for p in phases)
                 or self.dominant_axis_of_field(phases[0], T_xray_from_ct, zoom, distorted) != 0):
             return phases

@@ -105,11 +105,14 @@ class SlabCache:
         #: Copies made (count): one per phase and axis while they stay in the cache.
         self.made = 0
 
-    def get(self, volume: PreparedVolume, axis: int) -> PreparedVolume:
-        # A phase no longer held elsewhere (a case switched, a timeline replaced) takes its
-        # slabs with it; its id may then be a new phase's, which the weak reference tells apart.
+    def drop_dead(self) -> None:
+        """Let go of the copies of phases no longer held elsewhere (a case switched, a timeline
+        replaced); their ids may then be new phases', which the weak references tell apart."""
         for dead in [k for k, (ref, _) in self._slabs.items() if ref() is None]:
             del self._slabs[dead]
+
+    def get(self, volume: PreparedVolume, axis: int) -> PreparedVolume:
+        self.drop_dead()
         key = (id(volume), axis)
         hit = self._slabs.get(key)
         if hit is not None and hit[0]() is volume:
