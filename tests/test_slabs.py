@@ -324,6 +324,8 @@ def test_other_views_read_the_plain_layout_and_the_copies_follow_the_blended_pai
     assert layouts.made == 3 and LAYOUT_PHASES == 2 and layouts.nbytes == 2 * phases[0].nbytes
     fresh.caster.layouts = None
     np.testing.assert_allclose(first, cast_lines(fresh, phases[0], ALONG_X, (phases[1], 0.3)), rtol=1e-5, atol=1e-3)
+    # The one-ray-per-work-item kernel (a GPU's) keeps to the plain layout.
+    assert Renderer(flat_profile(128), Materials(), device="cpu", packet=False).caster.layouts is None
 
 
 def test_a_phase_let_go_frees_its_layout_copy_at_the_next_cast_whatever_its_view():

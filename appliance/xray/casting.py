@@ -176,10 +176,12 @@ class Caster:
     def __init__(self, dev: ClDevice, fluoroscope: FluoroscopeProfile, materials: Materials,
                  contrast: Contrast | None = None, packet: bool | None = None, layouts: SlabCache | None = None):
         """`layouts`: copies of phases laid out for rays along x (slabs.py's SlabCache of one-slice
-        slabs), which a field whose every ray runs along x is cast through; None: never."""
+        slabs), which a field whose every ray runs along x is cast through; None: never. Only the
+        packet kernel (CPU devices) takes them, whose row loads they serve: what they would do for
+        the one-ray-per-work-item kernel of a GPU, a phase's memory more, has not been measured."""
         self.dev = dev
-        self.layouts = layouts
         self.packet = dev.is_cpu if packet is None else packet
+        self.layouts = layouts if self.packet else None
         name = "joseph_packet" if self.packet else "joseph_materials"
         self._joseph_name = name
         self._joseph = dev.kernel(name)
