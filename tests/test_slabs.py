@@ -261,16 +261,17 @@ def every_rays_dominant_axis(renderer, prepared, pose) -> np.ndarray:
 MIXED = make_transform(ALONG_X[:3, :3] @ rotation_about([0.0, 0.0, 1.0], np.radians(40.0)), ALONG_X[:3, 3])
 
 
-@pytest.mark.parametrize("pose, expected", [(ALONG_X, True), (ROLLED, True), (MIXED, True), (ALONG_Y, False),
-                                             (AXIAL, False)])
-def test_some_rays_along_x_as_every_pixels_own_axis_says(renderer, pose, expected):
+@pytest.mark.parametrize("pose, expected", [(ALONG_X, 0), (ROLLED, 0), (ALONG_Y, 1), (AXIAL, 2), (MIXED, None)])
+def test_the_fields_dominant_axis_is_every_pixels_own(renderer, pose, expected):
     vol, _, _ = box_volume((48, 64, 64), (1.5, 1.25, 2.5), (9, 14, 5), (52, 47, 40))
     prepared = renderer.prepare(vol)
     axes = every_rays_dominant_axis(renderer, prepared, pose)
-    assert renderer.caster.some_rays_along_x(prepared, pose, 1, False) is expected
-    assert bool(np.any(axes == 0)) is expected
-    if pose is MIXED:
-        assert 0.2 < np.mean(axes == 0) < 0.8
+    got = renderer.caster.dominant_axis_of_field(prepared, pose, 1, False)
+    assert got == expected
+    if expected is None:
+        assert len(np.unique(axes)) > 1
+    else:
+        assert np.all(axes == expected)
 
 
 def cast_lines(renderer, prepared, pose, blend=None) -> np.ndarray:
@@ -279,11 +280,11 @@ def cast_lines(renderer, prepared, pose, blend=None) -> np.ndarray:
         return renderer.dev.download(buf, np.empty((128, 128, 4), np.float32))
 
 
-@pytest.mark.parametrize("pose", [ALONG_X, ROLLED, MIXED])
+@pytest.mark.parametrize("pose", [ALONG_X, ROLLED])
 def test_a_lateral_view_is_cast_through_the_copy_with_the_plain_layouts_integrals(pose):
-    """Water (HU 0) in a box, a view whose rays (all, or some: MIXED) run along x: those packets
-    read the phase laid out for such rays, and the integrals are the plain layout's to the bit
-    and the closed-form chords' within the display path's 0.6 % bar."""
+    """Water (HU 0) in a box, a view whose every ray runs along x: the cast goes through the phase
+    laid out for such rays, its integrals are the plain layout's to float rounding and the
+    closed-form chords' within the display path's 0.6 % bar."""
     renderer = Renderer(flat_profile(128), Materials(), device="cpu")
     vol, lo, hi = box_volume((48, 64, 64), (1.5, 1.25, 2.5), (9, 14, 5), (52, 47, 40))
     prepared = renderer.prepare(vol)
@@ -295,7 +296,7 @@ def test_a_lateral_view_is_cast_through_the_copy_with_the_plain_layouts_integral
         plain = cast_lines(renderer, prepared, pose)
     finally:
         renderer.caster.layouts = layouts
-    np.testing.assert_array_equal(got, plain)
+    np.testing.assert_allclose(got, plain, rtol=1e-5, atol=1e-4)
     # Water: soft tissue but for the faces' samples mixed with air, no bone, no contrast.
     assert got[..., 2:].max() == 0.0 and got[..., 1].sum() > 0.98 * got.sum()
     s, d = pixel_rays_ct(zoomed_K(renderer.fluoroscope, 1), pose, 128, 128)
@@ -304,9 +305,9 @@ def test_a_lateral_view_is_cast_through_the_copy_with_the_plain_layouts_integral
 
 
 def test_other_views_read_the_plain_layout_and_the_copies_follow_the_blended_pair(renderer):
-    """Posterior-anterior and axial views make no copy; a lateral frame between two phases makes
-    both phases' copies, the pair moving on one phase makes one more, and only the last pair is
-    kept (LAYOUT_PHASES)."""
+    """A posterior-anterior view and one whose rays differ in their dominant axis make no copy; a
+    lateral frame between two phases makes both phases' copies, the pair moving on one phase
+    makes one more, and only the last pair is kept (LAYOUT_PHASES)."""
     from appliance.xray.slabs import LAYOUT_PHASES
 
     fresh = Renderer(flat_profile(128), Materials(), device="cpu")
@@ -314,22 +315,15 @@ def test_other_views_read_the_plain_layout_and_the_copies_follow_the_blended_pai
     phases = [fresh.prepare(Volume(hu=rng.integers(-900, 2000, size=(30, 34, 28)).astype(np.int16),
                                    T_ct_from_voxel=np.diag([1.5, 1.25, 2.0, 1.0]), source="noise")) for _ in range(3)]
     layouts = fresh.caster.layouts
-    for pose in (ALONG_Y, AXIAL):
+    for pose in (ALONG_Y, MIXED, AXIAL):
         cast_lines(fresh, phases[0], pose, (phases[1], 0.3))
     assert layouts.made == 0
     first = cast_lines(fresh, phases[0], ALONG_X, (phases[1], 0.3))
     assert layouts.made == 2
     cast_lines(fresh, phases[1], ALONG_X, (phases[2], 0.6))
     assert layouts.made == 3 and LAYOUT_PHASES == 2 and layouts.nbytes == 2 * phases[0].nbytes
-    # Both phases cast in one pass (the projection cache's), some rays along x: the same as well.
-    from appliance.xray.projection_cache import ProjectionCache
-
-    split = ProjectionCache(fresh).material_integrals(phases[1], MIXED, View(), blend=(phases[2], 0.6))
-    assert layouts.made == 3
     fresh.caster.layouts = None
-    np.testing.assert_array_equal(first, cast_lines(fresh, phases[0], ALONG_X, (phases[1], 0.3)))
-    np.testing.assert_array_equal(split, ProjectionCache(fresh).material_integrals(phases[1], MIXED, View(),
-                                                                                   blend=(phases[2], 0.6)))
+    np.testing.assert_allclose(first, cast_lines(fresh, phases[0], ALONG_X, (phases[1], 0.3)), rtol=1e-5, atol=1e-3)
     # The one-ray-per-work-item kernel (a GPU's) keeps to the plain layout.
     assert Renderer(flat_profile(128), Materials(), device="cpu", packet=False).caster.layouts is None
 

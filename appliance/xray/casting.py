@@ -75,6 +75,11 @@ PACKET = 16
 ABC_SAMPLE_PIXELS = 1024
 #: Pause between the bands of a banded cast (s): long enough for a waiting thread to take the lock.
 BAND_YIELD_S = 0.002
+#: A field is cast through a phase laid out for rays along an axis only where every ray's step
+#: along it exceeds its steps across by this factor (dimensionless): the kernels would pick that
+#: axis for every ray anyway (then the integrals are the plain layout's to the bit), and float
+#: rounding on a near tie cannot make a kernel pick another.
+DOMINANCE_MARGIN = 1.0001
 
 
 @dataclass(frozen=True, eq=False)
@@ -171,7 +176,7 @@ class Caster:
     def __init__(self, dev: ClDevice, fluoroscope: FluoroscopeProfile, materials: Materials,
                  contrast: Contrast | None = None, packet: bool | None = None, layouts: SlabCache | None = None):
         """`layouts`: copies of phases laid out for rays along x (slabs.py's SlabCache of one-slice
-        slabs), which the packets of a field whose rays run along x read (x_rows_args); None: never. Only the
+        slabs), which a field whose every ray runs along x is cast through; None: never. Only the
         packet kernel (CPU devices) takes them, whose row loads they serve: what they would do for
         the one-ray-per-work-item kernel of a GPU, a phase's memory more, has not been measured."""
         self.dev = dev
@@ -325,30 +330,33 @@ class Caster:
             self._dirs[key] = (self.dev.upload(dirs), rim)
         return self._dirs[key]
 
-    def some_rays_along_x(self, volume: PreparedVolume, T_xray_from_ct, zoom: int, distorted: bool) -> bool:
-        """Whether some ray of the field steps along the volume's x more than along y and z (voxel
-        indices), as the packet kernel decides a packet's axis. Checked at the detector's rim: the
-        directions stepping along x most form a convex cone (one sign of x), which a field can hold
-        without reaching its edge only if it is wider than 90 degrees."""
+    def dominant_axis_of_field(self, volume: PreparedVolume, T_xray_from_ct, zoom: int, distorted: bool) -> int | None:
+        """The voxel axis (0 x, 1 y, 2 z) every ray of the field steps along most (by
+        DOMINANCE_MARGIN), or None where the rays differ. A ray's step along index axis i is
+        linear in its direction (x, y, 1), so the condition holds for every pixel where it holds,
+        one sign throughout, at the rim's."""
         rim = self._rays(zoom, distorted)[1]
         A = (volume.T_index_from_ct @ invert(np.asarray(T_xray_from_ct, float)))[:3, :3]
         d = np.abs(rim @ A[:, :2].T + A[:, 2])                          # (n, 3) index steps
-        return bool(np.any((d[:, 0] >= d[:, 1]) & (d[:, 0] >= d[:, 2])))
+        axis = int(np.argmax(d[0]))
+        across = np.delete(d, axis, axis=1).max(axis=1)
+        signs = np.sign(rim @ A[axis, :2] + A[axis, 2])
+        if np.all(d[:, axis] > DOMINANCE_MARGIN * across) and np.all(signs == signs[0]):
+            return axis
+        return None
 
-    def x_rows_args(self, phases: list[PreparedVolume], T_xray_from_ct, zoom: int, distorted: bool) -> tuple:
-        """joseph_packet's (vol_x, vol_b_x, x_rows) for casting the plain-layout `phases` (one, or
-        the two blended): their copies laid out for rays along x (`layouts`) where some ray of the
-        field runs along x, which those packets then read a row at a time (the plain layout has x
-        fastest: its rows run along such rays, not across them) for the same integrals; else the
-        phases themselves, unused. Call with the device's lock held (the copies' cache is shared by
-        the renderer's matrices)."""
+    def laid_out(self, phases: list[PreparedVolume], T_xray_from_ct, zoom: int, distorted: bool) -> list[PreparedVolume]:
+        """The phases to cast the field through: their copies laid out for rays along x (`layouts`)
+        where every ray runs along x, whose samples a packet then reads a row at a time (the plain
+        layout has x fastest: its rows run along such rays, not across them) for the same
+        integrals; else the phases themselves. Call with the device's lock held (the copies'
+        cache is shared by the renderer's matrices)."""
         if self.layouts is not None:
             self.layouts.drop_dead()        # a case switched to views of other axes frees them too
-        copies = phases
-        if (self.layouts is not None and all(p.slab_axis < 0 for p in phases)
-                and self.some_rays_along_x(phases[0], T_xray_from_ct, zoom, distorted)):
-            copies = [self.layouts.get(p, 0) for p in phases]
-        return copies[0].buffer, copies[-1].buffer, np.int32(copies is not phases)
+        if (self.layouts is None or any(p.slab_axis >= 0 for p in phases)
+                or self.dominant_axis_of_field(phases[0], T_xray_from_ct, zoom, distorted) != 0):
+            return phases
+        return [self.layouts.get(p, 0) for p in phases]
 
     def beam(self, zoom: int, collimation_mm, circle: bool) -> Beam:
         """The field's masks and their device buffers (see Beam), cached."""
@@ -403,17 +411,16 @@ class Caster:
         rows, cols = self.shape
         if blend is not None and not volume.same_grid(blend[0]):
             raise ValueError("phases to blend must share one voxel grid")
-        # The pose is checked before any copy is made (a copy laid out for the rays keeps the
-        # phase's voxel indices, hence this geometry).
+        # The pose is checked before any copy is made; a copy laid out for the rays keeps the
+        # phase's voxel indices, hence this geometry.
         geo = self._geometry(volume, T_xray_from_ct)
-        x_rows: tuple = ()
-        if self.packet:
-            phases = [volume] if blend is None else [volume, blend[0]]
-            if bands is None:
-                x_rows = self.x_rows_args(phases, T_xray_from_ct, zoom, distorted)
-            else:
-                with bands[0]:
-                    x_rows = self.x_rows_args(phases, T_xray_from_ct, zoom, distorted)
+        phases = [volume] if blend is None else [volume, blend[0]]
+        if bands is None:
+            phases = self.laid_out(phases, T_xray_from_ct, zoom, distorted)
+        else:
+            with bands[0]:
+                phases = self.laid_out(phases, T_xray_from_ct, zoom, distorted)
+        volume, blend = phases[0], None if blend is None else (phases[1], blend[1])
         beam = self.beam(zoom, collimation_mm, circle)
         mask, mask_buf = beam.exposed, beam.exposed_buf
         dirs = self._dirs_buffer(zoom, distorted)
@@ -430,8 +437,8 @@ class Caster:
             if self._joseph_blend is None:
                 self._joseph_blend = dev.kernel(self._joseph_name, blend=True)
             kernel, first = self._joseph_blend, (volume.buffer, blend[0].buffer, np.float32(blend[1]))
-        args = (*first, np.int32(nx), np.int32(ny), np.int32(nz), np.int32(volume.slab_axis), *x_rows, dirs,
-                mask_buf, dev.upload(geo), dev.upload(box), self._mat_buf)
+        args = (*first, np.int32(nx), np.int32(ny), np.int32(nz), np.int32(volume.slab_axis), dirs, mask_buf,
+                dev.upload(geo), dev.upload(box), self._mat_buf)
         tail = (np.int32(cols), lines) if self.packet else (lines,)
         width = -(-cols // PACKET) if self.packet else cols
         if bands is None:

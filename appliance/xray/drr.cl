@@ -296,9 +296,6 @@ typedef short v32hi __attribute__((vector_size(64)));
 // SPLIT: two phases on one voxel grid in one pass, each phase's integrals to its own output
 // (out, out_b): the projection cache blends them later in projection space, and sampling both
 // at the same positions costs little more than one, since the addresses are shared.
-// x_rows: vol_x (and vol_b_x) are the plain-layout phases laid out for rays along x (slab_rows
-// with one-slice slabs, the same voxel indices), which a packet whose rays run along x reads, a
-// row at a time, instead of the plain layout, whose rows run along such rays; 0: they are unused.
 kernel void joseph_packet(global const short *vol,
 #ifdef BLEND
                           global const short *vol_b, const float w_b,
@@ -307,7 +304,6 @@ kernel void joseph_packet(global const short *vol,
                           global const short *vol_b,
 #endif
                           const int nx, const int ny, const int nz, const int slab_axis,
-                          global const short *vol_x, global const short *vol_b_x, const int x_rows,
                           global const float2 *dirs, global const uchar *mask,
                           constant float *geo, constant int *box, constant float *mat,
                           const int cols, global float4 *out
@@ -339,13 +335,8 @@ kernel void joseph_packet(global const short *vol,
     const int lo_i[3] = {box[0], box[1], box[2]};
     const int hi_i[3] = {box[4], box[5], box[6]};
     const int dims[3] = {nx, ny, nz};
-    const bool along_x = x_rows && a == 0;
-    global const short *src = along_x ? vol_x : vol;
-#if defined(BLEND) || defined(SPLIT)
-    global const short *src_b = along_x ? vol_b_x : vol_b;
-#endif
     int sa, sb, sc, oc;
-    LAYOUT(along_x ? 0 : slab_axis, dims, a, b, c, sa, sb, sc, oc);
+    LAYOUT(slab_axis, dims, a, b, c, sa, sb, sc, oc);
 
     // Clip every lane to the content box grown by one voxel (slab method, as clip_box).
     float16 t0 = 0.0f, t1 = INFINITY;
@@ -435,10 +426,10 @@ kernel void joseph_packet(global const short *vol,
         if (blocks_c) wc = VOXEL_WEIGHT(wc, inv_c, off_c);
         const int16 i00 = k * sa + ib * sb + ic * sc, i10 = i00 + sb, i01 = i00 + oc, i11 = i01 + sb;
         float16 g00, g10, g01, g11;
-        CORNERS(src, g00, g10, g01, g11);
+        CORNERS(vol, g00, g10, g01, g11);
 #if defined(BLEND) || defined(SPLIT)
         float16 b00, b10, b01, b11;
-        CORNERS(src_b, b00, b10, b01, b11);
+        CORNERS(vol_b, b00, b10, b01, b11);
 #endif
 #ifdef BLEND
         g00 = mix(g00, b00, w_b); g10 = mix(g10, b10, w_b); g01 = mix(g01, b01, w_b); g11 = mix(g11, b11, w_b);

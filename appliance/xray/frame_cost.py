@@ -132,7 +132,7 @@ def slab_frames(renderer, volume: Volume, frames: int, pose, label: str) -> str:
 
 def layout_copy_line(renderer, prepared, copies: int) -> str:
     """A line of what a copy of `prepared` laid out for rays along x costs (slabs.py's one-slice
-    slabs, Caster.x_rows_args): made anew `copies` times, medians; a lateral view pays it once per
+    slabs, Caster.laid_out): made anew `copies` times, medians; a lateral view pays it once per
     phase, when breathing brings the next phase into the blended pair."""
     from .slabs import SlabCache
 

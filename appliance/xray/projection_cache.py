@@ -178,10 +178,10 @@ class ProjectionCache:
                 cl.enqueue_fill_buffer(dev.queue, out, np.float32(0), 0, rows * cols * 16)
             return out_a, out_b
         mask_buf = caster.beam(zoom, collimation_mm, circle).exposed_buf
+        a, b = caster.laid_out([a, b], T, zoom, distorted)
         nx, ny, nz = a.shape_xyz
         self._split(dev.queue, (-(-cols // PACKET), rows), None, a.buffer, b.buffer, np.int32(nx), np.int32(ny),
-                    np.int32(nz), np.int32(a.slab_axis), *caster.x_rows_args([a, b], T, zoom, distorted),
-                    caster._dirs_buffer(zoom, distorted), mask_buf, dev.upload(caster._geometry(a, T)),
+                    np.int32(nz), np.int32(a.slab_axis), caster._dirs_buffer(zoom, distorted), mask_buf, dev.upload(caster._geometry(a, T)),
                     dev.upload(box), caster._mat_buf, np.int32(cols), out_a, out_b)
         return out_a, out_b
 

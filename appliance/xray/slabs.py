@@ -32,7 +32,7 @@ from .pixel_geometry import zoomed_K
 
 #: Slices averaged into one slab (count): `slab_rows` averages pairs.
 SLAB = 2
-#: Phases a renderer keeps laid out for rays along x (one-slice slabs, Caster.x_rows_args), each as
+#: Phases a renderer keeps laid out for rays along x (one-slice slabs, Caster.laid_out), each as
 #: large as the phase (39 MB for the adult chest's content box): the two a frame blends (count).
 #: Breathing changes the pair every few tenths of a second, one copy pass each (see README).
 LAYOUT_PHASES = 2
