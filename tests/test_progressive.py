@@ -118,6 +118,32 @@ def test_both_matrices_show_the_closed_form_transmission(renderer, box):
         assert np.median(np.abs(implied - L_cm[inner]) / L_cm[inner]) < 0.01
 
 
+def test_a_pose_come_to_rest_is_shown_from_its_last_moving_cast(renderer, box):
+    """The frames of a pose that has just stopped (before settle_s) show the moving matrix from
+    the integrals of the last moving frame's cast, kept in the moving matrix's cache: that pose
+    is not cast again (the device is left to the full matrix's cast), and the frame is still
+    the closed-form transmission exp(-mu L) of the box at that pose."""
+    prepared, lo, hi = box
+    clock = Clock()
+    pr = ProgressiveRenderer(renderer, SETTINGS, clock=clock)
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    s, d = pixel_rays_ct(zoomed_K(renderer.fluoroscope, 1), POSE, 128, 128)
+    L_cm = box_chords(s, d, lo, hi) / 10.0
+    inner = cv2.erode((L_cm > 2.0).astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
+    mu = xraylib.CS_Total_CP("Tissue, Soft (ICRP)", renderer.spectrum.effective_kev)
+    for dx in (-4.0, -2.0, 0.0):                # 2 mm a frame, stopping at POSE
+        clock.t += 0.04
+        pr.render(prepared, shifted(dx), view)
+    counts = pr.cache(pr.moving).counts
+    casts, hits = counts.casts, counts.hits
+    clock.t += 0.04                             # at rest for less than settle_s (0.1 s)
+    held = pr.render(prepared, POSE, view).image
+    assert pr.matrix == 64
+    assert (counts.casts, counts.hits) == (casts, hits + 1)
+    implied = -np.log(held[inner]) / mu
+    assert np.median(np.abs(implied - L_cm[inner]) / L_cm[inner]) < 0.01
+
+
 def test_recursive_filter_carries_over_the_switch(renderer, box):
     """With the live recursive filter (weight w), the first full-matrix frame's detector signal
     is w x (the moving matrix's settled signal, resampled) + (1 - w) x the full matrix's own."""
