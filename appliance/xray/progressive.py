@@ -182,6 +182,10 @@ class ProgressiveRenderer:
                 self.refine.cancel = True
         resting = now - self._last_motion >= self.settings.settle_s
         moving = self.moving
+        if not moved and self._last_used is not self.full:
+            # The controller picks the matrix of a moving cast. A pose that stays keeps the matrix
+            # it was last cast at, whose cache holds it, and the grain it was shown with.
+            moving = self._last_used
         use = self.full if resting or moving is None or view.quantity == "line-integral" else moving
         if (use is self.full and moving is not None and view.quantity != "line-integral"
                 and self._refining(volume, T, view, blend)):
