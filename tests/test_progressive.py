@@ -421,37 +421,3 @@ def test_after_a_fault_of_the_cast_beside_the_live_frames_rest_casts_the_full_ma
     assert pr.matrix == 128 and pr.refine is failed
     mu = xraylib.CS_Total_CP("Tissue, Soft (ICRP)", renderer.spectrum.effective_kev)
     assert _implied_chord_error(full, *_chords(renderer, lo, hi, 1), mu) < 0.01
-
-
-def test_a_pose_creeping_about_where_it_stopped_keeps_the_one_full_matrix_cast(renderer, box):
-    """After a stop the pose filter's creep and the tracker's jitter move the pose 0.2 px to one
-    side of where the motion stopped, then 0.2 px to the other (0.4 px apart, each within the
-    0.25 px tolerance of the stopping pose, so neither moved): the full matrix is cast once, at
-    the stopping pose, the cast is not cancelled, and every frame after it shows the full
-    matrix; the rest is counted once."""
-    from appliance.xray.projection_cache import box_corners_ct, detector_shift_px
-
-    prepared, _, _ = box
-    clock = Clock()
-    pr = ProgressiveRenderer(renderer, Rendering(moving_matrix_px=64, settle_s=0.1, refine_bands=16), clock=clock)
-    view = View(quantity="intensity", noise=False, polychromatic=False)
-    px_per_mm = detector_shift_px(zoomed_K(renderer.fluoroscope, 1), box_corners_ct(prepared), shifted(0.0), shifted(1.0))
-    creep_mm = 0.2 / px_per_mm
-    for dx in (-4.0, -2.0, 0.0):                # moving, stopping at shifted(0)
-        clock.t += 0.04
-        pr.render(prepared, shifted(dx), view)
-    for _ in range(3):                          # to one side, past settle_s: the cast begins
-        clock.t += 0.04
-        pr.render(prepared, shifted(creep_mm), view)
-    first = pr.refine
-    assert first is not None
-    clock.t += 0.04
-    pr.render(prepared, shifted(-creep_mm), view)     # to the other side
-    assert not first.cancel and pr.wait_refined(30.0)
-    matrices = []
-    for dx in (-creep_mm, creep_mm, -creep_mm):
-        clock.t += 0.04
-        pr.render(prepared, shifted(dx), view)
-        matrices.append(pr.matrix)
-    assert matrices == [128, 128, 128] and pr.refine is first
-    assert pr.cache().counts.casts == 1 and len(pr.refined_after_s) == 1

@@ -268,11 +268,7 @@ class ProgressiveRenderer:
         if self.cache().adopted(T, view.zoom, view.collimation_mm, True, circle):
             return False
         phases = [volume] if blend is None or blend[1] == 0.0 else [volume, blend[0]]
-        # Cast at the pose the motion stopped at, the one "moved" is judged against: the tracker's
-        # jitter and the pose filter's creep within the tolerance of it neither cancel this cast
-        # nor, once it is done, make the cache cast the pose again (a second cast, the moving
-        # matrix shown meanwhile, at a view that never moved).
-        refine = self.refine = Refine(self._last_pose, _geometry(view))
+        refine = self.refine = Refine(T, _geometry(view))
         threading.Thread(target=self._cast_full, args=(refine, phases, view, circle, bands),
                          name="fluorosim-refine", daemon=True).start()
         return True
