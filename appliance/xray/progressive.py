@@ -33,9 +33,8 @@ two cores): cast within one frame, it holds the screen that long each time the C
 rest. With `rendering.refine_bands` it is cast on a thread of its own in bands of rows, the
 live frames taking the device between bands, while the moving matrix's image of the resting
 pose stays on screen, from the last moving frame's integrals kept in the moving matrix's
-cache, at that frame's matrix (the pose is not cast again while the bands wait); the full
-matrix is cast at the pose the motion stopped at, so creep within the tolerance of it neither
-stops the cast nor casts the rest again; the first frame after the cast shows
+cache, at that frame's matrix (the pose is not cast again while the bands wait); the first
+frame after the cast shows
 the full matrix. A pose that moves on cancels the cast at its next band. Only the switch
 waits so: a phase that comes while the view is held at the full matrix (breathing, a 4D CT)
 is cast within the frame that first needs it, as without the setting, so a held view never
