@@ -34,8 +34,8 @@ rest. With `rendering.refine_bands` it is cast on a thread of its own in bands o
 live frames taking the device between bands, while the moving matrix's image of the resting
 pose stays on screen, from the last moving frame's integrals kept in the moving matrix's
 cache, at that frame's matrix (the pose is not cast again while the bands wait); the first
-frame after the cast shows
-the full matrix. A pose that moves on cancels the cast at its next band. Only the switch
+frame after the cast shows the full matrix. A pose that moves on cancels the cast at its next
+band. Only the switch
 waits so: a phase that comes while the view is held at the full matrix (breathing, a 4D CT)
 is cast within the frame that first needs it, as without the setting, so a held view never
 drops back to the coarser matrix.
