@@ -137,3 +137,28 @@ def test_breathing_pair_is_taken_at_one_pose_once_each_extreme_has_settled(tmp_p
     assert (read_png(snap.taken["breath-hold"]) == 80 + BREATH_SETTLE_FRAMES).all()
     kept = snap.kept["end-inspiration"]
     assert kept.inspired == 0.995 and (kept.image == 60 + BREATH_SETTLE_FRAMES).all()
+
+
+def test_the_background_writer_runs_ten_nice_steps_below_the_thread_that_took_the_snapshot(tmp_path):
+    """The PNG writer yields the CPU to the render worker: its thread's nice value (read from the
+    kernel) is 10 above that of the thread the snapshot was taken on (at most 19, Linux's last)."""
+    import os
+    import threading
+    import time
+
+    from appliance.daemon.snapshots import Moment
+
+    screen = np.zeros((6, 10, 3), np.uint8)
+    shown = SimpleNamespace(rgb_source=lambda: screen, state=SimpleNamespace(alarm_sounding=False))
+    snapper = Snapshotter(tmp_path, [Moment("first", "first image", lambda f: True)], background=True)
+    want = min(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) + 10, 19)
+    snapper(shown)
+    writer = snapper._writer
+    assert writer is not None
+    seen, deadline = None, time.monotonic() + 5.0
+    while seen != want and time.monotonic() < deadline:      # the writer sets it as it starts
+        seen = os.getpriority(os.PRIO_PROCESS, writer.native_id)
+        time.sleep(0.01)
+    snapper.flush()
+    assert seen == want
+    assert (tmp_path / "00-first.png").is_file()

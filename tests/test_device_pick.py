@@ -128,4 +128,89 @@ def test_the_device_picked_here_builds_drr_cl_with_and_without_blending(device):
     options = ["-DUNALIGNED_PAIRS"] if d.type & cl.device_type.CPU else []
     for extra in ([], ["-DBLEND"]):
         cl.Program(cl.Context([d]), source).build(options=options + extra)
+    if device == "cpu":                         # PoCL's device, never a GPU listed beside it
+        assert d.type & cl.device_type.CPU and not d.type & cl.device_type.GPU
     assert ClDevice(device).device.int_ptr == d.int_ptr
+
+
+#: Run with the chosen vendors: how many kernel builds each of three pick_device("cpu") calls
+#: makes (every build of this process counted, the builds themselves real).
+COUNTED = """
+import json
+import pyopencl as cl
+from appliance.errors import FluorosimError
+from appliance.xray.device import pick_device
+builds = []
+build = cl.Program.build
+def counted(self, *args, **kwargs):
+    builds.append(1)
+    return build(self, *args, **kwargs)
+cl.Program.build = counted
+per_call = []
+for _ in range(3):
+    before = len(builds)
+    try:
+        pick_device("cpu")
+    except FluorosimError:
+        pass
+    per_call.append(len(builds) - before)
+print(json.dumps(per_call))
+"""
+
+
+def test_each_device_is_tried_once_a_process(tmp_path, listed):
+    """The first pick tries the devices in order up to the first that builds (all of them when
+    none does: the probe's own builds tell which); later picks build nothing again."""
+    builds = [d[2] for d in listed["devices"]]
+    tried = builds.index(True) + 1 if True in builds else len(builds)
+    out = subprocess.run([sys.executable, "-c", COUNTED], cwd=REPO, env=vendors(tmp_path, system=True),
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout.splitlines()[-1]) == [tried, 0, 0]
+
+
+#: Run with the chosen vendors: each CPU device's build log of pick_device's probe kernel (its
+#: "error:" lines, in the compiler's order), and pick_device's refusal.
+LOGGED = """
+import json
+import pyopencl as cl
+from appliance.errors import FluorosimError
+from appliance.xray.device import pick_device
+source = "__kernel void probe(__global float *a) { a[get_global_id(0)] *= 2.0f; }"
+errors = []
+for p in cl.get_platforms():
+    for d in p.get_devices(device_type=cl.device_type.CPU):
+        program = cl.Program(cl.Context([d]), source)
+        try:
+            program.build()
+            log = ""
+        except cl.Error:
+            log = program.get_build_info(d, cl.program_build_info.LOG)
+        errors.append([d.name.strip(), p.version.strip(), [ln.strip() for ln in log.splitlines() if "error:" in ln]])
+try:
+    pick_device("cpu")
+    refusal = None
+except FluorosimError as e:
+    refusal = str(e)
+print(json.dumps({"errors": errors, "refusal": refusal}))
+"""
+
+
+def test_a_device_that_cannot_build_is_named_with_its_compilers_first_error(tmp_path):
+    """PoCL adds POCL_EXTRA_BUILD_FLAGS to every build: a macro that turns get_global_id into
+    two undeclared names breaks the probe kernel with several errors, the first in PoCL's own
+    header, the last naming the second name. The refusal names each device with its
+    compiler's first error line (the cause; the rest follow from it), never its last."""
+    env = {**vendors(tmp_path, system=True),
+           "POCL_EXTRA_BUILD_FLAGS": "-Dget_global_id(x)=(x+undeclared_first+undeclared_second)"}
+    out = subprocess.run([sys.executable, "-c", LOGGED], cwd=REPO, env=env, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    answer = json.loads(out.stdout.splitlines()[-1])
+    refusal = answer["refusal"]
+    assert refusal is not None and refusal.startswith("no OpenCL device here can compile kernels")
+    several = [(name, version, errors) for name, version, errors in answer["errors"] if len(set(errors)) >= 2]
+    assert several, answer["errors"]            # Debian's PoCL reports each error on a line of its own
+    for name, version, errors in several:
+        assert f"{name} ({version}): {errors[0]}" in refusal
+        assert errors[-1] not in refusal

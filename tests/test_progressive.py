@@ -118,6 +118,32 @@ def test_both_matrices_show_the_closed_form_transmission(renderer, box):
         assert np.median(np.abs(implied - L_cm[inner]) / L_cm[inner]) < 0.01
 
 
+def test_a_pose_come_to_rest_is_shown_from_its_last_moving_cast(renderer, box):
+    """The frames of a pose that has just stopped (before settle_s) show the moving matrix from
+    the integrals of the last moving frame's cast, kept in the moving matrix's cache: that pose
+    is not cast again (the device is left to the full matrix's cast), and the frame is still
+    the closed-form transmission exp(-mu L) of the box at that pose."""
+    prepared, lo, hi = box
+    clock = Clock()
+    pr = ProgressiveRenderer(renderer, SETTINGS, clock=clock)
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    s, d = pixel_rays_ct(zoomed_K(renderer.fluoroscope, 1), POSE, 128, 128)
+    L_cm = box_chords(s, d, lo, hi) / 10.0
+    inner = cv2.erode((L_cm > 2.0).astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
+    mu = xraylib.CS_Total_CP("Tissue, Soft (ICRP)", renderer.spectrum.effective_kev)
+    for dx in (-4.0, -2.0, 0.0):                # 2 mm a frame, stopping at POSE
+        clock.t += 0.04
+        pr.render(prepared, shifted(dx), view)
+    counts = pr.cache(pr.moving).counts
+    casts, hits = counts.casts, counts.hits
+    clock.t += 0.04                             # at rest for less than settle_s (0.1 s)
+    held = pr.render(prepared, POSE, view).image
+    assert pr.matrix == 64
+    assert (counts.casts, counts.hits) == (casts, hits + 1)
+    implied = -np.log(held[inner]) / mu
+    assert np.median(np.abs(implied - L_cm[inner]) / L_cm[inner]) < 0.01
+
+
 def test_recursive_filter_carries_over_the_switch(renderer, box):
     """With the live recursive filter (weight w), the first full-matrix frame's detector signal
     is w x (the moving matrix's settled signal, resampled) + (1 - w) x the full matrix's own."""
@@ -265,7 +291,8 @@ def test_a_pose_that_moves_on_cancels_the_cast_and_never_shows_the_old_pose(rend
     clock.t += 0.04
     pr.render(prepared, shifted(12.0), view)    # moved 12 mm: many pixels
     assert first.cancel and pr.matrix == 64
-    assert pr.wait_refined(30.0)                # it ends (at its next band, or done if it was)
+    assert pr.wait_refined(30.0)                # it ends at its next band: 64 bands take far longer
+    assert pr.cache().counts.casts == 0         # nothing of the left pose is kept
     for _ in range(4):                          # at rest at the new pose: its own cast
         clock.t += 0.04
         pr.render(prepared, shifted(12.0), view)
@@ -304,3 +331,93 @@ def test_jitter_about_the_resting_pose_does_not_cancel_the_cast(renderer, box):
         pr.render(prepared, shifted(dx), view)
     assert not first.cancel
     assert pr.wait_refined(30.0) and pr.refine is first and pr.cache().counts.casts == 1
+
+
+def _chords(renderer, lo, hi, zoom: int, T=POSE):
+    """The box's chord (cm) through each detector pixel at `zoom`, and the pixels well inside it."""
+    s, d = pixel_rays_ct(zoomed_K(renderer.fluoroscope, zoom), T, 128, 128)
+    L_cm = box_chords(s, d, lo, hi) / 10.0
+    return L_cm, cv2.erode((L_cm > 2.0).astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
+
+
+def test_a_new_zoom_at_the_resting_pose_cancels_the_cast_and_shows_its_own_field(renderer, box):
+    """The zoom changes while the full matrix is cast, the C-arm still: that cast is told to stop
+    and keeps nothing, and the full matrix then shown is zoom 2's: the box's closed-form chords
+    through zoom 2's rays, and as many pixels behind more than 1 cm of it as zoom 2's rays give
+    (zoom 1's give about half as many). With no cast begun, there is none to wait for."""
+    prepared, lo, hi = box
+    clock = Clock()
+    pr = ProgressiveRenderer(renderer, Rendering(moving_matrix_px=64, settle_s=0.1, refine_bands=64), clock=clock)
+    assert pr.wait_refined(0.0)
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    for _ in range(4):
+        clock.t += 0.04
+        pr.render(prepared, POSE, view)
+    first = pr.refine
+    assert first is not None
+    zoomed = View(zoom=2, quantity="intensity", noise=False, polychromatic=False)
+    clock.t += 0.04
+    pr.render(prepared, POSE, zoomed)
+    assert first.cancel and pr.matrix == 64
+    assert pr.wait_refined(30.0) and pr.cache().counts.casts == 0
+    for _ in range(2):                          # zoom 2's own cast begins, and is waited for
+        clock.t += 0.04
+        pr.render(prepared, POSE, zoomed)
+    assert pr.refine is not first and pr.wait_refined(30.0)
+    clock.t += 0.04
+    full = pr.render(prepared, POSE, zoomed).image
+    assert pr.matrix == 128
+    mu = xraylib.CS_Total_CP("Tissue, Soft (ICRP)", renderer.spectrum.effective_kev)
+    assert _implied_chord_error(full, *_chords(renderer, lo, hi, 2), mu) < 0.01
+    behind = {zoom: int((_chords(renderer, lo, hi, zoom)[0] > 1.0).sum()) for zoom in (1, 2)}
+    shown = int(((full > 0) & (full < np.exp(-mu * 1.0))).sum())
+    assert abs(shown - behind[2]) < 0.03 * behind[2] and behind[2] > 1.5 * behind[1], (shown, behind)
+
+
+def test_a_blended_rest_has_both_phases_cast_beside_the_live_frames(renderer, box):
+    """Between two phases (a box and a longer one on the same grid, half way) the cast beside the
+    live frames casts both, so the full-matrix frame casts nothing within itself, and it is the
+    projection-space blend: -ln T / mu = half of each box's closed-form chord."""
+    prepared, lo, hi = box
+    longer, lo_b, hi_b = box_volume((40, 48, 48), (1.5, 1.25, 2.0), (8, 10, 6), (36, 38, 38))
+    other = renderer.prepare(longer)
+    clock = Clock()
+    pr = ProgressiveRenderer(renderer, Rendering(moving_matrix_px=64, settle_s=0.1, refine_bands=4), clock=clock)
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    for _ in range(4):
+        clock.t += 0.04
+        pr.render(prepared, POSE, view, blend=(other, 0.5))
+    assert pr.refine is not None and pr.wait_refined(30.0)
+    assert pr.cache().counts.casts == 2
+    clock.t += 0.04
+    full = pr.render(prepared, POSE, view, blend=(other, 0.5)).image
+    assert pr.matrix == 128 and pr.cache().counts.casts == 2
+    (L_a, inner), (L_b, _) = _chords(renderer, lo, hi, 1), _chords(renderer, lo_b, hi_b, 1)
+    mu = xraylib.CS_Total_CP("Tissue, Soft (ICRP)", renderer.spectrum.effective_kev)
+    assert _implied_chord_error(full, 0.5 * (L_a + L_b), inner, mu) < 0.01
+    assert np.median(L_b[inner] - L_a[inner]) > 0.5          # the blend differs from either phase
+
+
+def test_after_a_fault_of_the_cast_beside_the_live_frames_rest_casts_the_full_matrix_within_the_frame(renderer, box):
+    """The thread's cast fails (an OpenCL error, raised where the cast would run): the fault is
+    kept, and the next frames at rest cast the full matrix themselves rather than start another
+    thread that would fail again and hold the moving matrix for good; that frame is the closed form."""
+    prepared, lo, hi = box
+    clock = Clock()
+    pr = ProgressiveRenderer(renderer, Rendering(moving_matrix_px=64, settle_s=0.1, refine_bands=4), clock=clock)
+
+    def out_of_resources(*args, **kwargs):
+        raise RuntimeError("clEnqueueNDRangeKernel failed: OUT_OF_RESOURCES")
+    pr.cache().fill = out_of_resources
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    for _ in range(4):
+        clock.t += 0.04
+        pr.render(prepared, POSE, view)
+    assert pr.refine is not None and pr.wait_refined(30.0)
+    assert "OUT_OF_RESOURCES" in pr.refine_fault
+    failed = pr.refine
+    clock.t += 0.04
+    full = pr.render(prepared, POSE, view).image
+    assert pr.matrix == 128 and pr.refine is failed
+    mu = xraylib.CS_Total_CP("Tissue, Soft (ICRP)", renderer.spectrum.effective_kev)
+    assert _implied_chord_error(full, *_chords(renderer, lo, hi, 1), mu) < 0.01

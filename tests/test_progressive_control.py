@@ -50,6 +50,16 @@ def test_each_moving_cast_is_timed_once(renderer):
         pr.render(prepared, pose(i), view)
         pr.frame_shown(0.100)
     assert pr.control.steps == [(96, 64)]
+    # The pose stays: it keeps the 96 matrix its last cast was at, served from that cast (no new
+    # one at 64); the next moving cast is at the controller's 64.
+    counts = pr.cache(pr._movers[96]).counts
+    casts, hits = counts.casts, counts.hits
+    t[0] += 0.04
+    pr.render(prepared, pose(2), view)
+    assert pr.matrix == 96 and (counts.casts, counts.hits) == (casts, hits + 1)
+    t[0] += 0.04
+    pr.render(prepared, pose(3), view)
+    assert pr.matrix == 64
 
 
 def test_the_slab_copies_of_the_phases_moved_between_are_kept(renderer):

@@ -1,6 +1,9 @@
-"""The latency breakdown by stage against hand-worked time stamps."""
+"""The latency breakdown by stage: against hand-worked time stamps, and in the running
+appliance against sleeps added to its stages."""
 
 from __future__ import annotations
+
+import time
 
 import pytest
 
@@ -58,3 +61,59 @@ def test_the_median_and_p99_of_a_skewed_stage_and_the_frames_kept():
         kept.add(row)
     assert kept.summary()["pose wait"] == pytest.approx((0.0, 98.0), abs=1e-6)
     assert kept.summary(since=rows[3].t_shown)["pose wait"] == pytest.approx((0.0, 0.0), abs=1e-6)
+
+
+#: Sleeps added to the appliance's own stages (s), each in the one stage it belongs to; spaced so
+#: that time moved from one stage into another shows. The stages left alone (capture, pose
+#: filter, pose wait) are given none.
+ADDED_S = {"tracking": 0.015, "render": 0.030, "overlay": 0.008, "compose": 0.045, "write": 0.060}
+#: What a stage's median may take beyond its sleep: the stage's own work (a 64-pixel render, a
+#: 320 x 256 screen) on a loaded two-core machine (ms).
+OWN_WORK_MS = 25.0
+
+
+def slowed(call, seconds: float):
+    def slow(*args, **kwargs):
+        time.sleep(seconds)
+        return call(*args, **kwargs)
+    return slow
+
+
+def test_each_stage_of_the_running_appliance_holds_the_time_added_to_it_and_no_other(tmp_path):
+    """The appliance run for real (tiny CT, the pedal held), with a known sleep added to its
+    tracking, its render, what is done between image and compositor (the banners), the
+    compositor and the display's write: each of those stages' median lies within OWN_WORK_MS
+    above its sleep, and the stages with no sleep stay above 0 (and under 100 ms). A stamp passed in
+    another's slot (two swapped, one passed twice) moves a sleep into a neighbour or makes a
+    stage negative."""
+    from appliance_setup import make_appliance
+
+    from appliance.daemon.notify import Notifier
+    from appliance.daemon.pipeline import Appliance
+    from appliance.daemon.reload import ProfileKeeper
+
+    app = Appliance(ProfileKeeper(make_appliance(tmp_path)), Notifier({}))
+    parts = app.parts
+    parts.tracker.track = slowed(parts.tracker.track, ADDED_S["tracking"])
+    parts.renderer.render = slowed(parts.renderer.render, ADDED_S["render"])
+    parts.compositor.compose = slowed(parts.compositor.compose, ADDED_S["compose"])
+    parts.display.show = slowed(parts.display.show, ADDED_S["write"])
+    app.render.banners = slowed(app.render.banners, ADDED_S["overlay"])
+    warm: list[float] = []
+
+    def until() -> bool:
+        # From the third live frame on (the first build kernels and tables), 7 frames.
+        shown = app.stats.shown_at
+        if len(shown) >= 3 and not warm:
+            warm.append(shown[2])
+        return len(shown) >= 9
+    app.run(until=until, signals=False)
+    s = app.render.stages.summary(since=warm[0])
+    assert s, "no live frame was shown"
+    for stage, added in ADDED_S.items():
+        median_ms = s[stage][0]
+        assert added * 1000 <= median_ms <= added * 1000 + OWN_WORK_MS, (stage, s)
+    # Each is stamped after the one before it: never exactly 0, as a stamp passed twice would make
+    # it, and far below the frame's own stages (about 160 ms) however loaded the machine.
+    for stage in ("capture", "pose filter", "pose wait"):
+        assert 0.0 < s[stage][0] < 100.0, (stage, s)

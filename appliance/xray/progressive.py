@@ -32,8 +32,10 @@ On a CPU device the full matrix's cast takes several frame periods (three to six
 two cores): cast within one frame, it holds the screen that long each time the C-arm comes to
 rest. With `rendering.refine_bands` it is cast on a thread of its own in bands of rows, the
 live frames taking the device between bands, while the moving matrix's image of the resting
-pose (cast once, then from its cache) stays on screen; the first frame after the cast shows
-the full matrix. A pose that moves on cancels the cast at its next band. Only the switch
+pose stays on screen, from the last moving frame's integrals kept in the moving matrix's
+cache, at that frame's matrix (the pose is not cast again while the bands wait); the first
+frame after the cast shows the full matrix. A pose that moves on cancels the cast at its next
+band. Only the switch
 waits so: a phase that comes while the view is held at the full matrix (breathing, a 4D CT)
 is cast within the frame that first needs it, as without the setting, so a held view never
 drops back to the coarser matrix.
@@ -181,6 +183,10 @@ class ProgressiveRenderer:
                 self.refine.cancel = True
         resting = now - self._last_motion >= self.settings.settle_s
         moving = self.moving
+        if not moved and self._last_used is not self.full:
+            # The controller picks the matrix of a moving cast. A pose that stays keeps the matrix
+            # it was last cast at, whose cache holds it, and the grain it was shown with.
+            moving = self._last_used
         use = self.full if resting or moving is None or view.quantity == "line-integral" else moving
         if (use is self.full and moving is not None and view.quantity != "line-integral"
                 and self._refining(volume, T, view, blend)):
@@ -202,6 +208,8 @@ class ProgressiveRenderer:
             if self.slabs is not None and self.settings.slab_max_shift_px is not None:
                 cast = slab_cast(use.caster, self.slabs, volume, T, view.zoom, blend, self.settings.slab_max_shift_px)
                 self.slab_casts += cast is not None
+            if blend is None:
+                cast = self._kept(use, cast)
             frame = use.render(volume, T, view, blend, cast=cast, concentration_factor=concentration_factor)
             self.moving_casts += 1
         else:
@@ -227,6 +235,20 @@ class ProgressiveRenderer:
         self._last_used = use
         self._last_image = image
         return frame if image is frame.image else dataclasses.replace(frame, image=image)
+
+    def _kept(self, use: Renderer, cast: Callable | None) -> Callable:
+        """A stand-in for `use`'s cast (`cast`, or the caster's own) that keeps the one phase's
+        integrals in `use`'s projection cache: should the pose come to rest here, the frames that
+        show the moving matrix while it settles and while the full one is cast beside them
+        reuse them instead of casting the same pose again, on the device the full matrix's
+        bands are waiting for."""
+        cache, cast = self.cache(use), cast or use.caster.cast
+
+        def keeping(volume, T, zoom, collimation_mm, blend, distorted, circle):
+            lines, mask = cast(volume, T, zoom, collimation_mm, blend, distorted, circle)
+            cache.keep({volume: lines}, T, zoom, collimation_mm, distorted, circle)
+            return lines, mask
+        return keeping
 
     def _refining(self, volume: PreparedVolume, T: np.ndarray, view: View,
                   blend: tuple[PreparedVolume, float] | None) -> bool:

@@ -135,11 +135,17 @@ class ProjectionCache:
                                   bands=(r._lock, bands, cancelled))[0] for p in dict.fromkeys(phases)}
         if self._geometry_key(zoom, collimation_mm, distorted, circle) != key:
             return False
-        self._adopt(phases[0], T_xray_from_ct, zoom, collimation_mm, distorted, circle)
-        self._lines.update(lines)
+        self.keep(lines, T_xray_from_ct, zoom, collimation_mm, distorted, circle)
         self.counts.casts += len(lines)
-        self._keep_at_most(lines)
         return True
+
+    def keep(self, lines: dict[PreparedVolume, cl.Buffer], T_xray_from_ct, zoom: int, collimation_mm,
+             distorted: bool, circle) -> None:
+        """Keep integrals cast elsewhere at this pose and field (phase -> device buffer, as
+        `Caster.cast` gives them) as the cached projections of those phases."""
+        self._adopt(next(iter(lines)), T_xray_from_ct, zoom, collimation_mm, distorted, circle)
+        self._lines.update(lines)
+        self._keep_at_most(lines)
 
     # -- the cast the renderer calls -------------------------------------------------------
     def _cast_phases(self, phases: list[PreparedVolume], T, zoom, collimation_mm, distorted, circle) -> None:
