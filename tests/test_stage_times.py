@@ -83,7 +83,7 @@ def test_each_stage_of_the_running_appliance_holds_the_time_added_to_it_and_no_o
     """The appliance run for real (tiny CT, the pedal held), with a known sleep added to its
     tracking, its render, what is done between image and compositor (the banners), the
     compositor and the display's write: each of those stages' median lies within OWN_WORK_MS
-    above its sleep, and the stages with no sleep stay above 0 (and under 100 ms). A stamp passed in
+    above its sleep, and the stages with no sleep stay above 0. A stamp passed in
     another's slot (two swapped, one passed twice) moves a sleep into a neighbour or makes a
     stage negative."""
     from appliance_setup import make_appliance
@@ -114,6 +114,8 @@ def test_each_stage_of_the_running_appliance_holds_the_time_added_to_it_and_no_o
         median_ms = s[stage][0]
         assert added * 1000 <= median_ms <= added * 1000 + OWN_WORK_MS, (stage, s)
     # Each is stamped after the one before it: never exactly 0, as a stamp passed twice would make
-    # it, and far below the frame's own stages (about 160 ms) however loaded the machine.
+    # it. "pose wait" holds the pose while the frame before it renders (up to a frame's sleeps,
+    # about 160 ms, longer on a loaded machine), so the upper bound is only a sanity bound: a sleep
+    # moved into one of these stages has already left its own stage under its lower bound above.
     for stage in ("capture", "pose filter", "pose wait"):
-        assert 0.0 < s[stage][0] < 100.0, (stage, s)
+        assert 0.0 < s[stage][0] < 400.0, (stage, s)
