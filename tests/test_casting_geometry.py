@@ -38,9 +38,9 @@ FOV_MM = (300.0, 220.0, 160.0, 120.0)
 DIST = (-0.12, 0.03, 0.004, -0.003, 0.01)      # a pincushion with a tangential part, every coefficient set
 
 
-def machine(tmp_path: Path, dist=(0.0,) * 5) -> FluoroscopeProfile:
+def machine(tmp_path: Path, dist=(0.0,) * 5, detector=(COLUMNS, ROWS, PITCH)) -> FluoroscopeProfile:
     data = YAML(typ="safe").load((REPO / "configs/fluoroscopes/generic-flat-detector.yaml").read_text())
-    data["detector"].update(columns=COLUMNS, rows=ROWS, pixel_pitch_mm=PITCH)
+    data["detector"].update(dict(zip(("columns", "rows", "pixel_pitch_mm"), detector)))
     data["intrinsics"].update(fx=FX, fy=FY, cx=CX, cy=CY, distortion=dict(zip(("k1", "k2", "p1", "p2", "k3"), dist)))
     assert [z["fov_mm"] for z in data["zoom_levels"]] == list(FOV_MM)
     path = tmp_path / "anisotropic.yaml"
@@ -162,6 +162,21 @@ def test_blades_and_circle_mask_the_pixels_the_beam_reaches(tmp_path):
     assert both[59, 6] and both[59, 153] and not both[59, 5] and not both[59, 154]
     assert both[34, 79] and both[85, 79] and not both[33, 79] and not both[86, 79]
 
+
+
+def test_a_pixel_centred_on_a_blade_edge_or_on_the_circle_is_in_the_field(tmp_path):
+    # The mask samples pixel centres and the field is closed: a centre exactly on an edge (the
+    # beam covers half that pixel) counts in. 161 x 121 pixels of 2 mm, centre pixel (60, 80):
+    # blades 200 x 100 mm reach 50 and 25 pixels either side, exactly on columns 30 and 130 and
+    # rows 35 and 85; the circle's radius is 300 / 2 / 2 = 75 pixels, through (60, 5) and (60, 155).
+    fl = machine(tmp_path, detector=(161, 121, 2.0))
+    blades = field_mask(fl, 1, (200.0, 100.0), circle=False)
+    rows, cols = np.nonzero(blades)
+    assert (cols.min(), cols.max(), rows.min(), rows.max()) == (30, 130, 35, 85)
+    assert blades.sum() == 101 * 51
+    circle = field_mask(fl, 1, None, circle=True)
+    assert circle[60, 5] and circle[60, 155] and not circle[60, 4] and not circle[60, 156]
+    assert circle[0, 35] and circle[0, 125] and not circle[0, 34] and not circle[0, 126]   # 45^2 + 60^2 = 75^2
 
 def test_measuring_field_is_the_central_disc_of_half_the_beams_diameter():
     beam = np.zeros((120, 160), bool)
