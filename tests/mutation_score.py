@@ -84,7 +84,9 @@ def main() -> int:
         # A listed mutant that the tests kill: its number has moved (the module changed) or a
         # test now kills it; either way its line no longer says why a survivor is equivalent.
         stale = [n for s in caught for n in by_status.get(s, []) if n in equivalent]
-        score = killed / max(total - not_run - len(equiv), 1)
+        # Every mutant that ran equivalent (a run of only the listed ones): nothing to kill, so 100 %.
+        counted = total - not_run - len(equiv)
+        score = killed / counted if counted else 1.0
         print(f"{module:40s} {total:7d} {total - not_run:6d} {killed:7d} {len(equiv):6d} {len(unexplained):6d} {score:6.1%}")
         for name in unexplained:
             print(f"    unexplained: {name} ({next(s for s, v in by_status.items() if name in v)})")
