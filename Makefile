@@ -20,7 +20,8 @@ BIN    := $(VENV)/bin
 APT_PACKAGES := libsystemd-dev pkg-config pocl-opencl-icd dicom3tools systemd python3-venv gcc linux-libc-dev alsa-utils dcmtk orthanc iproute2 openssl grub-common
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: demo test lint setup system-packages bench mutation mutation-console mutation-display clean
+.PHONY: demo test lint setup system-packages bench mutation mutation-console mutation-display mutation-dose \
+	mutation-records mutation-geometry clean
 
 demo: setup
 	$(BIN)/fluorosim demo
@@ -56,11 +57,14 @@ $(VENV)/.installed: pyproject.toml
 	touch $@
 
 # Mutation testing of the modules where a silent bug costs most ([tool.mutmut] in pyproject.toml):
-# slow (minutes per module), so not part of `make test`. Prints the score per module and fails
-# on a module under 90 % or a surviving mutant not justified in tests/mutation-equivalent.txt.
-# mutmut gets a venv of its own: it reads a private attribute pytest 9 no longer has, and its
-# click pin conflicts with the LRS's (ralph-malph) in the test venv. One mutant at a time by
-# default (MUTATION_CHILDREN=2 on a quiet machine); which functions count: tests/mutation_score.py.
+# slow (about a second a mutant, under an hour in all at one child), so not part of `make test`.
+# `make mutation` runs every group of tests/mutation_module.py in turn (console, display, dose,
+# records, geometry), each with only its own tests, prints each group's score per module and
+# fails on a module under 90 % or a surviving mutant not justified in
+# tests/mutation-equivalent.txt; `make mutation-GROUP` runs one group. mutmut gets a venv of its
+# own: it reads a private attribute pytest 9 no longer has, and its click pin conflicts with the
+# LRS's (ralph-malph) in the test venv. One mutant at a time by default (MUTATION_CHILDREN=2 on a
+# quiet machine); which functions count: tests/mutation_score.py's TARGETS.
 MVENV := .venv-mutation
 MUTATION_CHILDREN ?= 1
 
@@ -71,25 +75,19 @@ $(MVENV)/.installed: pyproject.toml
 	touch $@
 
 mutation: system-packages $(MVENV)/.installed
-	rm -rf mutants
-	$(MVENV)/bin/mutmut run --max-children $(MUTATION_CHILDREN) $$($(MVENV)/bin/python tests/mutation_score.py --targets) \
-		> mutation.log 2>&1 || { tail -c 2000 mutation.log; exit 1; }
-	$(MVENV)/bin/python tests/mutation_score.py
+	$(MVENV)/bin/python tests/mutation_module.py all $(MUTATION_CHILDREN)
 
-# The console state machine alone (about 1,040 mutants), or the compositor and its text, with only
-# their own tests: about a second a mutant instead of the whole selection's many
-# (tests/mutation_module.py names the modules and tests of each).
-mutation-console: system-packages $(MVENV)/.installed
-	$(MVENV)/bin/python tests/mutation_module.py console $(MUTATION_CHILDREN)
-
-mutation-display: system-packages $(MVENV)/.installed
-	$(MVENV)/bin/python tests/mutation_module.py display $(MUTATION_CHILDREN)
+# One group: the console state machine (about 1,040 mutants); the compositor and its text; the
+# dose model and the console's readout; the RDSR writer; the geometry, the renderer's pixel
+# geometry and calibration acceptance.
+mutation-console mutation-display mutation-dose mutation-records mutation-geometry: system-packages $(MVENV)/.installed
+	$(MVENV)/bin/python tests/mutation_module.py $(@:mutation-%=%) $(MUTATION_CHILDREN)
 
 bench: setup
 	$(BIN)/fluorosim bench all
 
 clean:
-	rm -rf $(VENV) $(MVENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache mutants mutation.log
+	rm -rf $(VENV) $(MVENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache
 
 # The appliance's pinned, hashed dependencies (provisioning/requirements.lock), from pyproject.toml.
 .PHONY: lock

@@ -38,14 +38,23 @@ FOV_MM = (300.0, 220.0, 160.0, 120.0)
 DIST = (-0.12, 0.03, 0.004, -0.003, 0.01)      # a pincushion with a tangential part, every coefficient set
 
 
-def machine(tmp_path: Path, dist=(0.0,) * 5) -> FluoroscopeProfile:
+def machine(tmp_path: Path, dist=(0.0,) * 5, detector=(COLUMNS, ROWS, PITCH)) -> FluoroscopeProfile:
     data = YAML(typ="safe").load((REPO / "configs/fluoroscopes/generic-flat-detector.yaml").read_text())
-    data["detector"].update(columns=COLUMNS, rows=ROWS, pixel_pitch_mm=PITCH)
+    data["detector"].update(dict(zip(("columns", "rows", "pixel_pitch_mm"), detector)))
     data["intrinsics"].update(fx=FX, fy=FY, cx=CX, cy=CY, distortion=dict(zip(("k1", "k2", "p1", "p2", "k3"), dist)))
     assert [z["fov_mm"] for z in data["zoom_levels"]] == list(FOV_MM)
     path = tmp_path / "anisotropic.yaml"
     path.write_text(json.dumps(data))
     return load_profile(path, FluoroscopeProfile)
+
+
+def reprojection_error_px(rays: np.ndarray, K: np.ndarray, dist) -> float:
+    """Largest distance (px) from each pixel centre of OpenCV's forward model of its ray."""
+    rows, cols = rays.shape[:2]
+    pts = np.concatenate([rays.reshape(-1, 2).astype(np.float64), np.ones((rows * cols, 1))], axis=1)
+    uv, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), K, np.asarray(dist, dtype=np.float64))
+    u, v = np.meshgrid(np.arange(cols), np.arange(rows))
+    return float(np.hypot(uv[:, 0, 0] - u.ravel(), uv[:, 0, 1] - v.ravel()).max())
 
 
 def test_camera_matrix_at_each_zoom_and_refusal_outside_the_levels(tmp_path):
@@ -100,15 +109,38 @@ def test_distorted_rays_are_where_opencv_projects_each_pixel_from(tmp_path, zoom
     K[0, 0] *= FOV_MM[0] / FOV_MM[zoom - 1]
     K[1, 1] *= FOV_MM[0] / FOV_MM[zoom - 1]
     rays = ray_directions(fl, zoom, True).astype(np.float64)
-    pts = np.concatenate([rays.reshape(-1, 2), np.ones((ROWS * COLUMNS, 1))], axis=1)
-    uv, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), K, np.array(DIST))
-    u, v = np.meshgrid(np.arange(COLUMNS), np.arange(ROWS))
-    err = np.hypot(uv[:, 0, 0] - u.ravel(), uv[:, 0, 1] - v.ravel())
-    assert err.max() < 1e-3, err.max()
+    assert reprojection_error_px(rays, K, DIST) < 1e-3
     # The distortion is really applied: at zoom 1 the corner rays differ from the pinhole's.
     pinhole = ray_directions(fl, zoom, False).astype(np.float64)
     if zoom == 1:
         assert np.abs(rays[0, 0] - pinhole[0, 0]).max() * K[0, 0] > 0.2
+
+
+def test_rays_through_a_strong_barrel_still_reproject_onto_their_pixels(tmp_path):
+    # Twelve times the distortion above (k1 -1.44): OpenCV's default five iterations of
+    # undistortPoints leave corner rays 0.01 px off; the fifty the renderer asks for reach 1e-5.
+    strong = tuple(12 * c for c in DIST)
+    fl = machine(tmp_path, strong)
+    K = np.array([[FX, 0, CX], [0, FY, CY], [0, 0, 1.0]])
+    assert reprojection_error_px(ray_directions(fl, 1, True), K, strong) < 1e-3
+
+
+def test_a_distortion_of_ones_is_applied_on_a_detector_small_enough_to_accept_it(tmp_path):
+    # Every coefficient 1.0 moves the corner of a 4 x 3 mm detector (40 x 30 pixels of 0.1 mm at
+    # 1100 mm, f = 11000 px, corner radius 2.5 / 1100 normalised) by 0.9 %, inside the profile's
+    # bounds: its rays go through the distortion like any other's, and reproject onto their pixels.
+    data = YAML(typ="safe").load((REPO / "configs/fluoroscopes/generic-flat-detector.yaml").read_text())
+    assert data["geometry"]["source_to_image_mm"] == 1100
+    data["detector"].update(columns=40, rows=30, pixel_pitch_mm=0.1)
+    data["intrinsics"].update(fx=11000.0, fy=11000.0, cx=19.5, cy=14.5, distortion=dict.fromkeys(("k1", "k2", "p1", "p2", "k3"), 1.0))
+    for level, fov in zip(data["zoom_levels"], (4.0, 3.0, 2.0, 1.5)):
+        level["fov_mm"] = fov
+    data["collimator"]["min_opening_mm"] = 1.0
+    path = tmp_path / "tiny.yaml"
+    path.write_text(json.dumps(data))
+    K = np.array([[11000.0, 0, 19.5], [0, 11000.0, 14.5], [0, 0, 1.0]])
+    rays = ray_directions(load_profile(path, FluoroscopeProfile), 1, True)
+    assert reprojection_error_px(rays, K, np.ones(5)) < 1e-3          # the pinhole's rays: 0.23 px
 
 
 def test_blades_and_circle_mask_the_pixels_the_beam_reaches(tmp_path):
@@ -130,6 +162,21 @@ def test_blades_and_circle_mask_the_pixels_the_beam_reaches(tmp_path):
     assert both[59, 6] and both[59, 153] and not both[59, 5] and not both[59, 154]
     assert both[34, 79] and both[85, 79] and not both[33, 79] and not both[86, 79]
 
+
+
+def test_a_pixel_centred_on_a_blade_edge_or_on_the_circle_is_in_the_field(tmp_path):
+    # The mask samples pixel centres and the field is closed: a centre exactly on an edge (the
+    # beam covers half that pixel) counts in. 161 x 121 pixels of 2 mm, centre pixel (60, 80):
+    # blades 200 x 100 mm reach 50 and 25 pixels either side, exactly on columns 30 and 130 and
+    # rows 35 and 85; the circle's radius is 300 / 2 / 2 = 75 pixels, through (60, 5) and (60, 155).
+    fl = machine(tmp_path, detector=(161, 121, 2.0))
+    blades = field_mask(fl, 1, (200.0, 100.0), circle=False)
+    rows, cols = np.nonzero(blades)
+    assert (cols.min(), cols.max(), rows.min(), rows.max()) == (30, 130, 35, 85)
+    assert blades.sum() == 101 * 51
+    circle = field_mask(fl, 1, None, circle=True)
+    assert circle[60, 5] and circle[60, 155] and not circle[60, 4] and not circle[60, 156]
+    assert circle[0, 35] and circle[0, 125] and not circle[0, 34] and not circle[0, 126]   # 45^2 + 60^2 = 75^2
 
 def test_measuring_field_is_the_central_disc_of_half_the_beams_diameter():
     beam = np.zeros((120, 160), bool)

@@ -11,6 +11,7 @@ import pydicom
 import pytest
 from dicom_session import record_session
 from teaching_script import pose
+from test_rdsr_content import children, number
 
 from appliance.geometry import rotation_about
 from appliance.records.positioner import positioner_angles
@@ -75,3 +76,31 @@ def test_the_dose_reports_events_carry_the_angles_of_their_runs(tmp_path):
     assert got == [(30.0, 20.0), (-45.0, 0.0)]
     mechanical = next(i for i in ds.ContentSequence if meaning(i) == "X-Ray Mechanical Data Available")
     assert mechanical.ConceptCodeSequence[0].CodeMeaning == "Yes"
+
+
+def test_the_dose_reports_angles_are_rows_of_the_event_in_degrees_to_a_tenth(tmp_path):
+    # A beam at LAO 12.345 CAU 7.891 (the module docstring's d from the two angles): the report
+    # gives each to a tenth of a degree, 12.3 and -7.9, as NUM rows the event CONTAINS, beside
+    # its dose rows (TID 10003 with 10003C).
+    from teaching_script import II, Session
+
+    from appliance.records import rdsr
+    from appliance.records.ledger import Ledger
+
+    p, s = math.radians(12.345), math.radians(-7.891)
+    beam = (math.sin(p) * math.cos(s), -math.cos(p) * math.cos(s), math.sin(s))
+    with Ledger(tmp_path / "ledger.sqlite") as ledger:
+        sid = ledger.start_session("trainee", "child", II.name, 1.7e9, t_monotonic=0.0)
+        session = Session(ledger)
+        session.expose(1.0, 2.0, pose(beam, (0, 0, 0)))
+        session.advance(3.0)
+        ledger.record(session.console.end(3.0))
+        ledger.end_session(1.7e9 + 3.0)
+        (event,) = children(rdsr.session_report(*ledger.session_rows(sid)))["Irradiation Event X-Ray Data"]
+    rows = children(event)
+    for concept, expected in (("Positioner Primary Angle", 12.3), ("Positioner Secondary Angle", -7.9)):
+        (row,) = rows[concept]
+        assert (row.RelationshipType, row.ValueType) == ("CONTAINS", "NUM")      # TID 10003C, as PS3.16 has it
+        assert number(row) == (pytest.approx(expected, abs=1e-12), "deg")
+    assert {"Irradiation Event UID", "DateTime Started", "Dose Area Product", "Dose (RP)", "Fluoro Mode",
+            "Irradiation Duration"} <= set(rows)

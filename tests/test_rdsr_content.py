@@ -141,8 +141,11 @@ def test_root_header_and_flags(rows):
     assert str(ds.OperatorsName) == "Trainee^Dr"
     assert ds.PerformedProcedureCodeSequence[0].CodeMeaning and ds.ReferencedPerformedProcedureStepSequence
     (scheme,) = ds.CodingSchemeIdentificationSequence
-    assert scheme.CodingSchemeDesignator == rdsr.LOCAL_SCHEME and scheme.CodingSchemeName
+    assert scheme.CodingSchemeDesignator == rdsr.LOCAL_SCHEME and scheme.CodingSchemeName == "fluorosim local codes"
     assert scheme.CodingSchemeResponsibleOrganization == "fluorosim"
+    # The report's own series, numbered after the images' (series 1, records.saved_images), as
+    # viewers list the dose report last; it is that series' one instance.
+    assert (ds.SeriesNumber, ds.InstanceNumber) == (999, 1)
     top = children(ds)
     assert [c.ConceptCodeSequence[0].CodeMeaning for c in top["X-Ray Detector Data Available"]] == ["No"]
     assert [c.ConceptCodeSequence[0].CodeMeaning for c in top["X-Ray Source Data Available"]] == ["Yes"]
@@ -285,3 +288,13 @@ def test_a_session_never_ended_dates_its_report_at_its_start(rows):
     ds = rdsr.session_report(dict(session, ended_wall=None), events)
     assert (ds.ContentDate, ds.ContentTime) == ("20231114", "221320.000000")
     assert (ds.InstanceCreationDate, ds.InstanceCreationTime) == ("20231114", "221320.000000")
+
+
+def test_the_report_carries_the_ledger_entry_that_ended_its_session(rows):
+    # records.rdsr_anchor: the count and hash of the session's last ledger row, as the ledger holds them.
+    from appliance.records import rdsr_anchor
+
+    session, events = rows
+    last = events[-1]
+    assert last["kind"] == "session_end"
+    assert rdsr_anchor.read(rdsr.session_report(session, events)) == {"count": last["id"], "hash": last["hash"]}
