@@ -93,18 +93,24 @@ def test_switch_is_faded_in_over_the_crossfade(renderer, box):
     del last_moving
 
 
-def test_both_matrices_show_the_closed_form_transmission(renderer, box):
-    """Same brightness at either matrix: the transmission through the box's middle against
-    exp(-mu L) with the chord L and mu of soft tissue from xraylib at the effective energy."""
+def box_truth(renderer, box):
+    """The box's chords at POSE (cm) for the full matrix's 128 x 128 pixels, the pixels well inside
+    it (over 2 cm of tissue, 4 px from its edge) and mu of soft tissue from xraylib (1/cm)."""
     prepared, lo, hi = box
-    clock = Clock()
-    pr = ProgressiveRenderer(renderer, SETTINGS, clock=clock)
-    view = View(quantity="intensity", noise=False, polychromatic=False)
     s, d = pixel_rays_ct(zoomed_K(renderer.fluoroscope, 1), POSE, 128, 128)
     L_cm = box_chords(s, d, lo, hi) / 10.0
     inner = cv2.erode((L_cm > 2.0).astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
     assert inner.sum() > 200
-    mu = xraylib.CS_Total_CP("Tissue, Soft (ICRP)", renderer.spectrum.effective_kev)
+    return prepared, L_cm, inner, xraylib.CS_Total_CP("Tissue, Soft (ICRP)", renderer.spectrum.effective_kev)
+
+
+def test_both_matrices_show_the_closed_form_transmission(renderer, box):
+    """Same brightness at either matrix: the transmission through the box's middle against
+    exp(-mu L) with the chord L and mu of soft tissue from xraylib at the effective energy."""
+    prepared, L_cm, inner, mu = box_truth(renderer, box)
+    clock = Clock()
+    pr = ProgressiveRenderer(renderer, SETTINGS, clock=clock)
+    view = View(quantity="intensity", noise=False, polychromatic=False)
     clock.t += 0.04
     moving = pr.render(prepared, POSE, view).image
     assert pr.matrix == 64
@@ -123,14 +129,10 @@ def test_a_pose_come_to_rest_is_shown_from_its_last_moving_cast(renderer, box):
     the integrals of the last moving frame's cast, kept in the moving matrix's cache: that pose
     is not cast again (the device is left to the full matrix's cast), and the frame is still
     the closed-form transmission exp(-mu L) of the box at that pose."""
-    prepared, lo, hi = box
+    prepared, L_cm, inner, mu = box_truth(renderer, box)
     clock = Clock()
     pr = ProgressiveRenderer(renderer, SETTINGS, clock=clock)
     view = View(quantity="intensity", noise=False, polychromatic=False)
-    s, d = pixel_rays_ct(zoomed_K(renderer.fluoroscope, 1), POSE, 128, 128)
-    L_cm = box_chords(s, d, lo, hi) / 10.0
-    inner = cv2.erode((L_cm > 2.0).astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
-    mu = xraylib.CS_Total_CP("Tissue, Soft (ICRP)", renderer.spectrum.effective_kev)
     for dx in (-4.0, -2.0, 0.0):                # 2 mm a frame, stopping at POSE
         clock.t += 0.04
         pr.render(prepared, shifted(dx), view)
