@@ -85,6 +85,23 @@ def test_angle_between_poses_of_4x4_transforms_and_at_the_ends_of_its_range(a, a
     assert math.isfinite(half) and abs(half - 180.0) < 1e-5
 
 
+def test_the_angle_is_finite_where_rounding_takes_the_cosine_past_its_domain():
+    """Rotations whose R R^T has a trace that rounds above 3, and whose half turn's rounds below
+    -1 (the first draws of a seeded generator do both; counted below, so the check cannot pass
+    without meeting them): the same pose is 0 deg and the half turn 180 deg, never NaN."""
+    rng = np.random.default_rng(1)
+    past_one = past_minus_one = 0
+    for _ in range(20):
+        axis = rng.normal(size=3)
+        R = rotation_about(axis / np.linalg.norm(axis), rng.uniform(-math.pi, math.pi))
+        H = rotation_about(axis / np.linalg.norm(axis), math.pi) @ R
+        past_one += (np.trace(R @ R.T) - 1.0) / 2.0 > 1.0
+        past_minus_one += (np.trace(H @ R.T) - 1.0) / 2.0 < -1.0
+        assert rotation_angle_deg(R, R) < 1e-5
+        assert abs(rotation_angle_deg(H, R) - 180.0) < 1e-5
+    assert past_one and past_minus_one
+
+
 @settings(max_examples=50, deadline=None)
 @given(T=rigid(), scale=st.floats(min_value=1.001, max_value=10.0), axis=st.integers(0, 2))
 def test_scaled_sheared_or_mirrored_matrices_are_not_rigid(T, scale, axis):
