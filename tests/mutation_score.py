@@ -1,7 +1,7 @@
 """Score of a `mutmut run`, per module: killed / (all - equivalent), and every unexplained survivor.
 
-`make mutation` runs mutmut over the modules named in pyproject.toml's [tool.mutmut] and then
-this. A survivor is either a missing test (write it) or an equivalent mutant (the change cannot
+`make mutation` (tests/mutation_module.py) runs mutmut over each group of modules and then
+this, in that group's copy of the tree. A survivor is either a missing test (write it) or an equivalent mutant (the change cannot
 alter any result): those are listed with the reason in tests/mutation-equivalent.txt, one
 `mutant-name  reason` per line. Exit 1 when a module scores under the bar, a survivor is
 unexplained or a listed mutant is killed (a stale line: mutmut numbers a function's mutants in
