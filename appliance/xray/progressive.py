@@ -113,6 +113,8 @@ class ProgressiveRenderer:
         #: full-matrix image after it was ready for the screen, its cast included (s, `clock`): the
         #: "native matrix within 500 ms" figure.
         self.refined_after_s: list[float] = []
+        #: When (s, `clock`) each of those first full-matrix images was ready for the screen.
+        self.refined_at: list[float] = []
         #: Moving frames cast straight through the renderer, past the cache (count).
         self.moving_casts = 0
         #: Moving frames cast at a new pose, per matrix (pixels -> count): what the controller chose.
@@ -221,7 +223,9 @@ class ProgressiveRenderer:
             if view.quantity == "display":
                 image = cv2.multiply(image, self._edge_fix(use, view))
         if use is self.full and self._last_used is not self.full:
-            self.refined_after_s.append(self.clock() - self._last_motion)
+            ready = self.clock()
+            self.refined_after_s.append(ready - self._last_motion)
+            self.refined_at.append(ready)
             if self.settings.crossfade_s > 0 and self._last_image is not None:
                 self._fade_from, self._fade_t0 = self._last_image, now
         elif use is not self.full:
