@@ -96,6 +96,8 @@ CASES = [
            "phases:", "phases"),
     Broken("moving-matrix-ladder-upside-down", "appliance-demo.yaml",
            replace("moving_matrix_min_px: 128", "moving_matrix_min_px: 384"), "rendering:", "moving_matrix_min_px (384)"),
+    Broken("rest-hold-inside-the-cache-tolerance", "appliance-demo.yaml",
+           replace("rest_hold_px: 1.0 ", "rest_hold_px: 0.1 "), "rendering:", "rest_hold_px (0.1)"),
     Broken("webcam-K-not-3x3", WEBCAM, replace("  - [0.0, 0.0, 1.0]\n", ""), "K:", "K"),
     Broken("camera-nice-out-of-range", APPLIANCE, replace("    synthetic_nice: 10", "    synthetic_nice: 25"),
            "synthetic_nice", "devices.camera.synthetic_nice"),

@@ -423,3 +423,113 @@ def test_after_a_fault_of_the_cast_beside_the_live_frames_rest_casts_the_full_ma
     assert pr.matrix == 128 and pr.refine is failed
     mu = xraylib.CS_Total_CP("Tissue, Soft (ICRP)", renderer.spectrum.effective_kev)
     assert _implied_chord_error(full, *_chords(renderer, lo, hi, 1), mu) < 0.01
+
+
+HOLD = Rendering(moving_matrix_px=64, settle_s=0.1, rest_hold_px=1.0)       # cache tolerance 0.25 px
+
+
+def _mm_for_px(renderer, prepared, px):
+    """The shift along x (mm) that moves the box's farthest corner by `px` on the full matrix."""
+    from appliance.xray.projection_cache import box_corners_ct, detector_shift_px
+
+    per_mm = detector_shift_px(zoomed_K(renderer.fluoroscope, 1), box_corners_ct(prepared), POSE, shifted(1.0))
+    return px / per_mm
+
+
+def _stop_then_creep(pr, prepared, view, clock, creep_mm):
+    """Two moving frames, 0.3 s at POSE, then the pose creeping on by `creep_mm` a frame:
+    the matrix of each creeping frame and the full matrix's casts after each."""
+    for dx in (-4.0, -2.0):
+        clock.t += 0.04
+        pr.render(prepared, shifted(dx), view)
+    for _ in range(8):
+        clock.t += 0.04
+        pr.render(prepared, POSE, view)
+    assert pr.matrix == 128
+    seen = []
+    for i in range(1, 4):
+        clock.t += 0.04
+        image = pr.render(prepared, shifted(i * creep_mm), view).image
+        seen.append((pr.matrix, pr.cache().counts.casts, image))
+    return seen
+
+
+def test_a_held_view_is_held_through_the_creep_after_a_stop(renderer, box):
+    """A pose filter's output creeps on after the phantom stops, each step beyond the projection
+    cache's tolerance (0.3 px a frame here against 0.25). With the hold (1 px) the view stays at
+    the full matrix, cast once, and shows the pose it rested at: the closed-form transmission of
+    the box there. Without the hold the same creep drops the view to the moving matrix or casts
+    it again, which is what the hold is for."""
+    prepared, L_cm, inner, mu = box_truth(renderer, box)
+    step = _mm_for_px(renderer, prepared, 0.3)
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    clock = Clock()
+    held = _stop_then_creep(ProgressiveRenderer(renderer, HOLD, clock=clock), prepared, view, clock, step)
+    assert [(m, casts) for m, casts, _ in held] == [(128, 1)] * 3
+    for _, _, image in held:                     # 0.9 px from POSE in the end, shown at POSE
+        implied = -np.log(image[inner]) / mu
+        assert np.median(np.abs(implied - L_cm[inner]) / L_cm[inner]) < 0.01
+    np.testing.assert_array_equal(held[0][2], held[-1][2])
+    clock = Clock()
+    unheld = _stop_then_creep(ProgressiveRenderer(renderer, SETTINGS.model_copy(update=dict(crossfade_s=0.0)),
+                                                  clock=clock), prepared, view, clock, step)
+    assert any(m != 128 or casts > 1 for m, casts, _ in unheld)
+
+
+def test_a_move_beyond_the_hold_is_motion_again(renderer, box):
+    prepared, _, _ = box
+    clock = Clock()
+    pr = ProgressiveRenderer(renderer, HOLD, clock=clock)
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    for dx in (-2.0, 0.0, 0.0, 0.0, 0.0, 0.0):
+        clock.t += 0.04
+        pr.render(prepared, shifted(dx), view)
+    assert pr.matrix == 128
+    casts = pr.moving_casts
+    clock.t += 0.04
+    pr.render(prepared, shifted(_mm_for_px(renderer, prepared, 1.2)), view)
+    assert pr.matrix == 64 and pr.moving_casts == casts + 1
+
+
+def test_rest_begins_while_the_pose_still_creeps_within_the_hold(renderer, box):
+    """After a stop the creep (0.3 px a frame, more than the cache's tolerance) counts as rest
+    under the hold: the full matrix after settle_s (0.1 s) of it. Without the hold every
+    creeping frame is motion and the view stays at the moving matrix."""
+    prepared, _, _ = box
+    step = _mm_for_px(renderer, prepared, 0.3)
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    for settings, full_after in ((HOLD, 3), (SETTINGS, None)):
+        clock = Clock()
+        pr = ProgressiveRenderer(renderer, settings, clock=clock)
+        for dx in (-4.0, -2.0):
+            clock.t += 0.04
+            pr.render(prepared, shifted(dx), view)
+        matrices = []
+        for i in range(3):                       # 0.9 px in all: within the hold of the first
+            clock.t += 0.04
+            pr.render(prepared, shifted(i * step), view)
+            matrices.append(pr.matrix)
+        # The first creeping frame starts the rest; 0.1 s on (the third, at +0.08 s, is short of
+        # it), so the full matrix comes with the next frame at the last creeping pose.
+        clock.t += 0.04
+        pr.render(prepared, shifted(2 * step), view)
+        matrices.append(pr.matrix)
+        assert matrices == ([64] * full_after + [128] if full_after else [64] * 3 + [64])
+
+
+def test_a_view_let_go_of_rests_again_only_after_settle_s(renderer, box):
+    """Rest began at the start of a creep (0.6 px before the pose it was held at); a move back past
+    that start, beyond the hold from the held pose but within it of where the rest began, is
+    motion: the view rests again only after settle_s more."""
+    prepared, _, _ = box
+    step = _mm_for_px(renderer, prepared, 0.3)
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    clock = Clock()
+    pr = ProgressiveRenderer(renderer, HOLD, clock=clock)
+    for dx in (-4.0, -2.0, 0.0, step, 2 * step, 2 * step):
+        clock.t += 0.04
+        pr.render(prepared, shifted(dx), view)
+    assert pr.matrix == 128                      # held at +0.6 px since 0.12 s after the creep began
+    clock.t += 0.04
+    pr.render(prepared, shifted(-1.5 * step), view)      # 1.05 px from the held pose, 0.45 px from the start
+    assert pr.matrix == 64

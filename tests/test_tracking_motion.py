@@ -48,6 +48,18 @@ def test_slerp_between_keyframes():
     np.testing.assert_allclose(looped(2.5)[:3, 3], looped(0.5)[:3, 3])
 
 
+def test_still_spans_are_the_keyframe_runs_of_one_pose():
+    a = make_transform(R_HOME, [0, 0, 500])
+    b = make_transform(R_HOME, [30, 0, 500])
+    turned = make_transform(R_HOME @ rotation_about((1, 0, 0), np.radians(1e-3)), [30, 0, 500])
+    tr = Trajectory.from_poses([0, 2, 3, 5, 6, 7, 9], [a, b, b, b, turned, turned, a])
+    # 3-5 joins 2-3; a thousandth of a degree is motion (5-6); 6-7 still; 7-9 moves back.
+    assert tr.still_spans() == [(2.0, 5.0), (6.0, 7.0)]
+    assert Trajectory.from_poses([0, 4], [a, b]).still_spans() == []
+    # The demo's path stands still three times a loop, two seconds each (its keyframes).
+    assert load_trajectory(DEMO).still_spans() == [(6.0, 8.0), (14.0, 16.0), (28.0, 30.0)]
+
+
 def test_demo_path_covers_the_working_range():
     tr = load_trajectory(DEMO)
     ts = np.arange(0.0, tr.duration, 0.1)

@@ -48,6 +48,11 @@ class Rendering(Section):
         None, ge=1, le=64, description="At rest, the full matrix is cast beside the live frames, on a thread of its own "
         "in this many bands of rows (the live frames take the device between bands), while the moving matrix's "
         "cached image stays on screen; none: the full matrix is cast within the frame that first shows it (count).")
+    rest_hold_px: float | None = Field(
+        None, gt=0, le=16, description="Once the pose has rested settle_s, the view is held at that pose while the "
+        "tracked pose stays within this of it (the tracker's jitter and its filter's creep as the C-arm stops), so a "
+        "held view keeps its full matrix and does not shimmer; a larger move is motion again. More than "
+        "cache_pose_tolerance_px; none: any change beyond that tolerance is motion (pixels of the rendered matrix).")
     crossfade_s: float = Field(
         0.0, ge=0, le=5, description="After the switch to the full matrix its image is blended into the last moving one "
         "over this long (s); for a fluoroscope without a recursive filter, which otherwise hides the switch.")
@@ -60,4 +65,13 @@ class Rendering(Section):
         if low is not None and high is not None and low > high:
             raise ValueError(f"moving_matrix_min_px ({low}) must not exceed moving_matrix_px ({high}): the moving "
                              f"matrices run from moving_matrix_px down to moving_matrix_min_px")
+        return self
+
+    @model_validator(mode="after")
+    def _hold(self) -> Rendering:
+        hold = self.rest_hold_px
+        if hold is not None and hold <= self.cache_pose_tolerance_px:
+            raise ValueError(f"rest_hold_px ({hold}) must exceed cache_pose_tolerance_px "
+                             f"({self.cache_pose_tolerance_px}): a held view is held against moves the cache "
+                             f"would already take for motion")
         return self

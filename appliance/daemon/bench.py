@@ -20,6 +20,7 @@ import psutil
 
 from drivers.camera import CameraSource
 
+from ..tracking.trajectory import Trajectory
 from .demo import shown
 from .logqueue import start_logging
 from .notify import Notifier
@@ -104,6 +105,40 @@ def synthetic_camera_cost(app, frames: int = 7) -> str:
             f"drawing alone takes {d * fps / 10:.0f} % of one core, which a real webcam does not")
 
 
+def native_after_stops(camera, refined_at: list[float], since: float, until: float) -> str | None:
+    """The "native matrix within 500 ms of the C-arm coming to rest" figure, timed from when the
+    synthetic webcam's path stands still (its keyframes, `Trajectory.still_spans`) to the first
+    full-matrix image after it: the pose filter's lag behind the stop, the settle time and the
+    full matrix's cast all included. Stops wholly between `since` and `until` (s, the clock the
+    path and the renderer share, the wall's at clock rate 1) are counted. None without such a path."""
+    trajectory, t0 = getattr(camera, "trajectory", None), getattr(camera, "t0", None)
+    if not isinstance(trajectory, Trajectory) or t0 is None:
+        return None
+    period = trajectory.duration if trajectory.loop and trajectory.duration > 0 else np.inf
+    delays, missed = [], 0
+    for start, end in trajectory.still_spans():
+        n = 0
+        while t0 + end + n * period <= until:
+            a, b = t0 + start + n * period, t0 + end + n * period
+            n += 1
+            if a < since:
+                continue
+            first = [r for r in refined_at if a <= r < b]
+            if first:
+                delays.append(first[0] - a)
+            else:
+                missed += 1
+            if not np.isfinite(period):
+                break
+    if not delays and not missed:
+        return None
+    text = (f"median {np.median(delays) * 1000:.0f} ms, max {max(delays) * 1000:.0f} ms" if delays
+            else "never")
+    stops = len(delays) + missed
+    return (f"{text} after the camera's path stood still ({stops} stop{'' if stops == 1 else 's'}"
+            f"{f', {missed} not refined before it moved on' if missed else ''})")
+
+
 def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None, case: Path | None = None,
             ct: str | None = None, still_s: float | None = None) -> int:
     from .pipeline import Appliance
@@ -181,6 +216,10 @@ def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None,
         if refined:
             print(f"full matrix after rest:  median {np.median(refined) * 1000:.0f} ms, max {max(refined) * 1000:.0f} ms "
                   f"after the pose came to rest ({len(refined)} times)")
+        if cfg.appliance.daemon.clock_rate == 1:
+            stops = native_after_stops(app.parts.camera, getattr(renderer, "refined_at", []), t0 + warmup, time.monotonic())
+            if stops:
+                print(f"native matrix after stop: {stops}")
         per_matrix = getattr(renderer, "moving_frames", None)
         if per_matrix:
             steps = renderer.control.steps

@@ -60,6 +60,23 @@ class Trajectory:
     def duration(self) -> float:
         return float(self.times[-1] - self.times[0])
 
+    def still_spans(self) -> list[tuple[float, float]]:
+        """The spans of one pass (s, path time) where the phantom stands still: between two
+        consecutive keyframes of the same pose (runs of them joined). What a benchmark takes
+        for "the C-arm has come to rest", free of the tracker's filter and jitter."""
+        spans: list[tuple[float, float]] = []
+        Rm = self.rotations.as_matrix()
+        for i in range(len(self.times) - 1):
+            same = (np.allclose(self.positions[i], self.positions[i + 1], atol=1e-9)
+                    and np.allclose(Rm[i], Rm[i + 1], atol=1e-12))
+            if not same or self.times[i + 1] <= self.times[i]:
+                continue
+            if spans and spans[-1][1] == self.times[i]:
+                spans[-1] = (spans[-1][0], float(self.times[i + 1]))
+            else:
+                spans.append((float(self.times[i]), float(self.times[i + 1])))
+        return spans
+
     def __call__(self, t: float) -> np.ndarray:
         if len(self.times) == 1:
             return make_transform(self.rotations.as_matrix()[0], self.positions[0])

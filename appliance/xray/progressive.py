@@ -15,7 +15,12 @@ motion-blurred image. With `rendering.slab_max_shift_px` a moving cast goes thro
 pre-integrated slabs (slabs.py), half the samples, where the field's rays allow. Once
 the pose has stayed unchanged (within the projection cache's tolerance) for
 `rendering.settle_s`, the full matrix is cast once and then served from the projection cache,
-so a held view is sharp and costs only the detector per frame.
+so a held view is sharp and costs only the detector per frame. With `rendering.rest_hold_px`
+rest is judged against the hold instead (no move beyond it for `settle_s`), and the rested
+view is held at the pose it rested at until the tracked pose leaves it by more than the hold:
+the pose filter's creep as the C-arm stops and the tracker's jitter, steps beyond the cache's
+tolerance but under a pixel, would otherwise count as motion, put off the full matrix and,
+once it is shown, drop the sharp view to the moving matrix and cast it again.
 
 The switch to the full matrix is a change of sharpness and of the noise's grain, not of
 brightness: both matrices are the same detector (same spectrum, photons per mm^2 and ABC),
@@ -104,6 +109,11 @@ class ProgressiveRenderer:
         #: Moving casts that went through the slabs (count).
         self.slab_casts = 0
         self._last_pose: np.ndarray | None = None
+        #: The pose a rested view is held at (`rendering.rest_hold_px`); None while not held.
+        self._held: np.ndarray | None = None
+        #: With the hold: the pose the tracked pose has stayed within the hold of, and since when.
+        self._still_pose: np.ndarray | None = None
+        self._still_since = np.inf
         self._last_motion = -np.inf
         self._last_used: Renderer = renderer
         self._last_image: np.ndarray | None = None
@@ -113,6 +123,8 @@ class ProgressiveRenderer:
         #: full-matrix image after it was ready for the screen, its cast included (s, `clock`): the
         #: "native matrix within 500 ms" figure.
         self.refined_after_s: list[float] = []
+        #: When (s, `clock`) each of those first full-matrix images was ready for the screen.
+        self.refined_at: list[float] = []
         #: Moving frames cast straight through the renderer, past the cache (count).
         self.moving_casts = 0
         #: Moving frames cast at a new pose, per matrix (pixels -> count): what the controller chose.
@@ -173,6 +185,7 @@ class ProgressiveRenderer:
 
         now = self.clock()
         T = np.asarray(T_xray_from_ct, dtype=np.float64)
+        T, released = self._hold(volume, T, view)
         moved = self._moved(volume, T, view.zoom)
         if moved:
             self._last_motion = now
@@ -181,7 +194,9 @@ class ProgressiveRenderer:
             # tracker's jitter about the resting pose (within the tolerance of it) does not stop it.
             if self.refine is not None and not self._fits(self.refine, volume, T, view):
                 self.refine.cancel = True
-        resting = now - self._last_motion >= self.settings.settle_s
+        resting = self._rested(volume, T, view, now, released)
+        if resting and self._held is None and self.settings.rest_hold_px is not None and view.quantity != "line-integral":
+            self._held = T
         moving = self.moving
         if not moved and self._last_used is not self.full:
             # The controller picks the matrix of a moving cast. A pose that stays keeps the matrix
@@ -221,7 +236,9 @@ class ProgressiveRenderer:
             if view.quantity == "display":
                 image = cv2.multiply(image, self._edge_fix(use, view))
         if use is self.full and self._last_used is not self.full:
-            self.refined_after_s.append(self.clock() - self._last_motion)
+            ready = self.clock()
+            self.refined_after_s.append(ready - self._last_motion)
+            self.refined_at.append(ready)
             if self.settings.crossfade_s > 0 and self._last_image is not None:
                 self._fade_from, self._fade_t0 = self._last_image, now
         elif use is not self.full:
@@ -235,6 +252,38 @@ class ProgressiveRenderer:
         self._last_used = use
         self._last_image = image
         return frame if image is frame.image else dataclasses.replace(frame, image=image)
+
+    def _hold(self, volume: PreparedVolume, T: np.ndarray, view: View) -> tuple[np.ndarray, bool]:
+        """(the pose to render, whether a held view was let go at this frame). A rested view is
+        held at the pose it came to rest at while the tracked pose stays within
+        `rendering.rest_hold_px` of it: after a stop the pose filter's output still creeps
+        toward the phantom's pose for a second or so, and the tracker jitters about it, by more
+        than the projection cache's tolerance but less than a pixel. Each such step would be
+        motion, and the sharp view would drop to the moving matrix and be cast again; a real
+        C-arm at rest shows a still image. A move beyond the hold lets go of it, and the rest
+        is judged anew from that frame (`_rested`)."""
+        hold = self.settings.rest_hold_px
+        if self._held is None or hold is None or view.quantity == "line-integral":
+            return T, False
+        if pose_unchanged(self.full.fluoroscope, volume, view.zoom, self._held, T, hold):
+            return self._held, False
+        self._held = None
+        return T, True
+
+    def _rested(self, volume: PreparedVolume, T: np.ndarray, view: View, now: float, released: bool) -> bool:
+        """Whether the pose has rested `rendering.settle_s`: no move beyond the cache's tolerance
+        for that long; with `rendering.rest_hold_px`, none beyond the hold. The filter's creep
+        after a stop, steps of a few tenths of a pixel for a tenth of a second or two, then
+        counts as rest, as the hold will count it: the full matrix is begun that much sooner,
+        at a pose within the hold of where the view comes to rest."""
+        hold = self.settings.rest_hold_px
+        if hold is None or view.quantity == "line-integral":
+            return now - self._last_motion >= self.settings.settle_s
+        if self._held is not None:
+            return True
+        if released or not pose_unchanged(self.full.fluoroscope, volume, view.zoom, self._still_pose, T, hold):
+            self._still_pose, self._still_since = T, now
+        return now - self._still_since >= self.settings.settle_s
 
     def _kept(self, use: Renderer, cast: Callable | None) -> Callable:
         """A stand-in for `use`'s cast (`cast`, or the caster's own) that keeps the one phase's

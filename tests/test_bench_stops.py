@@ -1,0 +1,30 @@
+"""`bench e2e`'s native-matrix figure timed from the synthetic webcam's path standing still."""
+
+from types import SimpleNamespace
+
+import numpy as np
+
+from appliance.daemon.bench import native_after_stops
+from appliance.geometry import make_transform
+from appliance.tracking.trajectory import Trajectory
+
+A, B = make_transform(np.eye(3), [0, 0, 300]), make_transform(np.eye(3), [40, 0, 300])
+# Still from 2 s to 5 s of each 10 s loop.
+PATH = Trajectory.from_poses([0, 2, 5, 10], [A, B, B, A])
+
+
+def test_each_stop_is_timed_to_the_first_full_matrix_within_it():
+    camera = SimpleNamespace(trajectory=PATH, t0=100.0)
+    # Stops at 102-105, 112-115 and 122-125 on the clock: the first full matrix 0.30 s into the
+    # first (the second one then is not a new rest), 0.45 s into the second, none in the third.
+    refined = [102.30, 103.0, 108.0, 112.45]
+    assert native_after_stops(camera, refined, 100.0, 125.0) == (
+        "median 375 ms, max 450 ms after the camera's path stood still (3 stops, 1 not refined before it moved on)")
+    # A stop begun before `since` or not over by `until` is not counted.
+    assert native_after_stops(camera, refined, 103.0, 124.0) == (
+        "median 450 ms, max 450 ms after the camera's path stood still (1 stop)")
+
+
+def test_no_figure_without_a_path():
+    assert native_after_stops(SimpleNamespace(), [1.0], 0.0, 10.0) is None
+    assert native_after_stops(SimpleNamespace(trajectory=PATH, t0=0.0), [], 0.0, 4.0) is None
