@@ -37,7 +37,7 @@ from ..patient.materials import (
 from ..patient.volume import Volume
 from .device import ClDevice
 from .energy_nodes import FIT_FACTORS, NodeQuadrature, fit_nodes, fit_soon
-from .outline import Outline, content_outline, projections
+from .outline import Outline, content_outline, projections, union
 from .pixel_geometry import (
     field_edge,
     field_mask,
@@ -55,8 +55,9 @@ if TYPE_CHECKING:
 PAD = 2
 #: Voxels at or below this CT number are treated as empty when clipping rays to the
 #: volume's content: their density is at most 0.1 g/cm^3, and only voxels outside the
-#: bounding box of everything denser are dropped (HU). A scanner's air reads -1000 with
-#: 5-20 HU of noise, so a threshold closer to -1000 would count the noise as content.
+#: bounding box and the outline (outline.py) of everything denser are dropped (HU). A
+#: scanner's air reads -1000 with 5-20 HU of noise, so a threshold closer to -1000 would count
+#: the noise as content.
 EMPTY_MAX_HU = -900
 #: A plane of voxels (along an axis for the box, along an outline's direction for its planes)
 #: belongs to the content where more than this many of its voxels are above EMPTY_MAX_HU
@@ -65,6 +66,15 @@ EMPTY_MAX_HU = -900
 #: never dropped, whichever plane cuts it.
 EMPTY_PLANE_MAX_VOXELS = 4
 SURE_CONTENT_HU = -500
+#: Joseph's samples blend a slice's neighbours bilinearly: a sample reaches a voxel less than
+#: one index away along each axis, so an outline plane n.p is grown by 1 x sum |n_i| for them
+#: (voxels). (Siddon's exact path is clipped to the box alone: see siddon_water in drr.cl.)
+JOSEPH_REACH = 1.0
+#: Added to each grown outline plane (voxels of n.p): a ray's t-interval and its samples'
+#: positions are float, rounded to about 1e-4 voxels over a few thousand voxels of
+#: focal-spot distance, so a sample the exact plane keeps with a weight of zero might be lost
+#: with a weight of that rounding's size; a hundredth keeps it, and costs nothing measurable.
+OUTLINE_MARGIN = 0.01
 #: A prepared volume keeps the voxels of its content box, the box's bounds rounded out to
 #: multiples of this many voxels (see `Caster.prepare`).
 CROP_BLOCK = 16
@@ -407,6 +417,13 @@ class Caster:
         hi = np.max([b[1] for b in boxes], axis=0)
         return np.array([*lo, 0, *hi, 0], dtype=np.int32)
 
+    @staticmethod
+    def _planes(*vols: PreparedVolume) -> np.ndarray:
+        """The Joseph kernels' outline planes (drr.cl's clip_planes) holding every one of `vols`'
+        content (the union of each plane's ranges); no plane where one has no outline."""
+        outline = union(v.outline for v in vols if v.box is not None)
+        return np.zeros(1, np.float32) if outline is None else outline.planes(JOSEPH_REACH, OUTLINE_MARGIN)
+
     def cast(self, volume, T_xray_from_ct, zoom, collimation_mm, blend, distorted, circle, bands=None):
         """Device buffer of (rows, cols, 4) float32 material integrals over the exposed field
         (the edge's penumbra included; zero beyond it), and that field's mask.
@@ -447,7 +464,7 @@ class Caster:
                 self._joseph_blend = dev.kernel(self._joseph_name, blend=True)
             kernel, first = self._joseph_blend, (volume.buffer, blend[0].buffer, np.float32(blend[1]))
         args = (*first, np.int32(nx), np.int32(ny), np.int32(nz), np.int32(volume.slab_axis), dirs, mask_buf,
-                dev.upload(geo), dev.upload(box), self._mat_buf)
+                dev.upload(geo), dev.upload(box), dev.upload(self._planes(*vols)), self._mat_buf)
         tail = (np.int32(cols), lines) if self.packet else (lines,)
         width = -(-cols // PACKET) if self.packet else cols
         if bands is None:

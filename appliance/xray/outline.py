@@ -55,6 +55,15 @@ class Outline:
         grow = np.abs(self.normals) @ np.asarray(half_extent, dtype=np.float64)
         return Outline(normals, self.lo + shift - grow, self.hi + shift + grow)
 
+    def planes(self, reach: float, margin: float) -> np.ndarray:
+        """The kernels' constant buffer (drr.cl's clip_planes): float32 [count, then per plane
+        n.x, n.y, n.z, lo, hi], each range grown by `reach` x sum |n_i| (how far a sample's
+        footprint reaches, in voxels along each axis) and `margin` (voxels of n.p, for the
+        rounding of a ray's float parameters)."""
+        grow = reach * np.abs(self.normals).sum(axis=1) + margin
+        rows = np.column_stack([self.normals, self.lo - grow, self.hi + grow])
+        return np.concatenate([[len(rows)], rows.ravel()]).astype(np.float32)
+
 
 def projections(mask: np.ndarray, sure: np.ndarray) -> dict:
     """Per pair (u, v) of AXIS_PAIRS, the (z, y, x) volume's `mask` counted and `sure` or-ed
@@ -89,3 +98,16 @@ def content_outline(maps: dict, offset, max_voxels: int) -> Outline | None:
             lo.append(kept[0] + first + shift)
             hi.append(kept[-1] + first + shift)
     return Outline(np.array(normals), np.array(lo, float), np.array(hi, float))
+
+
+def union(outlines) -> Outline | None:
+    """The outline holding all of `outlines` (one grid's: the same normals): each plane's widest
+    range. None where one of them is None or their normals differ (then only the box clips)."""
+    outlines = list(outlines)
+    if not outlines or any(o is None for o in outlines):
+        return None
+    first = outlines[0]
+    if any(o.normals.shape != first.normals.shape or not np.allclose(o.normals, first.normals, atol=1e-9)
+           for o in outlines):
+        return None
+    return Outline(first.normals, np.min([o.lo for o in outlines], axis=0), np.max([o.hi for o in outlines], axis=0))
