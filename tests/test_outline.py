@@ -25,9 +25,9 @@ from appliance.xray.casting import (
     Caster,
 )
 from appliance.xray.projection_cache import ProjectionCache
-from appliance.xray.renderer import Renderer, View
+from appliance.xray.renderer import Renderer, View, zoomed_K
 from appliance.xray.slabs import SlabCache, slab_cast
-from appliance.xray.truth.analytic import ellipsoid_volume
+from appliance.xray.truth.analytic import ellipsoid_volume, pixel_rays_ct
 
 SIZE = 128
 #: Rays along the volume's y (posterior-anterior), x (lateral) and an oblique one (xray axes in ct rows).
@@ -276,3 +276,31 @@ def test_casts_through_slabs_and_the_two_phase_pass_drop_only_air():
         assert x[..., 1].max() > 20
         np.testing.assert_array_equal(g[..., 1:], x[..., 1:])
         assert np.all(g[..., 0] <= x[..., 0] + 1e-6) and np.any(g[..., 0] < x[..., 0] - 1e-3)
+
+
+@pytest.mark.parametrize("shift_mm", [0.0, 60.0, 110.0], ids=["middle", "side", "edge"])
+def test_a_cast_takes_every_plane_that_cuts_a_ray_of_its_field_and_no_other(shift_mm):
+    """The planes a cast is given (outline.cutting) against brute force: points along every
+    pixel's ray within the box, each plane kept where some point lies beyond it."""
+    r = Renderer(flat_profile(64), Materials(), device="cpu")
+    prepared = r.prepare(chest_with_arms())
+    pose = PA.copy()
+    pose[0, 3] -= shift_mm                                  # the field moved toward the patient's left
+    box = Caster._box(prepared)
+    given = r.caster._field_planes((prepared,), box, pose, 1, True)[1:].reshape(-1, 5)
+    every = Caster._planes(prepared)[1:].reshape(-1, 5)
+    s, d = pixel_rays_ct(zoomed_K(r.fluoroscope, 1), pose, 64, 64)
+    A = prepared.T_index_from_ct
+    s, d = A[:3, :3] @ s + A[:3, 3], d.reshape(-1, 3) @ A[:3, :3].T
+    lo, hi = box[:3] - 1.0, box[4:7] + 1.0
+    ta, tb = (lo - s) / d, (hi - s) / d
+    t0, t1 = np.minimum(ta, tb).max(axis=1), np.maximum(ta, tb).min(axis=1)
+    f = np.linspace(0.0, 1.0, 200)
+    points = (s + (t0[:, None] + f * (t1 - t0)[:, None])[..., None] * d[:, None, :])[t1 > t0].reshape(-1, 3)
+    v = points @ every[:, :3].T
+    cut = (v.min(axis=0) < every[:, 3] - 0.5) | (v.max(axis=0) > every[:, 4] + 0.5)
+    kept = np.array([any(np.allclose(g, e) for g in given) for e in every])
+    assert np.all(kept[cut]), "a plane that cuts a ray of the field was left out"
+    # And none given that no point comes within half a voxel of; the z planes cut none of these.
+    near = (v.min(axis=0) < every[:, 3] + 0.5) | (v.max(axis=0) > every[:, 4] - 0.5)
+    assert not np.any(kept & ~near) and cut.any() and not kept.all()

@@ -37,7 +37,7 @@ from ..patient.materials import (
 from ..patient.volume import Volume
 from .device import ClDevice
 from .energy_nodes import FIT_FACTORS, NodeQuadrature, fit_nodes, fit_soon
-from .outline import Outline, content_outline, projections, union
+from .outline import Outline, content_outline, cutting, projections, union
 from .pixel_geometry import (
     field_edge,
     field_mask,
@@ -424,6 +424,13 @@ class Caster:
         outline = union(v.outline for v in vols if v.box is not None)
         return np.zeros(1, np.float32) if outline is None else outline.planes(JOSEPH_REACH, OUTLINE_MARGIN)
 
+    def _field_planes(self, vols, box: np.ndarray, T_xray_from_ct, zoom: int, distorted: bool) -> np.ndarray:
+        """`_planes(*vols)` less those that cut no ray of the field within the kernels' `box`
+        grown by a voxel (outline.cutting): the same integrals, without their cost."""
+        T_index_from_xray = vols[0].T_index_from_ct @ invert(np.asarray(T_xray_from_ct, float))
+        return cutting(self._planes(*vols), T_index_from_xray, self._rays(zoom, distorted)[1],
+                       box[:3] - 1.0, box[4:7] + 1.0)
+
     def cast(self, volume, T_xray_from_ct, zoom, collimation_mm, blend, distorted, circle, bands=None):
         """Device buffer of (rows, cols, 4) float32 material integrals over the exposed field
         (the edge's penumbra included; zero beyond it), and that field's mask.
@@ -464,7 +471,8 @@ class Caster:
                 self._joseph_blend = dev.kernel(self._joseph_name, blend=True)
             kernel, first = self._joseph_blend, (volume.buffer, blend[0].buffer, np.float32(blend[1]))
         args = (*first, np.int32(nx), np.int32(ny), np.int32(nz), np.int32(volume.slab_axis), dirs, mask_buf,
-                dev.upload(geo), dev.upload(box), dev.upload(self._planes(*vols)), self._mat_buf)
+                dev.upload(geo), dev.upload(box),
+                dev.upload(self._field_planes(vols, box, T_xray_from_ct, zoom, distorted)), self._mat_buf)
         tail = (np.int32(cols), lines) if self.packet else (lines,)
         width = -(-cols // PACKET) if self.packet else cols
         if bands is None:

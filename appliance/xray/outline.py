@@ -111,3 +111,42 @@ def union(outlines) -> Outline | None:
            for o in outlines):
         return None
     return Outline(first.normals, np.min([o.lo for o in outlines], axis=0), np.max([o.hi for o in outlines], axis=0))
+
+
+def cutting(planes: np.ndarray, T_index_from_xray: np.ndarray, rim: np.ndarray, lo, hi) -> np.ndarray:
+    """The kernels' `planes` buffer (Outline.planes) with only the planes that cut a ray of the
+    field within the box [lo, hi] (padded indices, as the kernels clip to it). `rim`: (n, 2), the
+    rays (x, y, 1) in the xray frame of the detector's outer rows and columns, whose hull holds
+    every pixel's ray. A linear n.p is extreme over the field's part of the box at a corner
+    of it: where a rim ray enters or leaves the box, or a corner of the box within the field.
+    A plane left out only widens a ray's interval, so leaving out one that cuts nothing drops no
+    content and changes no integral, and a posterior-anterior view of a chest's middle, whose rays
+    no plane cuts, pays nothing for them (2-3 % of that cast with all 18 planes)."""
+    n = int(planes[0])
+    if n == 0:
+        return planes
+    rows = planes[1:].reshape(n, 5).astype(np.float64)
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    T = np.asarray(T_index_from_xray, np.float64)
+    source, dirs = T[:3, 3], rim @ T[:3, :2].T + T[:3, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta, tb = (lo - source) / dirs, (hi - source) / dirs
+    # A ray parallel to an axis: the whole line within that slab, or none of it.
+    inside = (source >= lo) & (source <= hi)
+    t_in = np.where(dirs == 0, np.where(inside, -np.inf, np.inf), np.minimum(ta, tb)).max(axis=1)
+    t_out = np.where(dirs == 0, np.where(inside, np.inf, -np.inf), np.maximum(ta, tb)).min(axis=1)
+    t_in = np.maximum(t_in, 0.0)
+    hit = t_out > t_in
+    points = [source + t[hit, None] * dirs[hit] for t in (t_in, t_out)]
+    # The box's corners within the field: in front of the focal spot, their direction within the
+    # rim's extent (a rectangle holding its hull: a corner taken in too only keeps a plane more).
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    xray = (corners - source) @ np.linalg.inv(T[:3, :3]).T
+    ahead = xray[:, 2] > 0
+    d = xray[ahead, :2] / xray[ahead, 2:3]
+    seen = np.all((d >= rim.min(axis=0)) & (d <= rim.max(axis=0)), axis=1)
+    points.append(corners[ahead][seen])
+    p = np.concatenate(points)
+    v = p @ rows[:, :3].T
+    keep = (v.min(axis=0, initial=np.inf) < rows[:, 3]) | (v.max(axis=0, initial=-np.inf) > rows[:, 4])
+    return np.concatenate([[keep.sum()], rows[keep].ravel()]).astype(np.float32)
