@@ -63,9 +63,10 @@ def _plate(hu: int, lung: bool = False, lo=PLATE_LO, hi=PLATE_HI):
         (i0, j0, k0), (i1, j1, k1) = LUNG_LO, LUNG_HI
         arr = vol.hu.copy()
         arr[k0:k1 + 1, j0:j1 + 1, i0:i1 + 1] = np.where(arr[k0:k1 + 1, j0:j1 + 1, i0:i1 + 1] == hu, hu, LUNG_HU)
-        # Air is left out of the content box the rays are clipped to; in a patient the lung lies
-        # within soft tissue. Two soft voxels at the grid's far corners hold the box open.
-        arr[0, 0, 0] = arr[-1, -1, -1] = 0
+        # Air is left out of the content box and outline the rays are clipped to; in a patient
+        # the lung lies within soft tissue. Soft voxels at the grid's eight corners hold both open
+        # (over a box, every plane's n.p is extreme at a corner).
+        arr[::arr.shape[0] - 1, ::arr.shape[1] - 1, ::arr.shape[2] - 1] = 0
         vol = type(vol)(hu=arr, T_ct_from_voxel=vol.T_ct_from_voxel, source="plate in lung")
     return vol, lo_mm, hi_mm
 
@@ -113,8 +114,7 @@ def test_lung_sharing_samples_with_bone_stays_air_of_its_own_density(rays, packe
     _, lung_lo, lung_hi = box_volume(SHAPE_ZYX, SPACING_XYZ, LUNG_LO, LUNG_HI)
     lung = box_chords(s, d, lung_lo, lung_hi) - plate
     # Rays a voxel or more from the soft corners (which samples interpolate a voxel beyond).
-    near = [box_volume(SHAPE_ZYX, SPACING_XYZ, lo_i, hi_i)[1:] for lo_i, hi_i in
-            (((0, 0, 0), (1, 1, 1)), ((998, 6, 6), (999, 7, 7)))]
+    near = [box_volume(SHAPE_ZYX, SPACING_XYZ, (i, j, 0), (i + 1, j + 1, 7))[1:] for i in (0, 998) for j in (0, 6)]
     far = np.all([box_chords(s, d, *c) == 0 for c in near], axis=0)
     through = _through(plate) & (lung > 0.999) & far
     lines = _lines(_renderer(m, packet), vol)[through]

@@ -202,6 +202,7 @@ def run(args) -> int:
         centred,
         layout_copy_line,
         next_phase,
+        outline_lines,
         plastimatch_side_by_side,
         slab_frames,
     )
@@ -252,6 +253,8 @@ def run(args) -> int:
                           f"{1000 * float(np.median(cpus)):8.1f} {1000 / ms:6.1f}  {label}{share}")
                 if name == "lateral":
                     print(f"{'':>10} {layout_copy_line(renderer, prepared, args.frames)}")
+                    for line in outline_lines(renderer, prepared, args.frames, lambda deg: pa_pose(620.0, deg)):
+                        print(f"{'':>10} {line}")
             del prepared, renderer, slabs
         print(f"OpenCL device: {_device_name(args.device)}")
 

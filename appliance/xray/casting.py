@@ -37,6 +37,7 @@ from ..patient.materials import (
 from ..patient.volume import Volume
 from .device import ClDevice
 from .energy_nodes import FIT_FACTORS, NodeQuadrature, fit_nodes, fit_soon
+from .outline import Outline, content_outline, cutting, projections, union
 from .pixel_geometry import (
     field_edge,
     field_mask,
@@ -54,15 +55,26 @@ if TYPE_CHECKING:
 PAD = 2
 #: Voxels at or below this CT number are treated as empty when clipping rays to the
 #: volume's content: their density is at most 0.1 g/cm^3, and only voxels outside the
-#: bounding box of everything denser are dropped (HU). A scanner's air reads -1000 with
-#: 5-20 HU of noise, so a threshold closer to -1000 would count the noise as content.
+#: bounding box and the outline (outline.py) of everything denser are dropped (HU). A
+#: scanner's air reads -1000 with 5-20 HU of noise, so a threshold closer to -1000 would count
+#: the noise as content.
 EMPTY_MAX_HU = -900
-#: A plane of voxels (along any axis) belongs to the content box where more than this many
-#: of its voxels are above EMPTY_MAX_HU (count), or any is above SURE_CONTENT_HU: single
-#: noise spikes in the air do not stretch the box to the whole grid, a small dense object
-#: (a steel ball, a catheter tip) is never dropped.
+#: A plane of voxels (along an axis for the box, along an outline's direction for its planes)
+#: belongs to the content where more than this many of its voxels are above EMPTY_MAX_HU
+#: (count), or any is above SURE_CONTENT_HU: single noise spikes in the air do not stretch the
+#: box or the outline to the whole grid, a small dense object (a steel ball, a catheter tip) is
+#: never dropped, whichever plane cuts it.
 EMPTY_PLANE_MAX_VOXELS = 4
 SURE_CONTENT_HU = -500
+#: Joseph's samples blend a slice's neighbours bilinearly: a sample reaches a voxel less than
+#: one index away along each axis, so an outline plane n.p is grown by 1 x sum |n_i| for them
+#: (voxels). (Siddon's exact path is clipped to the box alone: see siddon_water in drr.cl.)
+JOSEPH_REACH = 1.0
+#: Added to each grown outline plane (voxels of n.p): a ray's t-interval and its samples'
+#: positions are float, rounded to about 1e-4 voxels over a few thousand voxels of
+#: focal-spot distance, so a sample the exact plane keeps with a weight of zero might be lost
+#: with a weight of that rounding's size; a hundredth keeps it, and costs nothing measurable.
+OUTLINE_MARGIN = 0.01
 #: A prepared volume keeps the voxels of its content box, the box's bounds rounded out to
 #: multiples of this many voxels (see `Caster.prepare`).
 CROP_BLOCK = 16
@@ -130,7 +142,8 @@ class PreparedVolume:
     """One phase on the device: padded int16 HU and where it lies.
 
     `T_index_from_ct` maps the `ct` frame (mm) into padded voxel indices; `box` holds the
-    inclusive padded-index bounds (lo, hi) of the voxels denser than EMPTY_MAX_HU. `slab_axis`:
+    inclusive padded-index bounds (lo, hi) of the voxels denser than EMPTY_MAX_HU, `outline`
+    the planes around them (outline.py; None: the box alone clips). `slab_axis`:
     -1 for the plain layout [z][y][x]; 0-2 for a slab copy laid out for rays along that axis,
     which they are cast along (drr.cl's LAYOUT: the rows of its slices contiguous).
     """
@@ -144,6 +157,7 @@ class PreparedVolume:
     time_s: float = 0.0
     _renderer_id: int = field(default=0, repr=False)
     slab_axis: int = -1
+    outline: Outline | None = None
 
     def same_grid(self, other: PreparedVolume) -> bool:
         return (self.shape_xyz == other.shape_xyz and self.slab_axis == other.slab_axis
@@ -286,12 +300,15 @@ class Caster:
         hu = np.asarray(volume.hu)
         if hu.ndim != 3 or hu.dtype != np.int16:
             raise FluorosimError(f"{volume.source or 'volume'}: expected a 3D int16 HU array, got {hu.dtype} {hu.shape}")
-        mask = hu > EMPTY_MAX_HU
-        sure = hu > SURE_CONTENT_HU
-        ks, js, is_ = (np.flatnonzero((mask.sum(axis=ax) > EMPTY_PLANE_MAX_VOXELS) | sure.any(axis=ax))
-                       for ax in ((1, 2), (0, 2), (0, 1)))
-        del mask, sure
+        # The mask's projections onto the index axes' pairs serve both the box's planes (their
+        # sums) and the outline's.
+        maps = projections(hu > EMPTY_MAX_HU, hu > SURE_CONTENT_HU)
+        (xy, xy_sure), (xz, xz_sure) = maps[(0, 1)], maps[(0, 2)]     # array axes (y, x), (z, x)
+        ks, js, is_ = (np.flatnonzero((c > EMPTY_PLANE_MAX_VOXELS) | any_sure) for c, any_sure in (
+            (xz.sum(axis=1), xz_sure.any(axis=1)), (xy.sum(axis=1), xy_sure.any(axis=1)),
+            (xy.sum(axis=0), xy_sure.any(axis=0))))
         box: tuple[tuple[int, int, int], tuple[int, int, int]] | None = None
+        outline = None
         start = np.zeros(3, dtype=int)            # (i, j, k) of the first voxel kept
         if len(ks) and len(js) and len(is_):
             lo, hi = np.array([is_[0], js[0], ks[0]]), np.array([is_[-1], js[-1], ks[-1]])
@@ -306,6 +323,7 @@ class Caster:
             l0, l1, l2 = (int(x) for x in lo - start + PAD)
             h0, h1, h2 = (int(x) for x in hi - start + PAD)
             box = ((l0, l1, l2), (h0, h1, h2))
+            outline = content_outline(maps, PAD - start, EMPTY_PLANE_MAX_VOXELS)
         else:
             hu = hu[:1, :1, :1]
         padded = np.pad(hu, PAD, mode="constant", constant_values=-1000)
@@ -314,7 +332,8 @@ class Caster:
         T_index_from_ct = T_index_from_voxel @ np.linalg.inv(np.asarray(volume.T_ct_from_voxel, dtype=np.float64))
         nz, ny, nx = padded.shape
         return PreparedVolume(buffer=self.dev.upload(padded), shape_xyz=(nx, ny, nz), T_index_from_ct=T_index_from_ct,
-                              box=box, nbytes=padded.nbytes, source=volume.source, _renderer_id=owner)
+                              box=box, nbytes=padded.nbytes, source=volume.source, _renderer_id=owner,
+                              outline=outline)
 
     # -- per-view caches -------------------------------------------------------------
     def _dirs_buffer(self, zoom: int, distorted: bool):
@@ -398,6 +417,20 @@ class Caster:
         hi = np.max([b[1] for b in boxes], axis=0)
         return np.array([*lo, 0, *hi, 0], dtype=np.int32)
 
+    @staticmethod
+    def _planes(*vols: PreparedVolume) -> np.ndarray:
+        """The Joseph kernels' outline planes (drr.cl's clip_planes) holding every one of `vols`'
+        content (the union of each plane's ranges); no plane where one has no outline."""
+        outline = union(v.outline for v in vols if v.box is not None)
+        return np.zeros(1, np.float32) if outline is None else outline.planes(JOSEPH_REACH, OUTLINE_MARGIN)
+
+    def _field_planes(self, vols, box: np.ndarray, T_xray_from_ct, zoom: int, distorted: bool) -> np.ndarray:
+        """`_planes(*vols)` less those that cut no ray of the field within the kernels' `box`
+        grown by a voxel (outline.cutting): the same integrals, without their cost."""
+        T_index_from_xray = vols[0].T_index_from_ct @ invert(np.asarray(T_xray_from_ct, float))
+        return cutting(self._planes(*vols), T_index_from_xray, self._rays(zoom, distorted)[1],
+                       box[:3] - 1.0, box[4:7] + 1.0)
+
     def cast(self, volume, T_xray_from_ct, zoom, collimation_mm, blend, distorted, circle, bands=None):
         """Device buffer of (rows, cols, 4) float32 material integrals over the exposed field
         (the edge's penumbra included; zero beyond it), and that field's mask.
@@ -438,7 +471,8 @@ class Caster:
                 self._joseph_blend = dev.kernel(self._joseph_name, blend=True)
             kernel, first = self._joseph_blend, (volume.buffer, blend[0].buffer, np.float32(blend[1]))
         args = (*first, np.int32(nx), np.int32(ny), np.int32(nz), np.int32(volume.slab_axis), dirs, mask_buf,
-                dev.upload(geo), dev.upload(box), self._mat_buf)
+                dev.upload(geo), dev.upload(box),
+                dev.upload(self._field_planes(vols, box, T_xray_from_ct, zoom, distorted)), self._mat_buf)
         tail = (np.int32(cols), lines) if self.packet else (lines,)
         width = -(-cols // PACKET) if self.packet else cols
         if bands is None:

@@ -12,6 +12,9 @@
 //   where voxels are larger than that (see VOXEL_WEIGHT); 0: plain linear interpolation.
 // box (constant int[8]): lo.xyz, pad, hi.xyz, pad: the voxels that can hold anything but
 //   air, inclusive, in padded indices; rays are clipped to them.
+// planes (constant float[1 + 5 n]): n, then per plane normal.xyz, lo, hi: the content's outline
+//   (outline.py), lo <= normal . p <= hi already grown by how far a sample reaches; rays are
+//   clipped to them too, inside the box (n = 0: the box alone).
 // mat (constant float[8]): air_max_hu, bone_min_hu, contrast_min_hu, bone_offset,
 //   bone_slope (g/cm^3 and g/cm^3 per HU); air and soft tissue follow 1 + HU/1000.
 //
@@ -38,6 +41,24 @@ inline bool clip_box(float3 s, float3 d, float3 lo, float3 hi, float *t0, float 
     if (d.z == 0.0f) { if (s.z < lo.z || s.z > hi.z) return false; tmin.z = -INFINITY; tmax.z = INFINITY; }
     *t0 = fmax(fmax(tmin.x, tmin.y), fmax(tmin.z, 0.0f));
     *t1 = fmin(fmin(tmax.x, tmax.y), tmax.z);
+    return *t1 > *t0;
+}
+
+// Clip src + t*d further to the outline's planes (see `planes` above); false when it misses.
+inline bool clip_planes(constant float *planes, float3 s, float3 d, float *t0, float *t1)
+{
+    const int n = (int)planes[0];
+    for (int j = 0; j < n; ++j) {
+        constant float *q = planes + 1 + 5 * j;
+        const float ns = q[0] * s.x + q[1] * s.y + q[2] * s.z, nd = q[0] * d.x + q[1] * d.y + q[2] * d.z;
+        if (nd == 0.0f) {               // parallel to the plane: inside it throughout, or never
+            if (ns < q[3] || ns > q[4]) return false;
+            continue;
+        }
+        const float ta = (q[3] - ns) / nd, tb = (q[4] - ns) / nd;
+        *t0 = fmax(*t0, fmin(ta, tb));
+        *t1 = fmin(*t1, fmax(ta, tb));
+    }
     return *t1 > *t0;
 }
 
@@ -130,8 +151,8 @@ kernel void joseph_materials(global const short *vol,
 #endif
                              const int nx, const int ny, const int nz, const int slab_axis,
                              global const float2 *dirs, global const uchar *mask,
-                             constant float *geo, constant int *box, constant float *mat,
-                             global float4 *out)
+                             constant float *geo, constant int *box, constant float *planes,
+                             constant float *mat, global float4 *out)
 {
     const int u = get_global_id(0), v = get_global_id(1);
     const int cols = get_global_size(0);
@@ -148,6 +169,10 @@ kernel void joseph_materials(global const short *vol,
     const float3 hi = (float3)(box[4], box[5], box[6]) + 1.0f;
     float t0, t1;
     if (!clip_box(s, d, lo, hi, &t0, &t1)) { out[p] = acc; return; }
+    // The slices sampled lie within the outline too; the pixel's footprint below keeps the box's
+    // [t0, t1], so the weights of the samples kept are the box-only cast's to the bit.
+    float u0 = t0, u1 = t1;
+    if (!clip_planes(planes, s, d, &u0, &u1)) { out[p] = acc; return; }
 
     const float3 ad = fabs(d);
     // Dominant axis a (a slab copy's own), in-slice axes b and c.
@@ -161,8 +186,8 @@ kernel void joseph_materials(global const short *vol,
     const int lo_i[3] = {box[0], box[1], box[2]};
     const int hi_i[3] = {box[4], box[5], box[6]};
 
-    // Slices k with the plane index_a = k between t0 and t1, inside the content box.
-    const float a0 = sv[a] + t0 * dv[a], a1 = sv[a] + t1 * dv[a];
+    // Slices k with the plane index_a = k between u0 and u1, inside the content box.
+    const float a0 = sv[a] + u0 * dv[a], a1 = sv[a] + u1 * dv[a];
     int k0 = (int)ceil(fmin(a0, a1)), k1 = (int)floor(fmax(a0, a1));
     k0 = max(k0, lo_i[a]);
     k1 = min(k1, hi_i[a]);
@@ -305,8 +330,8 @@ kernel void joseph_packet(global const short *vol,
 #endif
                           const int nx, const int ny, const int nz, const int slab_axis,
                           global const float2 *dirs, global const uchar *mask,
-                          constant float *geo, constant int *box, constant float *mat,
-                          const int cols, global float4 *out
+                          constant float *geo, constant int *box, constant float *planes,
+                          constant float *mat, const int cols, global float4 *out
 #ifdef SPLIT
                           , global float4 *out_b
 #endif
@@ -351,7 +376,23 @@ kernel void joseph_packet(global const short *vol,
         t1 = select(fmin(t1, fmax(ta, tb)), t1, par);
     }
     hit &= t1 > t0;
-    const float16 a0 = s[a] + t0 * dv[a], a1 = s[a] + t1 * dv[a];
+    // And to the outline's planes (as clip_planes), into [e0, e1]: the footprint below keeps
+    // the box's [t0, t1], as joseph_materials does.
+    float16 e0 = t0, e1 = t1;
+    const int n_planes = (int)planes[0];
+    for (int j = 0; j < n_planes; ++j) {
+        constant float *q = planes + 1 + 5 * j;
+        const float ns = q[0] * s[0] + q[1] * s[1] + q[2] * s[2];
+        const float16 nd = q[0] * dx + q[1] * dy + q[2] * dz;
+        const float16 inv = 1.0f / nd;
+        const float16 ta = (q[3] - ns) * inv, tb = (q[4] - ns) * inv;
+        const int16 par = nd == 0.0f;
+        if (ns < q[3] || ns > q[4]) hit &= ~par;
+        e0 = select(fmax(e0, fmin(ta, tb)), e0, par);
+        e1 = select(fmin(e1, fmax(ta, tb)), e1, par);
+    }
+    hit &= e1 > e0;
+    const float16 a0 = s[a] + e0 * dv[a], a1 = s[a] + e1 * dv[a];
     int16 k0 = max(convert_int16_rtp(fmin(a0, a1)), lo_i[a]);
     int16 k1 = min(convert_int16_rtn(fmax(a0, a1)), hi_i[a]);
     k0 = select((int16)(INT_MAX), k0, hit);
@@ -639,6 +680,12 @@ kernel void siddon_water(global const short *vol, const int nx, const int ny, co
     const int3 lo = (int3)(box[0], box[1], box[2]), hi = (int3)(box[4], box[5], box[6]);
     float t0, t1;
     if (!clip_box(s, d, convert_float3(lo) - 0.5f, convert_float3(hi) + 0.5f, &t0, &t1)) return;
+    // The box alone clips, not the outline (clip_planes): this path is the exact one, held to the
+    // closed form and to the NumPy Siddon of every voxel, and the voxels at or below EMPTY_MAX_HU
+    // the outline drops are not all -1000: a surface's partial-volume voxels (-1000 to -900 HU,
+    // up to 0.1 g/cm^3) lie all along a curved body's edge, the box's faces touch few of them.
+    // Clipped to the outline, the partial-volume ellipsoid's rays (bench drr's accuracy table)
+    // moved 0.25 % from the NumPy reference at worst, over that bar's 0.1 %.
 
     // The voxel at the midpoint of the first step is the entry voxel; boundaries follow.
     const float3 pin = s + t0 * d;

@@ -188,7 +188,8 @@ class ProjectionCache:
         nx, ny, nz = a.shape_xyz
         self._split(dev.queue, (-(-cols // PACKET), rows), None, a.buffer, b.buffer, np.int32(nx), np.int32(ny),
                     np.int32(nz), np.int32(a.slab_axis), caster._dirs_buffer(zoom, distorted), mask_buf, dev.upload(caster._geometry(a, T)),
-                    dev.upload(box), caster._mat_buf, np.int32(cols), out_a, out_b)
+                    dev.upload(box), dev.upload(caster._field_planes((a, b), box, T, zoom, distorted)), caster._mat_buf,
+                    np.int32(cols), out_a, out_b)
         return out_a, out_b
 
     def _cached_cast(self, volume, T, zoom, collimation_mm, blend, distorted, circle, fused: bool = True):

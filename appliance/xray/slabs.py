@@ -62,6 +62,16 @@ def slab_box(box, axis: int, thickness: int = SLAB):
     return (lo[0], lo[1], lo[2]), (hi[0], hi[1], hi[2])
 
 
+def slab_outline(outline, S: np.ndarray, axis: int, thickness: int = SLAB):
+    """The content's outline (outline.py) in the slab grid q = S p along `axis`: a slab holds
+    slices up to (thickness - 1) / 2 from its middle along the axis, whose content it keeps."""
+    if outline is None:
+        return None
+    half = np.zeros(3)
+    half[axis] = (thickness - 1) / 2.0
+    return outline.moved(S, half)
+
+
 def dominant_axis(volume: PreparedVolume, T_xray_from_ct: np.ndarray) -> int:
     """The voxel axis (0 x, 1 y, 2 z) the principal ray crosses most slices of."""
     d = volume.T_index_from_ct[:3, :3] @ invert(np.asarray(T_xray_from_ct, float))[:3, :3] @ np.array([0.0, 0.0, 1.0])
@@ -129,7 +139,8 @@ class SlabCache:
         slab = PreparedVolume(buffer=out, shape_xyz=shape, T_index_from_ct=S @ volume.T_index_from_ct,
                               box=slab_box(volume.box, axis, self.thickness), nbytes=nbytes,
                               source=f"{volume.source} ({what})", time_s=volume.time_s,
-                              _renderer_id=volume._renderer_id, slab_axis=axis)
+                              _renderer_id=volume._renderer_id, slab_axis=axis,
+                              outline=slab_outline(volume.outline, S, axis, self.thickness))
         self._slabs[key] = (weakref.ref(volume), slab)
         self.made += 1
         while len(self._slabs) > self.keep:
