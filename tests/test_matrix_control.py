@@ -95,6 +95,7 @@ def test_it_settles_without_hunting_and_climbs_back_when_the_machine_frees_up():
     (dict(moving_matrix_min_px=128), "needs moving_matrix_px"),
     (dict(moving_matrix_px=256, matrix_step_up_margin=1.0), "less than 1"),
     (dict(moving_matrix_px=256, frame_budget_ms=0), "greater than 0"),
+    (dict(rest_matrix_px=512), r"rest_matrix_px \(512\) needs refine_bands"),
     (dict(rest_hold_px=0.25), r"rest_hold_px \(0.25\) must exceed cache_pose_tolerance_px \(0.25\)"),
 ])
 def test_the_profile_refuses_a_ladder_that_cannot_be(fields, says):

@@ -533,3 +533,78 @@ def test_a_view_let_go_of_rests_again_only_after_settle_s(renderer, box):
     clock.t += 0.04
     pr.render(prepared, shifted(-1.5 * step), view)      # 1.05 px from the held pose, 0.45 px from the start
     assert pr.matrix == 64
+
+
+TIERS = Rendering(moving_matrix_px=64, rest_matrix_px=96, settle_s=0.1, refine_bands=4)
+
+
+def _implied_ok(renderer, image, T, lo, hi):
+    """Median error of the chord implied by `image` (intensity) against the box's closed form at T."""
+    s, d = pixel_rays_ct(zoomed_K(renderer.fluoroscope, 1), T, 128, 128)
+    L_cm = box_chords(s, d, lo, hi) / 10.0
+    inner = cv2.erode((L_cm > 2.0).astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
+    mu = xraylib.CS_Total_CP("Tissue, Soft (ICRP)", renderer.spectrum.effective_kev)
+    return _implied_chord_error(image, L_cm, inner, mu)
+
+
+def test_a_rest_shows_the_rest_matrix_and_then_the_full_one(renderer, box):
+    """With rest_matrix_px the rest goes moving (64) -> rest matrix (96) -> full (128), each cast
+    beside the live frames and then shown from its cache, each the box's closed-form transmission."""
+    prepared, lo, hi = box
+    clock = Clock()
+    pr = ProgressiveRenderer(renderer, TIERS, clock=clock)
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    for i in range(3):
+        clock.t += 0.04
+        pr.render(prepared, shifted(2.0 * i), view)
+    for _ in range(3):
+        clock.t += 0.04
+        pr.render(prepared, shifted(4.0), view)
+    assert pr.matrix == 64 and pr.refine.target is pr.interim
+    assert pr.wait_refined(30.0)
+    clock.t += 0.04
+    rest = pr.render(prepared, shifted(4.0), view).image
+    assert pr.matrix == 96 and pr.refine.target is pr.full        # the full matrix begun as it is shown
+    assert pr.wait_refined(30.0) and pr.refine_fault is None
+    clock.t += 0.04
+    full = pr.render(prepared, shifted(4.0), view).image
+    assert pr.matrix == 128
+    assert (pr.cache(pr.interim).counts.casts, pr.cache().counts.casts) == (1, 1)
+    assert len(pr.interim_at) == len(pr.refined_at) == 1 and pr.interim_at[0] < pr.refined_at[0]
+    for image in (rest, full):
+        assert _implied_ok(renderer, image, shifted(4.0), lo, hi) < 0.01
+
+
+def test_a_phase_new_to_a_held_full_view_is_shown_at_the_rest_matrix_while_the_full_one_casts_it(renderer, box):
+    """Held at the full matrix, a new phase (a box 4 voxels longer) is shown at the rest matrix,
+    cast within its frame there, while the full matrix casts it beside the live frames; then the
+    full matrix shows it: the new box's closed form. Without a rest matrix the full matrix casts
+    it within the frame and the view keeps its matrix."""
+    prepared, _, _ = box
+    vol, lo_b, hi_b = box_volume((40, 48, 48), (1.5, 1.25, 2.0), (8, 10, 6), (36, 38, 34))
+    other = renderer.prepare(vol)
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    for settings, shown in ((TIERS, 96), (Rendering(moving_matrix_px=64, settle_s=0.1, refine_bands=4), 128)):
+        clock = Clock()
+        pr = ProgressiveRenderer(renderer, settings, clock=clock)
+        for _ in range(8):                       # at rest at POSE until the full matrix shows it
+            clock.t += 0.04
+            pr.render(prepared, POSE, view)
+            pr.wait_refined(30.0)
+        assert pr.matrix == 128 and pr.refined_at
+        clock.t += 0.04
+        image = pr.render(other, POSE, view).image
+        assert pr.matrix == shown
+        assert _implied_ok(renderer, image, POSE, lo_b, hi_b) < 0.01
+        if shown == 96:
+            assert pr.refine.target is pr.full and pr.wait_refined(30.0)
+            clock.t += 0.04
+            image = pr.render(other, POSE, view).image
+            assert pr.matrix == 128 and pr.cache().holds([other])
+            assert _implied_ok(renderer, image, POSE, lo_b, hi_b) < 0.01
+            assert len(pr.refined_at) == 1      # a held view's new phase is not a new rest
+
+
+def test_a_rest_matrix_not_below_the_full_one_is_none(renderer):
+    pr = ProgressiveRenderer(renderer, Rendering(moving_matrix_px=64, rest_matrix_px=128, refine_bands=4))
+    assert pr.interim is None

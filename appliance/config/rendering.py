@@ -48,6 +48,11 @@ class Rendering(Section):
         None, ge=1, le=64, description="At rest, the full matrix is cast beside the live frames, on a thread of its own "
         "in this many bands of rows (the live frames take the device between bands), while the moving matrix's "
         "cached image stays on screen; none: the full matrix is cast within the frame that first shows it (count).")
+    rest_matrix_px: int | None = Field(
+        None, ge=64, le=8192, description="At rest, the view is first cast and shown at this square matrix, then at the "
+        "full one (daemon.render_matrix_px, or the detector's native matrix): a sharp view a few hundred ms sooner "
+        "where the full matrix's cast takes longer. Needs refine_bands; a phase new to a held view is shown at this "
+        "matrix while the full one casts it. None, or not below the full matrix: straight to the full one (pixels).")
     rest_hold_px: float | None = Field(
         None, gt=0, le=16, description="Once the pose has rested settle_s, the view is held at that pose while the "
         "tracked pose stays within this of it (the tracker's jitter and its filter's creep as the C-arm stops), so a "
@@ -65,6 +70,13 @@ class Rendering(Section):
         if low is not None and high is not None and low > high:
             raise ValueError(f"moving_matrix_min_px ({low}) must not exceed moving_matrix_px ({high}): the moving "
                              f"matrices run from moving_matrix_px down to moving_matrix_min_px")
+        return self
+
+    @model_validator(mode="after")
+    def _rest_matrix(self) -> Rendering:
+        if self.rest_matrix_px is not None and self.refine_bands is None:
+            raise ValueError(f"rest_matrix_px ({self.rest_matrix_px}) needs refine_bands: the rest matrix and the "
+                             f"full one after it are cast beside the live frames")
         return self
 
     @model_validator(mode="after")

@@ -217,9 +217,14 @@ def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None,
             print(f"full matrix after rest:  median {np.median(refined) * 1000:.0f} ms, max {max(refined) * 1000:.0f} ms "
                   f"after the pose came to rest ({len(refined)} times)")
         if cfg.appliance.daemon.clock_rate == 1:
-            stops = native_after_stops(app.parts.camera, getattr(renderer, "refined_at", []), t0 + warmup, time.monotonic())
+            end = time.monotonic()
+            stops = native_after_stops(app.parts.camera, getattr(renderer, "refined_at", []), t0 + warmup, end)
             if stops:
                 print(f"native matrix after stop: {stops}")
+            interim = getattr(renderer, "interim", None)
+            stops = native_after_stops(app.parts.camera, getattr(renderer, "interim_at", []), t0 + warmup, end)
+            if interim is not None and stops:
+                print(f"rest matrix after stop:   {stops} ({interim.shape[1]} px, shown until the full matrix's cast is done)")
         per_matrix = getattr(renderer, "moving_frames", None)
         if per_matrix:
             steps = renderer.control.steps

@@ -44,6 +44,14 @@ band. Only the switch
 waits so: a phase that comes while the view is held at the full matrix (breathing, a 4D CT)
 is cast within the frame that first needs it, as without the setting, so a held view never
 drops back to the coarser matrix.
+
+With `rendering.rest_matrix_px` as well (512 where the full matrix is the detector's native
+1024), a rest goes through two casts beside the live frames: the rest matrix first, shown as
+soon as it is done, then the full matrix, four times its pixels. A held view is then sharp about
+as soon as before and reaches the native matrix later. A phase new to a view held at the full
+matrix is shown at the rest matrix (cast within its frame) while the full matrix casts it
+beside the live frames: casting the native matrix within one frame would hold the screen for
+a few hundred ms each time breathing brought a phase the cache does not hold.
 """
 
 from __future__ import annotations
@@ -82,6 +90,7 @@ class Refine:
 
     T_xray_from_ct: np.ndarray
     geometry: tuple                # (zoom, collimation_mm) it is cast for
+    target: Renderer               # the matrix cast: the full one, or the rest matrix before it
     cancel: bool = False           # set by the renderer when the pose or the field moves on
     done: threading.Event = field(default_factory=threading.Event)
 
@@ -102,6 +111,13 @@ class ProgressiveRenderer:
         for mover in self._movers.values():
             self._caches[id(mover)] = ProjectionCache(mover, settings.cache_pose_tolerance_px,
                                                       settings.cache_max_phases)
+        n = settings.rest_matrix_px
+        #: The matrix a resting view is shown at before the full one (`rendering.rest_matrix_px`); None without.
+        self.interim = (renderer.at_matrix(n, n) if n is not None and n < max(renderer.shape)
+                        and settings.refine_bands is not None else None)
+        if self.interim is not None:
+            self._caches[id(self.interim)] = ProjectionCache(self.interim, settings.cache_pose_tolerance_px,
+                                                             settings.cache_max_phases)
         self._timed: int | None = None       # the matrix of the last frame if it was a moving cast
         self._edge_fixes: dict[tuple, np.ndarray] = {}
         #: Slab copies of the phases for moving casts (slabs.py); None where the profile casts none.
@@ -125,6 +141,9 @@ class ProgressiveRenderer:
         self.refined_after_s: list[float] = []
         #: When (s, `clock`) each of those first full-matrix images was ready for the screen.
         self.refined_at: list[float] = []
+        #: When (s, `clock`) the rest matrix was first shown after motion (with `interim`).
+        self.interim_at: list[float] = []
+        self._refined_since_motion = False
         #: Moving frames cast straight through the renderer, past the cache (count).
         self.moving_casts = 0
         #: Moving frames cast at a new pose, per matrix (pixels -> count): what the controller chose.
@@ -157,14 +176,14 @@ class ProgressiveRenderer:
     def set_fluoroscope(self, fluoroscope) -> None:
         self.full.set_fluoroscope(fluoroscope)
         self._edge_fixes.clear()                # the field's edge may be another
-        for mover in self._movers.values():
-            rows, cols = mover.shape
-            mover.set_fluoroscope(at_resolution(fluoroscope, cols, rows))
+        for other in self._others():
+            rows, cols = other.shape
+            other.set_fluoroscope(at_resolution(fluoroscope, cols, rows))
 
     def warm(self, volume: PreparedVolume, T_xray_from_ct: np.ndarray) -> None:
         """Build every matrix's kernels and ray tables (a plain and a blended frame each), so the
         first live frames cost what later ones do."""
-        for r in (self.full, *self._movers.values()):
+        for r in (self.full, *self._others()):
             r.render(volume, T_xray_from_ct, View())
             r.render(volume, T_xray_from_ct, View(), blend=(volume, 0.5))
             self.cache(r).render(volume, T_xray_from_ct, View(), blend=(volume, 0.5))
@@ -172,6 +191,10 @@ class ProgressiveRenderer:
         if self.slabs is not None:              # compiles the slab kernel (a quarter second on PoCL)
             self.slabs.get(volume, 0)
             self.slabs.clear()
+
+    def _others(self) -> list[Renderer]:
+        """The renderers of the other matrices: the moving ones and the rest matrix."""
+        return [*self._movers.values(), *(() if self.interim is None else (self.interim,))]
 
     def _moved(self, volume: PreparedVolume, T: np.ndarray, zoom: int) -> bool:
         return not pose_unchanged(self.full.fluoroscope, volume, zoom, self._last_pose, T,
@@ -189,6 +212,7 @@ class ProgressiveRenderer:
         moved = self._moved(volume, T, view.zoom)
         if moved:
             self._last_motion = now
+            self._refined_since_motion = False
             self._last_pose = T
             # A cast beside the live frames for a pose left behind stops at its next band; the
             # tracker's jitter about the resting pose (within the tolerance of it) does not stop it.
@@ -203,12 +227,11 @@ class ProgressiveRenderer:
             # it was last cast at, whose cache holds it, and the grain it was shown with.
             moving = self._last_used
         use = self.full if resting or moving is None or view.quantity == "line-integral" else moving
-        if (use is self.full and moving is not None and view.quantity != "line-integral"
-                and self._refining(volume, T, view, blend)):
-            use = moving
+        if use is self.full and moving is not None and view.quantity != "line-integral":
+            use = self._refining(volume, T, view, blend, moving) or use
         # Only a frame cast at a new pose tells what a moving frame costs; one the cache served
         # while the pose settles would make the matrix look cheaper than it is.
-        self._timed = use.shape[1] if use is not self.full and moved else None
+        self._timed = use.shape[1] if use is not self.full and use is not self.interim and moved else None
         if self._timed is not None:
             self.moving_frames[self._timed] += 1
         if use is not self._last_used:
@@ -236,13 +259,17 @@ class ProgressiveRenderer:
             if view.quantity == "display":
                 image = cv2.multiply(image, self._edge_fix(use, view))
         if use is self.full and self._last_used is not self.full:
-            ready = self.clock()
-            self.refined_after_s.append(ready - self._last_motion)
-            self.refined_at.append(ready)
+            if not self._refined_since_motion:
+                ready = self.clock()
+                self.refined_after_s.append(ready - self._last_motion)
+                self.refined_at.append(ready)
+                self._refined_since_motion = True
             if self.settings.crossfade_s > 0 and self._last_image is not None:
                 self._fade_from, self._fade_t0 = self._last_image, now
         elif use is not self.full:
             self._fade_from = None
+            if use is self.interim and self._last_used is not self.interim and not self._refined_since_motion:
+                self.interim_at.append(self.clock())
         if self._fade_from is not None:
             a = (now - self._fade_t0) / self.settings.crossfade_s
             if a >= 1.0 or self._fade_from.shape != image.shape:
@@ -300,26 +327,46 @@ class ProgressiveRenderer:
         return keeping
 
     def _refining(self, volume: PreparedVolume, T: np.ndarray, view: View,
-                  blend: tuple[PreparedVolume, float] | None) -> bool:
-        """Whether the full matrix of this resting pose is still being cast beside the live frames
-        (begun here when its cache holds no projection of this pose and field). False without
+                  blend: tuple[PreparedVolume, float] | None, moving: Renderer) -> Renderer | None:
+        """What this resting frame shows while its matrices are cast beside the live frames: the
+        largest of the rest matrix (`interim`) and `moving` whose cache holds this pose, or None
+        once the full matrix holds it (then the full matrix). The first of them that does not is
+        cast on a thread of its own (begun here; one at a time). None without
         `rendering.refine_bands` or after a fault of that cast."""
         bands = self.settings.refine_bands
         if bands is None or self.refine_fault is not None:
-            return False
+            return None
+        circle = self.full._circle(None)
+        phases = [volume] if blend is None or blend[1] == 0.0 else [volume, blend[0]]
+        shown, missing = moving, None
+        for target in (self.full,) if self.interim is None else (self.interim, self.full):
+            if not self._holds(target, phases, T, view, circle):
+                missing = target
+                break
+            shown = target
+        if missing is None:
+            return None
         refine = self.refine
         if refine is not None and not refine.done.is_set():
             if not self._fits(refine, volume, T, view):
-                refine.cancel = True        # it ends at its next band; the next frame begins this pose's
-            return True
-        circle = self.full._circle(None)
-        if self.cache().adopted(T, view.zoom, view.collimation_mm, True, circle):
-            return False
-        phases = [volume] if blend is None or blend[1] == 0.0 else [volume, blend[0]]
-        refine = self.refine = Refine(T, _geometry(view))
+                refine.cancel = True        # it ends at its next band; a later frame begins this pose's
+            return shown
+        if missing is not self.full:
+            bands = max(1, round(bands * (missing.shape[0] / self.full.shape[0]) ** 2))
+        refine = self.refine = Refine(T, _geometry(view), missing)
         threading.Thread(target=self._cast_full, args=(refine, phases, view, circle, bands),
                          name="fluorosim-refine", daemon=True).start()
-        return True
+        return shown
+
+    def _holds(self, target: Renderer, phases: list[PreparedVolume], T: np.ndarray, view: View, circle) -> bool:
+        """Whether `target`'s cache holds this pose and field. The full matrix after a rest matrix
+        must hold the frame's phases too: a phase new to the held view is cast beside the live
+        frames, the rest matrix showing it meanwhile; otherwise (the rest matrix, or the full one
+        without one) a new phase is cast within the frame, so the view keeps its matrix."""
+        cache = self.cache(target)
+        if not cache.adopted(T, view.zoom, view.collimation_mm, True, circle):
+            return False
+        return target is not self.full or self.interim is None or cache.holds(phases)
 
     def _fits(self, refine: Refine, volume: PreparedVolume, T: np.ndarray, view: View) -> bool:
         """Whether `refine` is this frame's full matrix: the same field, the pose within the tolerance."""
@@ -327,10 +374,10 @@ class ProgressiveRenderer:
             self.full.fluoroscope, volume, view.zoom, refine.T_xray_from_ct, T, self.settings.cache_pose_tolerance_px)
 
     def _cast_full(self, refine: Refine, phases: list[PreparedVolume], view: View, circle: bool, bands: int) -> None:
-        """The refine thread: the full matrix's phases into its cache, band by band."""
+        """The refine thread: the phases into the target matrix's cache, band by band."""
         try:
-            self.cache().fill(phases, refine.T_xray_from_ct, view.zoom, view.collimation_mm, True, circle, bands,
-                              lambda: refine.cancel)
+            self.cache(refine.target).fill(phases, refine.T_xray_from_ct, view.zoom, view.collimation_mm, True,
+                                           circle, bands, lambda: refine.cancel)
         except CastCancelled:
             pass
         except Exception as e:  # noqa: BLE001 - reported by the frame that casts it inline next

@@ -122,6 +122,10 @@ class ProjectionCache:
         return (volume is not None and self._geometry_key(zoom, collimation_mm, distorted, circle) == self._key
                 and self.unchanged(volume, T_xray_from_ct, zoom))
 
+    def holds(self, phases: list[PreparedVolume]) -> bool:
+        """Whether every one of `phases` is cached (at the adopted pose)."""
+        return all(p in self._lines for p in phases)
+
     def fill(self, phases: list[PreparedVolume], T_xray_from_ct, zoom: int, collimation_mm, distorted: bool, circle,
              bands: int, cancelled: Callable[[], bool]) -> bool:
         """Cast `phases` at this pose in `bands` bands of rows each (Caster.cast: the device's lock
