@@ -608,3 +608,31 @@ def test_a_phase_new_to_a_held_full_view_is_shown_at_the_rest_matrix_while_the_f
 def test_a_rest_matrix_not_below_the_full_one_is_none(renderer):
     pr = ProgressiveRenderer(renderer, Rendering(moving_matrix_px=64, rest_matrix_px=128, refine_bands=4))
     assert pr.interim is None
+
+
+def test_a_view_back_at_its_held_pose_stops_the_cast_of_the_pose_it_left(renderer, box):
+    """Held at A (the full matrix cached), moved to B and rested there long enough for B's cast
+    to begin, then back at A before it ends: A is shown at the full matrix from the cache at
+    once, B's cast is stopped, and it does not replace A's projections when it ends."""
+    prepared, _, _ = box
+    clock = Clock()
+    pr = ProgressiveRenderer(renderer, Rendering(moving_matrix_px=64, settle_s=0.1, refine_bands=64), clock=clock)
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    for _ in range(8):
+        clock.t += 0.04
+        pr.render(prepared, shifted(0.0), view)
+        pr.wait_refined(30.0)
+    assert pr.matrix == 128 and pr.cache().counts.casts == 1
+    for _ in range(4):                           # at B past settle_s: B's cast begins
+        clock.t += 0.04
+        pr.render(prepared, shifted(12.0), view)
+    b = pr.refine
+    assert b is not None and not b.done.is_set()
+    clock.t += 0.04
+    pr.render(prepared, shifted(0.0), view)
+    assert b.cancel
+    assert pr.wait_refined(30.0)
+    for _ in range(4):
+        clock.t += 0.04
+        pr.render(prepared, shifted(0.0), view)
+    assert pr.matrix == 128 and pr.cache().counts.casts == 1 and pr.refine is b

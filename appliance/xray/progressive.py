@@ -336,6 +336,12 @@ class ProgressiveRenderer:
         bands = self.settings.refine_bands
         if bands is None or self.refine_fault is not None:
             return None
+        refine = self.refine
+        running = refine is not None and not refine.done.is_set()
+        if running and not self._fits(refine, volume, T, view):
+            # It ends at its next band (a later frame begins this pose's), and keeps nothing of
+            # the pose left behind in place of what the caches hold of this one.
+            refine.cancel = True
         circle = self.full._circle(None)
         phases = [volume] if blend is None or blend[1] == 0.0 else [volume, blend[0]]
         shown, missing = moving, None
@@ -346,10 +352,7 @@ class ProgressiveRenderer:
             shown = target
         if missing is None:
             return None
-        refine = self.refine
-        if refine is not None and not refine.done.is_set():
-            if not self._fits(refine, volume, T, view):
-                refine.cancel = True        # it ends at its next band; a later frame begins this pose's
+        if running:
             return shown
         if missing is not self.full:
             bands = max(1, round(bands * (missing.shape[0] / self.full.shape[0]) ** 2))
