@@ -338,7 +338,7 @@ class ProgressiveRenderer:
             return None
         refine = self.refine
         running = refine is not None and not refine.done.is_set()
-        if running and not self._fits(refine, volume, T, view):
+        if refine is not None and running and not self._fits(refine, volume, T, view):
             # It ends at its next band (a later frame begins this pose's), and keeps nothing of
             # the pose left behind in place of what the caches hold of this one.
             refine.cancel = True
