@@ -93,6 +93,19 @@ def test_switch_is_faded_in_over_the_crossfade(renderer, box):
     del last_moving
 
 
+def walk(pr, clock, prepared, poses, view, wait=False):
+    """Render `poses` 0.04 s apart (25 frames/s); with `wait`, the cast beside the live frames a
+    frame began ends before the next. The matrix of each frame."""
+    matrices = []
+    for T in poses:
+        clock.t += 0.04
+        pr.render(prepared, T, view)
+        if wait:
+            pr.wait_refined(30.0)
+        matrices.append(pr.matrix)
+    return matrices
+
+
 def box_truth(renderer, box):
     """The box's chords at POSE (cm) for the full matrix's 128 x 128 pixels, the pixels well inside
     it (over 2 cm of tissue, 4 px from its edge) and mu of soft tissue from xraylib (1/cm)."""
@@ -285,9 +298,7 @@ def test_a_pose_that_moves_on_cancels_the_cast_and_never_shows_the_old_pose(rend
     clock = Clock()
     pr = ProgressiveRenderer(renderer, Rendering(moving_matrix_px=64, settle_s=0.1, refine_bands=64), clock=clock)
     view = View(quantity="intensity", noise=False, polychromatic=False)
-    for _ in range(4):
-        clock.t += 0.04
-        pr.render(prepared, shifted(0.0), view)
+    walk(pr, clock, prepared, [shifted(0.0)] * 4, view)
     first = pr.refine
     assert first is not None
     clock.t += 0.04
@@ -439,12 +450,7 @@ def _mm_for_px(renderer, prepared, px):
 def _stop_then_creep(pr, prepared, view, clock, creep_mm):
     """Two moving frames, 0.3 s at POSE, then the pose creeping on by `creep_mm` a frame:
     the matrix of each creeping frame and the full matrix's casts after each."""
-    for dx in (-4.0, -2.0):
-        clock.t += 0.04
-        pr.render(prepared, shifted(dx), view)
-    for _ in range(8):
-        clock.t += 0.04
-        pr.render(prepared, POSE, view)
+    walk(pr, clock, prepared, [shifted(-4.0), shifted(-2.0)] + [POSE] * 8, view)
     assert pr.matrix == 128
     seen = []
     for i in range(1, 4):
@@ -481,9 +487,7 @@ def test_a_move_beyond_the_hold_is_motion_again(renderer, box):
     clock = Clock()
     pr = ProgressiveRenderer(renderer, HOLD, clock=clock)
     view = View(quantity="intensity", noise=False, polychromatic=False)
-    for dx in (-2.0, 0.0, 0.0, 0.0, 0.0, 0.0):
-        clock.t += 0.04
-        pr.render(prepared, shifted(dx), view)
+    walk(pr, clock, prepared, [shifted(-2.0)] + [shifted(0.0)] * 5, view)
     assert pr.matrix == 128
     casts = pr.moving_casts
     clock.t += 0.04
@@ -501,19 +505,11 @@ def test_rest_begins_while_the_pose_still_creeps_within_the_hold(renderer, box):
     for settings, full_after in ((HOLD, 3), (SETTINGS, None)):
         clock = Clock()
         pr = ProgressiveRenderer(renderer, settings, clock=clock)
-        for dx in (-4.0, -2.0):
-            clock.t += 0.04
-            pr.render(prepared, shifted(dx), view)
-        matrices = []
-        for i in range(3):                       # 0.9 px in all: within the hold of the first
-            clock.t += 0.04
-            pr.render(prepared, shifted(i * step), view)
-            matrices.append(pr.matrix)
-        # The first creeping frame starts the rest; 0.1 s on (the third, at +0.08 s, is short of
-        # it), so the full matrix comes with the next frame at the last creeping pose.
-        clock.t += 0.04
-        pr.render(prepared, shifted(2 * step), view)
-        matrices.append(pr.matrix)
+        walk(pr, clock, prepared, [shifted(-4.0), shifted(-2.0)], view)
+        # 0.9 px in all: within the hold of the first. The first creeping frame starts the rest;
+        # 0.1 s on (the third, at +0.08 s, is short of it), so the full matrix comes with the next
+        # frame at the last creeping pose.
+        matrices = walk(pr, clock, prepared, [shifted(i * step) for i in range(3)] + [shifted(2 * step)], view)
         assert matrices == ([64] * full_after + [128] if full_after else [64] * 3 + [64])
 
 
@@ -526,9 +522,7 @@ def test_a_view_let_go_of_rests_again_only_after_settle_s(renderer, box):
     view = View(quantity="intensity", noise=False, polychromatic=False)
     clock = Clock()
     pr = ProgressiveRenderer(renderer, HOLD, clock=clock)
-    for dx in (-4.0, -2.0, 0.0, step, 2 * step, 2 * step):
-        clock.t += 0.04
-        pr.render(prepared, shifted(dx), view)
+    walk(pr, clock, prepared, [shifted(dx) for dx in (-4.0, -2.0, 0.0, step, 2 * step, 2 * step)], view)
     assert pr.matrix == 128                      # held at +0.6 px since 0.12 s after the creep began
     clock.t += 0.04
     pr.render(prepared, shifted(-1.5 * step), view)      # 1.05 px from the held pose, 0.45 px from the start
@@ -554,12 +548,7 @@ def test_a_rest_shows_the_rest_matrix_and_then_the_full_one(renderer, box):
     clock = Clock()
     pr = ProgressiveRenderer(renderer, TIERS, clock=clock)
     view = View(quantity="intensity", noise=False, polychromatic=False)
-    for i in range(3):
-        clock.t += 0.04
-        pr.render(prepared, shifted(2.0 * i), view)
-    for _ in range(3):
-        clock.t += 0.04
-        pr.render(prepared, shifted(4.0), view)
+    walk(pr, clock, prepared, [shifted(2.0 * i) for i in range(3)] + [shifted(4.0)] * 3, view)
     assert pr.matrix == 64 and pr.refine.target is pr.interim
     assert pr.wait_refined(30.0)
     clock.t += 0.04
@@ -587,10 +576,7 @@ def test_a_phase_new_to_a_held_full_view_is_shown_at_the_rest_matrix_while_the_f
     for settings, shown in ((TIERS, 96), (Rendering(moving_matrix_px=64, settle_s=0.1, refine_bands=4), 128)):
         clock = Clock()
         pr = ProgressiveRenderer(renderer, settings, clock=clock)
-        for _ in range(8):                       # at rest at POSE until the full matrix shows it
-            clock.t += 0.04
-            pr.render(prepared, POSE, view)
-            pr.wait_refined(30.0)
+        walk(pr, clock, prepared, [POSE] * 8, view, wait=True)    # at rest until the full matrix shows it
         assert pr.matrix == 128 and pr.refined_at
         clock.t += 0.04
         image = pr.render(other, POSE, view).image
@@ -618,21 +604,14 @@ def test_a_view_back_at_its_held_pose_stops_the_cast_of_the_pose_it_left(rendere
     clock = Clock()
     pr = ProgressiveRenderer(renderer, Rendering(moving_matrix_px=64, settle_s=0.1, refine_bands=64), clock=clock)
     view = View(quantity="intensity", noise=False, polychromatic=False)
-    for _ in range(8):
-        clock.t += 0.04
-        pr.render(prepared, shifted(0.0), view)
-        pr.wait_refined(30.0)
+    walk(pr, clock, prepared, [shifted(0.0)] * 8, view, wait=True)
     assert pr.matrix == 128 and pr.cache().counts.casts == 1
-    for _ in range(4):                           # at B past settle_s: B's cast begins
-        clock.t += 0.04
-        pr.render(prepared, shifted(12.0), view)
+    walk(pr, clock, prepared, [shifted(12.0)] * 4, view)     # at B past settle_s: B's cast begins
     b = pr.refine
     assert b is not None and not b.done.is_set()
     clock.t += 0.04
     pr.render(prepared, shifted(0.0), view)
     assert b.cancel
     assert pr.wait_refined(30.0)
-    for _ in range(4):
-        clock.t += 0.04
-        pr.render(prepared, shifted(0.0), view)
+    walk(pr, clock, prepared, [shifted(0.0)] * 4, view)
     assert pr.matrix == 128 and pr.cache().counts.casts == 1 and pr.refine is b
