@@ -222,9 +222,11 @@ def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None,
             if stops:
                 print(f"native matrix after stop: {stops}")
             interim = getattr(renderer, "interim", None)
-            stops = native_after_stops(app.parts.camera, getattr(renderer, "interim_at", []), t0 + warmup, end)
-            if interim is not None and stops:
-                print(f"rest matrix after stop:   {stops} ({interim.shape[1]} px, shown until the full matrix's cast is done)")
+            if interim is not None:
+                stops = native_after_stops(app.parts.camera, renderer.interim_at, t0 + warmup, end)
+                if stops:
+                    print(f"rest matrix after stop:   {stops} ({interim.shape[1]} px, shown until the full matrix's "
+                          f"cast is done)")
         per_matrix = getattr(renderer, "moving_frames", None)
         if per_matrix:
             steps = renderer.control.steps

@@ -1,7 +1,8 @@
 """The content's outline: planes that bound what a prepared volume holds, closer than its box.
 
-A patient is round, not square: of the samples a posterior-anterior or lateral ray takes in the
-adult chest's content box, a quarter lie outside the body. A convex polytope with more face
+A patient is round, not square: of the adult chest's content box, a quarter of the voxels along
+posterior-anterior or lateral lines lie outside the body, most of them toward its flanks and
+corners; a field centred on the chest meets few of them, a field at the body's side many. A convex polytope with more face
 directions than the box (a k-DOP) follows the body closer at the cost of a few operations per
 ray, once: for each direction n (integer, in voxel-index space) the content's range [lo, hi] of
 n.p over its voxel centres p gives each ray a t-interval, which the kernels intersect with the

@@ -113,8 +113,7 @@ class ProgressiveRenderer:
                                                       settings.cache_max_phases)
         n = settings.rest_matrix_px
         #: The matrix a resting view is shown at before the full one (`rendering.rest_matrix_px`); None without.
-        self.interim = (renderer.at_matrix(n, n) if n is not None and n < max(renderer.shape)
-                        and settings.refine_bands is not None else None)
+        self.interim = renderer.at_matrix(n, n) if n is not None and n < max(renderer.shape) else None
         if self.interim is not None:
             self._caches[id(self.interim)] = ProjectionCache(self.interim, settings.cache_pose_tolerance_px,
                                                              settings.cache_max_phases)
@@ -219,8 +218,6 @@ class ProgressiveRenderer:
             if self.refine is not None and not self._fits(self.refine, volume, T, view):
                 self.refine.cancel = True
         resting = self._rested(volume, T, view, now, released)
-        if resting and self._held is None and self.settings.rest_hold_px is not None and view.quantity != "line-integral":
-            self._held = T
         moving = self.moving
         if not moved and self._last_used is not self.full:
             # The controller picks the matrix of a moving cast. A pose that stays keeps the matrix
@@ -302,7 +299,7 @@ class ProgressiveRenderer:
         for that long; with `rendering.rest_hold_px`, none beyond the hold. The filter's creep
         after a stop, steps of a few tenths of a pixel for a tenth of a second or two, then
         counts as rest, as the hold will count it: the full matrix is begun that much sooner,
-        at a pose within the hold of where the view comes to rest."""
+        at a pose within the hold of where the view comes to rest, and the view is held there."""
         hold = self.settings.rest_hold_px
         if hold is None or view.quantity == "line-integral":
             return now - self._last_motion >= self.settings.settle_s
@@ -310,7 +307,10 @@ class ProgressiveRenderer:
             return True
         if released or not pose_unchanged(self.full.fluoroscope, volume, view.zoom, self._still_pose, T, hold):
             self._still_pose, self._still_since = T, now
-        return now - self._still_since >= self.settings.settle_s
+        if now - self._still_since < self.settings.settle_s:
+            return False
+        self._held = T                  # the pose the view rests at, held from here (`_hold`)
+        return True
 
     def _kept(self, use: Renderer, cast: Callable | None) -> Callable:
         """A stand-in for `use`'s cast (`cast`, or the caster's own) that keeps the one phase's
