@@ -9,6 +9,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -122,8 +123,10 @@ def _blend_layers(coverage: np.ndarray, color: Color, rgb: bool) -> tuple[np.nda
     if rgb:
         coverage, inverse = cv2.cvtColor(coverage, cv2.COLOR_GRAY2RGB), cv2.cvtColor(inverse, cv2.COLOR_GRAY2RGB)
     scalar = (*color, 0) if isinstance(color, tuple) else (color, 0, 0, 0)
-    # (OpenCV takes a colour as a Scalar here; its type stubs know only arrays)
-    paint = cv2.multiply(coverage, scalar, scale=1 / 255)  # type: ignore[call-overload]
+    # OpenCV takes a colour as a Scalar here. Its type stubs have typed that argument differently
+    # from release to release (arrays only, then Scalars too), so the call is typed loosely: the
+    # type check passes with whichever OpenCV a fresh set-up installs.
+    paint = cast(Any, cv2.multiply)(coverage, scalar, scale=1 / 255)
     inverse.flags.writeable = paint.flags.writeable = False
     return inverse, paint
 
