@@ -108,6 +108,18 @@ inline bool clip_planes(constant float *planes, float3 s, float3 d, float *t0, f
 // the plate's 0.02 mm axis). So the corners are split at bone_min: the bone corners' weight and
 // weighted HU, and the others', each part read as one material's (contrast within the first,
 // air or soft tissue within the second), as Siddon reads the grid's piecewise-constant voxels.
+// any() and all() of a packet's int16 masks (the packet kernels below). PoCL lowers the built-ins
+// to a chain of sixteen extracts and branches, which took a quarter of a chest's cast in the
+// Joseph loop; with AVX-512 (DQ) the comparison's own mask register answers in one instruction.
+// Elsewhere the built-ins, which give the same answer.
+#if defined(__AVX512DQ__)
+typedef int v16si_m __attribute__((vector_size(64)));
+#define ANY16(m) (__builtin_ia32_cvtd2mask512(__builtin_astype((m), v16si_m)) != 0)
+#define ALL16(m) (__builtin_ia32_cvtd2mask512(__builtin_astype((m), v16si_m)) == (ushort)0xffff)
+#else
+#define ANY16(m) any(m)
+#define ALL16(m) all(m)
+#endif
 #define BONE_W(T, g) select((T)(0.0f), (T)(1.0f), (g) >= bone_min)
 #define BONE_H(T, g) select((T)(0.0f), (g), (g) >= bone_min)
 #define BILINEAR(f, T, g00, g10, g01, g11) mix(mix(f(T, g00), f(T, g10), wb), mix(f(T, g01), f(T, g11), wb), wc)
@@ -131,7 +143,7 @@ inline bool clip_planes(constant float *planes, float3 s, float3 d, float *t0, f
         SAMPLE(float16, int16, g00, g10, g01, g11, on, air, soft, bone, con)
 #else
 #define SAMPLE_PACKET(g00, g10, g01, g11, on, air, soft, bone, con) do { \
-        if (any((fmax(fmax(g00, g10), fmax(g01, g11)) >= bone_min) & (on))) { \
+        if (ANY16((fmax(fmax(g00, g10), fmax(g01, g11)) >= bone_min) & (on))) { \
             SAMPLE(float16, int16, g00, g10, g01, g11, on, air, soft, bone, con); \
         } else { \
             const float16 h = BILINEAR(HU, float16, g00, g10, g01, g11); \
@@ -244,6 +256,12 @@ kernel void joseph_materials(global const short *vol,
 // The rays of a packet are nearly parallel; they share the dominant axis of the middle ray
 // and step through the union of their slice ranges, each lane masked outside its own.
 #define LANES 16
+// The four corner voxels' indices of a packet's samples (ib, ic) in slice k: only where they are
+// gathered, so that a packet read through row windows (ROWS) spends no multiply on them.
+#define INDICES const int16 i00 = k * sa + ib * sb + ic * sc, i10 = i00 + sb, i01 = i00 + oc, i11 = i01 + sb
+// clamp(x, 0, hi) as one max and one min instruction: PoCL's clamp() adds a compare and a blend
+// per call to keep a NaN's rule, and x, a sample's position, is never NaN.
+#define CLAMP16(x, hi) ({ const float16 m_ = fmax((x), 0.0f); select((float16)(hi), m_, m_ < (hi)); })
 #define GATHER(v, i) ((float16)((v)[(i).s0], (v)[(i).s1], (v)[(i).s2], (v)[(i).s3], (v)[(i).s4], (v)[(i).s5], \
                                 (v)[(i).s6], (v)[(i).s7], (v)[(i).s8], (v)[(i).s9], (v)[(i).sa], (v)[(i).sb], \
                                 (v)[(i).sc], (v)[(i).sd], (v)[(i).se], (v)[(i).sf]))
@@ -297,24 +315,24 @@ typedef short v32hi __attribute__((vector_size(64)));
         const int16 o_ = ib - bm_, first_ = (ic == cm_) & (o_ >= 0), idx_ = o_ | ((o_ + 1) << 16); \
         const int row_ = k * sa + cm_.s0 * sc + bm_.s0; \
         r0_ = SHORT_PAIRS(v, row_, idx_); r1_ = SHORT_PAIRS(v, row_ + sc, idx_); \
-        if (!all(first_)) { \
-            if (all(first_ | ((ic == cm_ + 1) & (o_ >= 0)))) { \
+        if (!ALL16(first_)) { \
+            if (ALL16(first_ | ((ic == cm_ + 1) & (o_ >= 0)))) { \
                 const int16 r2_ = SHORT_PAIRS(v, row_ + 2 * sc, idx_); \
                 r0_ = select(r1_, r0_, first_); r1_ = select(r2_, r1_, first_); \
             } else gather_ = true; \
         } \
     } \
-    if (gather_) { r0_ = WORDS(v, i00); r1_ = WORDS(v, i01); } \
+    if (gather_) { INDICES; r0_ = WORDS(v, i00); r1_ = WORDS(v, i01); } \
     g00 = convert_float16((r0_ << 16) >> 16); g10 = convert_float16(r0_ >> 16); \
     g01 = convert_float16((r1_ << 16) >> 16); g11 = convert_float16(r1_ >> 16); } while (0)
 #else
-#define ROWS(v, g00, g10, g01, g11) do { PAIR(v, i00, g00, g10); PAIR(v, i01, g01, g11); } while (0)
+#define ROWS(v, g00, g10, g01, g11) do { INDICES; PAIR(v, i00, g00, g10); PAIR(v, i01, g01, g11); } while (0)
 #endif
 #define CORNERS(v, g00, g10, g01, g11) do { \
     if (sb == 1) ROWS(v, g00, g10, g01, g11); \
-    else { g00 = GATHER(v, i00); g10 = GATHER(v, i10); g01 = GATHER(v, i01); g11 = GATHER(v, i11); } } while (0)
+    else { INDICES; g00 = GATHER(v, i00); g10 = GATHER(v, i10); g01 = GATHER(v, i01); g11 = GATHER(v, i11); } } while (0)
 #else
-#define CORNERS(v, g00, g10, g01, g11) do { \
+#define CORNERS(v, g00, g10, g01, g11) do { INDICES; \
     g00 = GATHER(v, i00); g10 = GATHER(v, i10); g01 = GATHER(v, i01); g11 = GATHER(v, i11); } while (0)
 #endif
 
@@ -453,19 +471,18 @@ kernel void joseph_packet(global const short *vol,
     const float16 off_b = 0.5f - 0.5f * inv_b, off_c = 0.5f - 0.5f * inv_c;
     // A packet none of whose rays meets a voxel larger than its footprint keeps linear weights
     // without a cycle spent on them.
-    const bool blocks_b = BLOCKS(any(inv_b > 1.0f)), blocks_c = BLOCKS(any(inv_c > 1.0f));
+    const bool blocks_b = BLOCKS(ANY16(inv_b > 1.0f)), blocks_c = BLOCKS(ANY16(inv_c > 1.0f));
     float16 acc_air = 0.0f, acc_soft = 0.0f, acc_bone = 0.0f, acc_con = 0.0f;
 #ifdef SPLIT
     float16 bcc_air = 0.0f, bcc_soft = 0.0f, bcc_bone = 0.0f, bcc_con = 0.0f;
 #endif
     for (int k = kmin; k <= kmax; ++k) {
-        const float16 fb = clamp(b0 + (float)k * db, 0.0f, bmax);
-        const float16 fc = clamp(c0 + (float)k * dc, 0.0f, cmax);
+        const float16 fb = CLAMP16(b0 + (float)k * db, bmax);
+        const float16 fc = CLAMP16(c0 + (float)k * dc, cmax);
         const int16 ib = convert_int16(fb), ic = convert_int16(fc);
         float16 wb = fb - convert_float16(ib), wc = fc - convert_float16(ic);
         if (blocks_b) wb = VOXEL_WEIGHT(wb, inv_b, off_b);
         if (blocks_c) wc = VOXEL_WEIGHT(wc, inv_c, off_c);
-        const int16 i00 = k * sa + ib * sb + ic * sc, i10 = i00 + sb, i01 = i00 + oc, i11 = i01 + sb;
         float16 g00, g10, g01, g11;
         CORNERS(vol, g00, g10, g01, g11);
 #if defined(BLEND) || defined(SPLIT)
@@ -528,7 +545,7 @@ kernel void polychromatic_packet(global const float4 *lines, global const float4
             on[l] = p0 + l < n_pixels && mask[p0 + l] ? -1 : 0;
     }
     float16 sum = 0.0f;
-    if (any(on)) {      // a packet wholly outside the beam reads nothing
+    if (ANY16(on)) {    // a packet wholly outside the beam reads nothing
         float16 La, Ls, Lb, Lc;
         if (whole) {
             // Sixteen pixels' float4s as four float16s, split into one vector per material.
@@ -640,12 +657,12 @@ kernel void quantum_noise_packet(global float *img, const float n0, const uint s
     const float16 r = sqrt(-2.0f * log(u0));
     float16 count = fmax(lam + sqrt(lam) * r * cos(6.2831853f * uniform_open16(key, (uint16)(1u))), 0.0f);
     const int16 low = lam < GAUSSIAN_ABOVE;
-    if (any(low)) {
+    if (ANY16(low)) {
         // The inversion over the packet, masked: lanes above the threshold stop at once.
         float16 term = exp(-lam), sum = term;
         float16 k = 0.0f;
         int16 going = low & (u0 > sum);
-        while (any(going)) {
+        while (ANY16(going)) {
             k = select(k, k + 1.0f, going);
             term = select(term, term * lam / k, going);
             sum = select(sum, sum + term, going);
