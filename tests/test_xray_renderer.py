@@ -341,3 +341,23 @@ def test_portable_pair_loads_match_hardware_gathers(T):
     b = r.material_integrals(prepared, T, View())
     assert a.max() > 40
     np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("T", [OFF_AXIS, PA_ROLLED])
+def test_cast_is_the_same_to_the_bit_without_the_mask_register(T):
+    """The packet kernel's tests of its masks through AVX-512's mask register against AVX's sign
+    bits (test_packet_masks.py), on noise with bone in one half across x only, so that the test
+    for a bone corner in the packet goes both ways, as do the row windows' tests."""
+    import pyopencl as cl
+
+    r = Renderer(profile("generic-flat-detector.yaml", size=64), Materials(), device="cpu")
+    hu = np.random.default_rng(8).integers(-900, 1500, size=(20, 24, 24)).astype(np.int16)
+    hu[:, :, :12] = np.minimum(hu[:, :, :12], 100)
+    prepared = r.prepare(Volume(hu=hu, T_ct_from_voxel=np.diag([2.0, 2.0, 2.5, 1.0]), source="noise"))
+    a = r.material_integrals(prepared, T, View())
+    program = cl.Program(r.dev.ctx, r.dev.source).build(options=["-DUNALIGNED_PAIRS", "-DNO_MASK_REGISTERS"])
+    r.caster._joseph = cl.Kernel(program, "joseph_packet")
+    b = r.material_integrals(prepared, T, View())
+    bone = a[..., 2][a[..., 1] > 1]
+    assert (bone == 0).any() and (bone > 1).any()        # rays with bone and rays without
+    np.testing.assert_array_equal(a, b)

@@ -110,12 +110,20 @@ inline bool clip_planes(constant float *planes, float3 s, float3 d, float *t0, f
 // air or soft tissue within the second), as Siddon reads the grid's piecewise-constant voxels.
 // any() and all() of a packet's int16 masks (the packet kernels below). PoCL lowers the built-ins
 // to a chain of sixteen extracts and branches, which took a quarter of a chest's cast in the
-// Joseph loop; with AVX-512 (DQ) the comparison's own mask register answers in one instruction.
-// Elsewhere the built-ins, which give the same answer.
-#if defined(__AVX512DQ__)
+// Joseph loop; with AVX-512 (DQ) the comparison's own mask register answers in one instruction,
+// with AVX the sign bits of each half's eight lanes in one each (movmskps). Elsewhere the
+// built-ins, which give the same answer. (NO_MASK_REGISTERS leaves AVX-512's out, so that tests
+// can check the AVX path on such a CPU too.)
+#if defined(__AVX512DQ__) && !defined(NO_MASK_REGISTERS)
 typedef int v16si_m __attribute__((vector_size(64)));
 #define ANY16(m) (__builtin_ia32_cvtd2mask512(__builtin_astype((m), v16si_m)) != 0)
 #define ALL16(m) (__builtin_ia32_cvtd2mask512(__builtin_astype((m), v16si_m)) == (ushort)0xffff)
+#elif defined(__AVX__)
+typedef float v8sf_m __attribute__((vector_size(32)));
+#define SIGNS8(h) __builtin_ia32_movmskps256(__builtin_astype((h), v8sf_m))
+#define SIGNS16(m) ({ const int16 m_ = (m); SIGNS8(m_.lo) | (SIGNS8(m_.hi) << 8); })
+#define ANY16(m) (SIGNS16(m) != 0)
+#define ALL16(m) (SIGNS16(m) == 0xffff)
 #else
 #define ANY16(m) any(m)
 #define ALL16(m) all(m)
