@@ -210,8 +210,8 @@ def run(args) -> int:
 
     ct = centred(bench_ct(args.ct)) if not {"speed", "sampling", "cache", "plastimatch", "memory"} <= skip else None
     # Memory first: the other parts' renderers and casts leave the allocator holding memory the
-    # process no longer uses (about 0.35 GB after a run with the 1024 frames), which would count against the
-    # 4D CT's figure.
+    # process no longer uses (about 0.35 GB after a run with the 1024 frames), which would count
+    # against the 4D CT's figure.
     if "memory" not in skip and ct is not None:
         proc = psutil.Process()
         base = proc.memory_info().rss

@@ -97,17 +97,6 @@ inline bool clip_planes(constant float *planes, float3 s, float3 d, float *t0, f
     } \
     oc = sc; } while (0)
 
-// One bilinear sample of the corner voxels g00..g11 (HU; in-slice weights wb, wc) into the
-// materials' sums air, soft, bone, con, in type T: float, or float16 for a packet's lanes, M its
-// comparisons' type (`on`: the lanes on their own ray). Each material's density is affine in
-// HU, so where the corners are all one material their interpolated HU gives the blend of their
-// densities. Across bone_min it does not: half a 3000 HU bar and half air interpolate to 1000 HU, whose bone density (offset +
-// slope x HU) is 30 % above half the bar's, and rays along a thin plate's faces, every sample
-// partly in it, read the plate up to 15 % too thick by a fraction that changes from ray to ray
-// (a 1 mm plate on two 0.5 mm slices crossed 0.05 rad off its normal, where Joseph steps along
-// the plate's 0.02 mm axis). So the corners are split at bone_min: the bone corners' weight and
-// weighted HU, and the others', each part read as one material's (contrast within the first,
-// air or soft tissue within the second), as Siddon reads the grid's piecewise-constant voxels.
 // any() and all() of a packet's int16 masks (the packet kernels below). PoCL lowers the built-ins
 // to a chain of sixteen extracts and branches, which took a quarter of a chest's cast in the
 // Joseph loop; with AVX-512 (DQ) the comparison's own mask register answers in one instruction,
@@ -128,6 +117,18 @@ typedef float v8sf_m __attribute__((vector_size(32)));
 #define ANY16(m) any(m)
 #define ALL16(m) all(m)
 #endif
+
+// One bilinear sample of the corner voxels g00..g11 (HU; in-slice weights wb, wc) into the
+// materials' sums air, soft, bone, con, in type T: float, or float16 for a packet's lanes, M its
+// comparisons' type (`on`: the lanes on their own ray). Each material's density is affine in
+// HU, so where the corners are all one material their interpolated HU gives the blend of their
+// densities. Across bone_min it does not: half a 3000 HU bar and half air interpolate to 1000 HU, whose bone density (offset +
+// slope x HU) is 30 % above half the bar's, and rays along a thin plate's faces, every sample
+// partly in it, read the plate up to 15 % too thick by a fraction that changes from ray to ray
+// (a 1 mm plate on two 0.5 mm slices crossed 0.05 rad off its normal, where Joseph steps along
+// the plate's 0.02 mm axis). So the corners are split at bone_min: the bone corners' weight and
+// weighted HU, and the others', each part read as one material's (contrast within the first,
+// air or soft tissue within the second), as Siddon reads the grid's piecewise-constant voxels.
 #define BONE_W(T, g) select((T)(0.0f), (T)(1.0f), (g) >= bone_min)
 #define BONE_H(T, g) select((T)(0.0f), (g), (g) >= bone_min)
 #define BILINEAR(f, T, g00, g10, g01, g11) mix(mix(f(T, g00), f(T, g10), wb), mix(f(T, g01), f(T, g11), wb), wc)
