@@ -325,20 +325,26 @@ PA_ROLLED = make_transform(rotation_about([0, 0, 1], np.radians(1.0)) @ np.array
 OFF_AXIS = make_transform(rotation_about([1, 0.2, 0], 0.3), [0.0, 0.0, 750.0])
 
 
+def _cast_built_both_ways(hu: np.ndarray, T, option: str) -> tuple[np.ndarray, np.ndarray]:
+    """The CPU packet kernel's material integrals of `hu` (2 x 2 x 2.5 mm voxels) at pose T, as
+    built for this device and as built with `option` as well (a path turned off)."""
+    import pyopencl as cl
+
+    r = Renderer(profile("generic-flat-detector.yaml", size=64), Materials(), device="cpu")
+    prepared = r.prepare(Volume(hu=hu, T_ct_from_voxel=np.diag([2.0, 2.0, 2.5, 1.0]), source="noise"))
+    a = r.material_integrals(prepared, T, View())
+    program = cl.Program(r.dev.ctx, r.dev.source).build(options=["-DUNALIGNED_PAIRS", option])
+    r.caster._joseph = cl.Kernel(program, "joseph_packet")
+    return a, r.material_integrals(prepared, T, View())
+
+
 @pytest.mark.parametrize("T", [OFF_AXIS, PA_ROLLED])
 def test_portable_pair_loads_match_hardware_gathers(T):
     """The packet kernel's hardware loads (row windows where a packet's samples lie in one or two
     rows of a slice, gathers elsewhere) against the portable 32-bit pair loads, on noise (every
     voxel differs from its neighbours): the same integrals to the bit."""
-    import pyopencl as cl
-
-    r = Renderer(profile("generic-flat-detector.yaml", size=64), Materials(), device="cpu")
     hu = np.random.default_rng(3).integers(-900, 1500, size=(20, 24, 24)).astype(np.int16)
-    prepared = r.prepare(Volume(hu=hu, T_ct_from_voxel=np.diag([2.0, 2.0, 2.5, 1.0]), source="noise"))
-    a = r.material_integrals(prepared, T, View())
-    program = cl.Program(r.dev.ctx, r.dev.source).build(options=["-DUNALIGNED_PAIRS", "-DNO_HW_GATHER"])
-    r.caster._joseph = cl.Kernel(program, "joseph_packet")
-    b = r.material_integrals(prepared, T, View())
+    a, b = _cast_built_both_ways(hu, T, "-DNO_HW_GATHER")
     assert a.max() > 40
     np.testing.assert_array_equal(a, b)
 
@@ -348,16 +354,9 @@ def test_cast_is_the_same_to_the_bit_without_the_mask_register(T):
     """The packet kernel's tests of its masks through AVX-512's mask register against AVX's sign
     bits (test_packet_masks.py), on noise with bone in one half across x only, so that the test
     for a bone corner in the packet goes both ways, as do the row windows' tests."""
-    import pyopencl as cl
-
-    r = Renderer(profile("generic-flat-detector.yaml", size=64), Materials(), device="cpu")
     hu = np.random.default_rng(8).integers(-900, 1500, size=(20, 24, 24)).astype(np.int16)
     hu[:, :, :12] = np.minimum(hu[:, :, :12], 100)
-    prepared = r.prepare(Volume(hu=hu, T_ct_from_voxel=np.diag([2.0, 2.0, 2.5, 1.0]), source="noise"))
-    a = r.material_integrals(prepared, T, View())
-    program = cl.Program(r.dev.ctx, r.dev.source).build(options=["-DUNALIGNED_PAIRS", "-DNO_MASK_REGISTERS"])
-    r.caster._joseph = cl.Kernel(program, "joseph_packet")
-    b = r.material_integrals(prepared, T, View())
+    a, b = _cast_built_both_ways(hu, T, "-DNO_MASK_REGISTERS")
     bone = a[..., 2][a[..., 1] > 1]
     assert (bone == 0).any() and (bone > 1).any()        # rays with bone and rays without
     np.testing.assert_array_equal(a, b)
