@@ -4,7 +4,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from appliance.daemon.bench import native_after_stops
+from appliance.daemon.bench import native_after_stops, rests_after
 from appliance.geometry import make_transform
 from appliance.tracking.trajectory import Trajectory
 
@@ -28,3 +28,12 @@ def test_each_stop_is_timed_to_the_first_full_matrix_within_it():
 def test_no_figure_without_a_path():
     assert native_after_stops(SimpleNamespace(), [1.0], 0.0, 10.0) is None
     assert native_after_stops(SimpleNamespace(trajectory=PATH, t0=0.0), [], 0.0, 4.0) is None
+
+
+def test_the_rest_figure_leaves_out_the_rests_before_the_measured_span():
+    # Three rests: the full matrix 1.4 s after the warm-up's first (cold kernels), then 0.3 and
+    # 0.5 s after two in the measured span, which begins at 12 s.
+    renderer = SimpleNamespace(refined_after_s=[1.4, 0.3, 0.5], refined_at=[3.0, 20.3, 31.5])
+    assert rests_after(renderer, 12.0) == [0.3, 0.5]
+    assert rests_after(renderer, 0.0) == [1.4, 0.3, 0.5]
+    assert rests_after(SimpleNamespace(), 12.0) == []

@@ -105,6 +105,15 @@ def synthetic_camera_cost(app, frames: int = 7) -> str:
             f"drawing alone takes {d * fps / 10:.0f} % of one core, which a real webcam does not")
 
 
+def rests_after(renderer, since: float) -> list[float]:
+    """The "full matrix after rest" delays (s, ProgressiveRenderer.refined_after_s) of the
+    full-matrix images ready at or after `since` (s, its clock; `refined_at`): the warm-up's
+    first rest, cast while the kernels and ray tables were still being made, is not one of the
+    measured span's."""
+    delays, ready = getattr(renderer, "refined_after_s", []), getattr(renderer, "refined_at", [])
+    return [d for d, t in zip(delays, ready) if t >= since]
+
+
 def native_after_stops(camera, refined_at: list[float], since: float, until: float) -> str | None:
     """The "native matrix within 500 ms of the C-arm coming to rest" figure, timed from when the
     synthetic webcam's path stands still (its keyframes, `Trajectory.still_spans`) to the first
@@ -212,10 +221,10 @@ def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None,
             print(f"resident memory:        {after[0] / 2**20:.0f} MiB -> {after[-1] / 2**20:.0f} MiB "
                   f"({growth:+.1f} % over {rss[-1][0] - warmup:.0f} s)")
         renderer = app.parts.renderer
-        refined = getattr(renderer, "refined_after_s", [])
+        refined = rests_after(renderer, t0 + warmup)
         if refined:
             print(f"full matrix after rest:  median {np.median(refined) * 1000:.0f} ms, max {max(refined) * 1000:.0f} ms "
-                  f"after the pose came to rest ({len(refined)} times)")
+                  f"after the pose came to rest ({len(refined)} times after the warm-up)")
         if cfg.appliance.daemon.clock_rate == 1:
             end = time.monotonic()
             stops = native_after_stops(app.parts.camera, getattr(renderer, "refined_at", []), t0 + warmup, end)
