@@ -1,6 +1,6 @@
 """Pre-integrated slabs: the device's pair averages against NumPy's, a cast through them against
 the closed-form chords of a box and a sphere, the shift rule that keeps them off steep rays, and
-moving frames cast through them while a held view is not."""
+moving frames cast through them, a held view only where the profile's rest rule allows."""
 
 import numpy as np
 import pytest
@@ -133,6 +133,50 @@ def test_moving_frames_go_through_slabs_and_a_held_view_does_not(renderer):
     t[0] += 0.5
     pr.render(prepared, make_transform(np.eye(3), [7.0, -3.0, 700.0]), view)
     assert pr.matrix == 128 and pr.slab_casts == 4      # the held view: the full volume
+
+
+@pytest.mark.parametrize("pose", [ALONG_Y, OBLIQUE])
+def test_a_held_view_goes_through_the_slabs_only_where_the_rest_rule_allows(renderer, pose):
+    """With rendering.rest_slab_max_shift_px, a held view's cached integrals (a phase's alone, and
+    each of a pair cast in one pass) are its slab copy's where the field's steepest ray shifts
+    less than that within a slab (ALONG_Y: a cast whose accuracy against the closed-form chords
+    the test above holds to the display path's bar) and the full volume's, to the bit, where it
+    shifts more (OBLIQUE, over 2 px)."""
+    vol, _, _ = box_volume((48, 64, 64), (1.5, 1.25, 2.5), (9, 14, 5), (52, 47, 40))
+    a, b = renderer.prepare(vol), renderer.prepare(vol)
+    shift = in_slab_shift_px(zoomed_K(renderer.fluoroscope, 1), renderer.shape, a, pose, dominant_axis(a, pose))
+    assert shift < 1.0 if pose is ALONG_Y else shift > 2.0
+    pr = ProgressiveRenderer(renderer, Rendering(rest_slab_max_shift_px=1.0))
+    cache, view = pr.cache(), View()
+    held = cache.material_integrals(a, pose, view)
+    cache.clear()
+    paired = cache.material_integrals(a, pose, view, blend=(b, 0.5))
+    assert cache.counts.paired == 1
+    full = renderer.material_integrals(a, pose, view)
+    through = slab_cast(renderer.caster, SlabCache(renderer.dev, 1), a, pose, 1, None, 1.0)
+    assert pr.slabs is not None
+    if pose is ALONG_Y:
+        assert through is not None and pr.slabs.made == 2           # a copy of each phase
+        buf, _ = through(a, pose, 1, None, None, True, renderer._circle(None))
+        expected = renderer.dev.download(buf, np.empty(renderer.shape + (4,), np.float32))
+        assert not np.array_equal(expected, full)
+    else:
+        assert through is None and pr.slabs.made == 0
+        expected = full
+    np.testing.assert_array_equal(held, expected)
+    np.testing.assert_array_equal(paired, expected)       # the same phase twice: both of the pair alike
+    cache.clear()                                         # and cast in bands beside the live frames
+    assert cache.fill([a], pose, 1, None, True, renderer._circle(None), 3, lambda: False)
+    np.testing.assert_array_equal(cache.material_integrals(a, pose, view), expected)
+
+
+def test_without_the_rest_rule_a_held_view_is_cast_through_the_full_volume(renderer):
+    vol, _, _ = box_volume((48, 64, 64), (1.5, 1.25, 2.5), (9, 14, 5), (52, 47, 40))
+    a = renderer.prepare(vol)
+    pr = ProgressiveRenderer(renderer, Rendering(slab_max_shift_px=1.0))
+    np.testing.assert_array_equal(pr.cache().material_integrals(a, ALONG_Y, View()),
+                                  renderer.material_integrals(a, ALONG_Y, View()))
+    assert pr.slabs is not None and pr.slabs.made == 0
 
 
 def test_a_phase_let_go_takes_its_slabs_with_it(renderer):

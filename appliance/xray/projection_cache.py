@@ -80,8 +80,13 @@ class ProjectionCache:
     """Wraps a `Renderer`: `render` takes the renderer's arguments and gives its images, casting
     a phase only when the pose (or the view's geometry) changed since that phase was cast."""
 
-    def __init__(self, renderer: Renderer, pose_tolerance_px: float = 0.25, max_phases: int = 12):
+    def __init__(self, renderer: Renderer, pose_tolerance_px: float = 0.25, max_phases: int = 12,
+                 through: Callable[[PreparedVolume, np.ndarray, int], PreparedVolume] | None = None):
+        """`through(phase, T_xray_from_ct, zoom)`: the volume a phase is cast through at that pose
+        (its slab copy, slabs.slab_copy, or the phase itself), asked with the device's lock held;
+        None: the phase itself. The integrals are kept as the phase's."""
         self.renderer = renderer
+        self._through = through
         self.pose_tolerance_px = float(pose_tolerance_px)
         self.max_phases = int(max_phases)
         self.counts = CacheCounts()
@@ -135,8 +140,10 @@ class ProjectionCache:
         the fluoroscope profile was replaced meanwhile (nothing kept)."""
         r = self.renderer
         key = self._geometry_key(zoom, collimation_mm, distorted, circle)
-        lines = {p: r.caster.cast(p, T_xray_from_ct, zoom, collimation_mm, None, distorted, circle,
-                                  bands=(r._lock, bands, cancelled))[0] for p in dict.fromkeys(phases)}
+        with r._lock:
+            cast_as = {p: self._cast_as(p, T_xray_from_ct, zoom) for p in dict.fromkeys(phases)}
+        lines = {p: r.caster.cast(v, T_xray_from_ct, zoom, collimation_mm, None, distorted, circle,
+                                  bands=(r._lock, bands, cancelled))[0] for p, v in cast_as.items()}
         if self._geometry_key(zoom, collimation_mm, distorted, circle) != key:
             return False
         self.keep(lines, T_xray_from_ct, zoom, collimation_mm, distorted, circle)
@@ -157,16 +164,21 @@ class ProjectionCache:
         r = self.renderer
         missing = [p for p in phases if p not in self._lines]
         self.counts.hits += len(phases) - len(missing)
-        if len(missing) == 2 and r.packet and missing[0].same_grid(missing[1]):
-            self._lines.update(zip(missing, self._cast_two(missing[0], missing[1], T, zoom, collimation_mm,
+        cast_as = [self._cast_as(p, T, zoom) for p in missing]
+        if len(missing) == 2 and r.packet and cast_as[0].same_grid(cast_as[1]):
+            self._lines.update(zip(missing, self._cast_two(cast_as[0], cast_as[1], T, zoom, collimation_mm,
                                                            distorted, circle)))
             self.counts.casts += 2
             self.counts.paired += 1
             missing = []
-        for p in missing:
-            self._lines[p], _ = r.caster.cast(p, T, zoom, collimation_mm, None, distorted, circle)
+        for p, v in zip(missing, cast_as):
+            self._lines[p], _ = r.caster.cast(v, T, zoom, collimation_mm, None, distorted, circle)
             self.counts.casts += 1
         self._keep_at_most(phases)
+
+    def _cast_as(self, phase: PreparedVolume, T, zoom: int) -> PreparedVolume:
+        """The volume `phase` is cast through at this pose (see `through`)."""
+        return phase if self._through is None else self._through(phase, T, zoom)
 
     def _keep_at_most(self, wanted) -> None:
         """Drop the oldest cached phases beyond `max_phases`, never one of `wanted` (this frame's)."""

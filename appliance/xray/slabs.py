@@ -9,8 +9,10 @@ integrates the same density: what the slab approximates is the ray's shift withi
 where the two slices are read at the slab's middle instead of where the ray crosses each.
 That shift is (slab thickness) x (the ray's slope across the axis); it is used only where,
 seen on the detector, it stays below `rendering.slab_max_shift_px` of the cast matrix's
-pixel, for every ray of the field (the corner rays are the steepest), and only for moving
-frames: a held view is cast from the full volume.
+pixel, for every ray of the field (the corner rays are the steepest), for moving frames; a
+held view only with `rendering.rest_slab_max_shift_px`, by the same rule at the held matrix's
+pixel (ProjectionCache's `through`), else from the full volume. Where the shift stays within the
+detector's own point-spread it does not show.
 
 A slab copy is half a phase on the device, made once per phase and axis when a moving frame
 first needs it and kept for the last `rendering.slab_phases` of them. It is laid out for rays
@@ -21,6 +23,7 @@ by voxel.
 
 from __future__ import annotations
 
+import threading
 import weakref
 from collections import OrderedDict
 
@@ -112,6 +115,7 @@ class SlabCache:
         self.dev, self.keep, self.thickness = dev, keep, thickness
         self._kernel = dev.kernel("slab_rows")
         self._slabs: OrderedDict[tuple[int, int], tuple[weakref.ref[PreparedVolume], PreparedVolume]] = OrderedDict()
+        self._lock = threading.Lock()
         #: Copies made (count): one per phase and axis while they stay in the cache.
         self.made = 0
 
@@ -122,6 +126,12 @@ class SlabCache:
             del self._slabs[dead]
 
     def get(self, volume: PreparedVolume, axis: int) -> PreparedVolume:
+        # A held view's cast beside the live frames (ProjectionCache's `through`) asks on its own
+        # thread while a moving frame may ask on the renderer's.
+        with self._lock:
+            return self._get(volume, axis)
+
+    def _get(self, volume: PreparedVolume, axis: int) -> PreparedVolume:
         self.drop_dead()
         key = (id(volume), axis)
         hit = self._slabs.get(key)
@@ -148,7 +158,8 @@ class SlabCache:
         return slab
 
     def clear(self) -> None:
-        self._slabs.clear()
+        with self._lock:
+            self._slabs.clear()
 
     @property
     def nbytes(self) -> int:
@@ -156,17 +167,26 @@ class SlabCache:
         return sum(slab.nbytes for _, slab in self._slabs.values())
 
 
+def slab_copy(caster, cache: SlabCache, volume: PreparedVolume, T_xray_from_ct: np.ndarray, zoom: int,
+              max_shift_px: float) -> PreparedVolume | None:
+    """The slab copy of `volume` to cast the field of `caster`'s matrix through, or None where the
+    field's steepest ray shifts more than `max_shift_px` (pixels of that matrix) within a slab."""
+    axis = dominant_axis(volume, T_xray_from_ct)
+    K = zoomed_K(caster.fluoroscope, zoom)
+    if in_slab_shift_px(K, caster.shape, volume, T_xray_from_ct, axis) > max_shift_px:
+        return None
+    return cache.get(volume, axis)
+
+
 def slab_cast(caster, cache: SlabCache, volume: PreparedVolume, T_xray_from_ct: np.ndarray, zoom: int,
               blend: tuple[PreparedVolume, float] | None, max_shift_px: float):
     """A stand-in for `caster.cast` (Renderer.render's `cast`) through the slabs of `volume` and
     of the blended phase, or None where the field's steepest ray shifts more than `max_shift_px`
     within a slab (then the frame is cast through the full volume)."""
-    axis = dominant_axis(volume, T_xray_from_ct)
-    K = zoomed_K(caster.fluoroscope, zoom)
-    if in_slab_shift_px(K, caster.shape, volume, T_xray_from_ct, axis) > max_shift_px:
+    slab = slab_copy(caster, cache, volume, T_xray_from_ct, zoom, max_shift_px)
+    if slab is None:
         return None
-    slab = cache.get(volume, axis)
-    slab_blend = None if blend is None else (cache.get(blend[0], axis), blend[1])
+    slab_blend = None if blend is None else (cache.get(blend[0], slab.slab_axis), blend[1])
 
     def cast(_volume, T, zoom_, collimation_mm, _blend, distorted, circle):
         return caster.cast(slab, T, zoom_, collimation_mm, slab_blend, distorted, circle)
