@@ -197,9 +197,9 @@ class ProgressiveRenderer:
     def _held_through(self, renderer: Renderer):
         """The projection cache's `through` for a held view's matrix: its slab copies where the
         field's steepest ray shifts within a slab by less than `rendering.rest_slab_max_shift_px`
-        of that matrix's pixels (half the samples; within the detector's point-spread, 0.6-0.7 px
-        sigma at 512 for the shipped intensifier, where the shift is 0.9 px for the adult chest),
-        else the phase itself; None without the setting (every held view through the full volume)."""
+        of that matrix's pixels (half the samples, the shift inside the detector's point-spread;
+        the profile's comment gives the figures), else the phase itself; None without the setting
+        (every held view through the full volume)."""
         limit, slabs = self.settings.rest_slab_max_shift_px, self.slabs
         if limit is None or slabs is None:
             return None
