@@ -2,8 +2,9 @@
 whose compiler builds drr.cl on this processor; one that cannot is skipped, and with none
 that can, the command says so in one line naming each device and what to install.
 
-Ground truth: each device's build of drr.cl tried here with pyopencl alone, in a process
-whose ICD loader sees only the vendor files the test chose (OCL_ICD_VENDORS): the pyopencl
+Ground truth: each device's build of drr.cl, and each of its kernels made, tried here with
+pyopencl alone, one device a process (a build can kill its process), whose ICD loader sees
+only the vendor files the test chose (OCL_ICD_VENDORS): the pyopencl
 wheel's own PoCL (whose LLVM may not know a processor newer than it) first, then this
 machine's installed ones. On a machine where every device builds, the same tests hold with
 the first device picked.
@@ -29,30 +30,53 @@ from appliance.xray.truth.analytic import box_volume
 REPO = Path(__file__).resolve().parents[1]
 WHEEL_ICD = Path(cl.__file__).parent / ".libs" / "pocl.icd"
 SYSTEM_VENDORS = Path("/etc/OpenCL/vendors")
+DRR_CL = resources.files("appliance.xray").joinpath("drr.cl").read_text()
 
-#: Run with the chosen vendors: each CPU device's own build of drr.cl, and pick_device's answer.
-PROBE = """
-import json, sys
+#: Run with the chosen vendors: this process's CPU devices, as "platform:device" indices with
+#: their names and versions.
+LIST = """
+import json
+import pyopencl as cl
+devices = [[f"{i}:{j}", d.name.strip(), p.version.strip()]
+           for i, p in enumerate(cl.get_platforms()) for j, d in enumerate(p.get_devices())
+           if d.type & cl.device_type.CPU]
+print(json.dumps(devices))
+"""
+
+#: Run with the chosen vendors, one device a process (argv: its indices): its build of drr.cl
+#: with the CPU's option, each kernel the source declares made from it, and the build log's
+#: "error:" lines in the compiler's order. Nothing is released: PoCL 3.0 on a processor its
+#: LLVM does not know aborts the process releasing a build that made no kernels.
+TRY = """
+import json, os, re, sys
 from importlib import resources
 import pyopencl as cl
+source = resources.files("appliance.xray").joinpath("drr.cl").read_text()
+i, j = (int(k) for k in sys.argv[1].split(":"))
+d = cl.get_platforms()[i].get_devices()[j]
+program = cl.Program(cl.Context([d]), source)
+answer = {"builds": True, "errors": []}
+try:
+    program.build(options=["-DUNALIGNED_PAIRS"])
+    kernels = [cl.Kernel(program, name) for name in re.findall(r"kernel void (\\w+)\\(", source)]
+    answer["kernels"] = len(kernels)
+except cl.Error as e:
+    answer = {"builds": False, "errors": [ln.strip() for ln in str(e).splitlines() if "error:" in ln]}
+print(json.dumps(answer), flush=True)
+os._exit(0)
+"""
+
+#: Run with the chosen vendors: pick_device's answer, the device's name and version or its refusal.
+PICK = """
+import json
 from appliance.errors import FluorosimError
 from appliance.xray.device import pick_device
-source = resources.files("appliance.xray").joinpath("drr.cl").read_text()
-devices = []
-for p in cl.get_platforms():
-    for d in p.get_devices(device_type=cl.device_type.CPU):
-        try:
-            cl.Program(cl.Context([d]), source).build(options=["-DUNALIGNED_PAIRS"])
-            builds = True
-        except cl.Error:
-            builds = False
-        devices.append([d.name.strip(), p.version.strip(), builds])
 try:
     d = pick_device("cpu")
     picked = [d.name.strip(), d.platform.version.strip()]
 except FluorosimError as e:
     picked = str(e)
-print(json.dumps({"devices": devices, "picked": picked}))
+print(json.dumps(picked))
 """
 
 
@@ -69,16 +93,33 @@ def vendors(tmp_path: Path, system: bool) -> dict[str, str]:
     return {**os.environ, "OCL_ICD_VENDORS": str(folder)}
 
 
-def probe(env: dict[str, str]) -> dict:
-    out = subprocess.run([sys.executable, "-c", PROBE], cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+def python(script: str, env: dict[str, str], *args: str):
+    out = subprocess.run([sys.executable, "-c", script, *args], cwd=REPO, env=env, capture_output=True, text=True,
+                         timeout=300)
     assert out.returncode == 0, out.stderr
     return json.loads(out.stdout.splitlines()[-1])
 
 
+def tried(env: dict[str, str]) -> list[list]:
+    """Each CPU device the vendors give, [name, version, builds, its build's error lines], from a
+    build of drr.cl in a process of its own (a device whose build kills that process cannot)."""
+    devices = []
+    for spec, name, version in python(LIST, env):
+        out = subprocess.run([sys.executable, "-c", TRY, spec], cwd=REPO, env=env, capture_output=True, text=True,
+                             timeout=300)
+        lines = out.stdout.splitlines()
+        answer = json.loads(lines[-1]) if lines else {"builds": False, "errors": []}
+        assert not answer["builds"] or answer["kernels"] == DRR_CL.count("\nkernel void "), answer
+        devices.append([name, version, answer["builds"], answer["errors"]])
+    return devices
+
+
 @pytest.fixture(scope="module")
 def listed(tmp_path_factory) -> dict:
-    """The probe's answer with the wheel's PoCL first and this machine's vendors after it."""
-    return probe(vendors(tmp_path_factory.mktemp("icd"), system=True))
+    """Each device's own build with the wheel's PoCL first and this machine's vendors after it,
+    and pick_device's answer there."""
+    env = vendors(tmp_path_factory.mktemp("icd"), system=True)
+    return {"devices": tried(env), "picked": python(PICK, env)}
 
 
 def test_a_device_that_cannot_build_is_skipped_for_the_first_that_can(listed):
@@ -89,7 +130,7 @@ def test_a_device_that_cannot_build_is_skipped_for_the_first_that_can(listed):
         assert picked == builders[0]
     else:
         assert isinstance(picked, str) and "pocl-opencl-icd" in picked
-        assert all(name in picked for name, _, _ in devices)
+        assert all(name in picked for name, *_ in devices)
 
 
 def test_with_no_device_that_builds_the_command_says_so_in_one_line(tmp_path, listed):
@@ -124,93 +165,59 @@ def test_with_no_device_that_builds_the_command_says_so_in_one_line(tmp_path, li
 @pytest.mark.parametrize("device", ["auto", "cpu"])
 def test_the_device_picked_here_builds_drr_cl_with_and_without_blending(device):
     d = pick_device(device)
-    source = resources.files("appliance.xray").joinpath("drr.cl").read_text()
     options = ["-DUNALIGNED_PAIRS"] if d.type & cl.device_type.CPU else []
     for extra in ([], ["-DBLEND"]):
-        cl.Program(cl.Context([d]), source).build(options=options + extra)
+        cl.Program(cl.Context([d]), DRR_CL).build(options=options + extra)
     if device == "cpu":                         # PoCL's device, never a GPU listed beside it
         assert d.type & cl.device_type.CPU and not d.type & cl.device_type.GPU
     assert ClDevice(device).device.int_ptr == d.int_ptr
 
 
-#: Run with the chosen vendors: how many kernel builds each of three pick_device("cpu") calls
-#: makes (every build of this process counted, the builds themselves real).
+#: Run with the chosen vendors: how many build probes each of three pick_device("cpu") calls
+#: starts (every process device.py starts counted, the probes themselves real).
 COUNTED = """
 import json
-import pyopencl as cl
 from appliance.errors import FluorosimError
-from appliance.xray.device import pick_device
-builds = []
-build = cl.Program.build
-def counted(self, *args, **kwargs):
-    builds.append(1)
-    return build(self, *args, **kwargs)
-cl.Program.build = counted
+from appliance.xray import device
+started = []
+run = device.subprocess.run
+def counted(*args, **kwargs):
+    started.append(1)
+    return run(*args, **kwargs)
+device.subprocess.run = counted
 per_call = []
 for _ in range(3):
-    before = len(builds)
+    before = len(started)
     try:
-        pick_device("cpu")
+        device.pick_device("cpu")
     except FluorosimError:
         pass
-    per_call.append(len(builds) - before)
+    per_call.append(len(started) - before)
 print(json.dumps(per_call))
 """
 
 
 def test_each_device_is_tried_once_a_process(tmp_path, listed):
-    """The first pick tries the devices in order up to the first that builds (all of them when
-    none does: the probe's own builds tell which); later picks build nothing again."""
+    """The first pick probes the devices in order up to the first that builds (all of them when
+    none does), in one process unless a build kills it; later picks probe nothing again."""
     builds = [d[2] for d in listed["devices"]]
     tried = builds.index(True) + 1 if True in builds else len(builds)
-    out = subprocess.run([sys.executable, "-c", COUNTED], cwd=REPO, env=vendors(tmp_path, system=True),
-                         capture_output=True, text=True, timeout=120)
-    assert out.returncode == 0, out.stderr
-    assert json.loads(out.stdout.splitlines()[-1]) == [tried, 0, 0]
-
-
-#: Run with the chosen vendors: each CPU device's build log of pick_device's probe kernel (its
-#: "error:" lines, in the compiler's order), and pick_device's refusal.
-LOGGED = """
-import json
-import pyopencl as cl
-from appliance.errors import FluorosimError
-from appliance.xray.device import pick_device
-source = "__kernel void probe(__global float *a) { a[get_global_id(0)] *= 2.0f; }"
-errors = []
-for p in cl.get_platforms():
-    for d in p.get_devices(device_type=cl.device_type.CPU):
-        program = cl.Program(cl.Context([d]), source)
-        try:
-            program.build()
-            log = ""
-        except cl.Error:
-            log = program.get_build_info(d, cl.program_build_info.LOG)
-        errors.append([d.name.strip(), p.version.strip(), [ln.strip() for ln in log.splitlines() if "error:" in ln]])
-try:
-    pick_device("cpu")
-    refusal = None
-except FluorosimError as e:
-    refusal = str(e)
-print(json.dumps({"errors": errors, "refusal": refusal}))
-"""
+    first, *later = python(COUNTED, vendors(tmp_path, system=True))
+    assert 1 <= first <= tried and later == [0, 0]
 
 
 def test_a_device_that_cannot_build_is_named_with_its_compilers_first_error(tmp_path):
     """PoCL adds POCL_EXTRA_BUILD_FLAGS to every build: a macro that turns get_global_id into
-    two undeclared names breaks the probe kernel with several errors, the first in PoCL's own
-    header, the last naming the second name. The refusal names each device with its
-    compiler's first error line (the cause; the rest follow from it), never its last."""
+    two undeclared names breaks drr.cl with several errors, the first in PoCL's own header, the
+    last naming the second name. The refusal names each device with its compiler's first
+    error line (the cause; the rest follow from it), never its last."""
     env = {**vendors(tmp_path, system=True),
            "POCL_EXTRA_BUILD_FLAGS": "-Dget_global_id(x)=(x+undeclared_first+undeclared_second)"}
-    out = subprocess.run([sys.executable, "-c", LOGGED], cwd=REPO, env=env, capture_output=True, text=True,
-                         timeout=120)
-    assert out.returncode == 0, out.stderr
-    answer = json.loads(out.stdout.splitlines()[-1])
-    refusal = answer["refusal"]
-    assert refusal is not None and refusal.startswith("no OpenCL device here can compile kernels")
-    several = [(name, version, errors) for name, version, errors in answer["errors"] if len(set(errors)) >= 2]
-    assert several, answer["errors"]            # Debian's PoCL reports each error on a line of its own
+    devices = tried(env)
+    refusal = python(PICK, env)
+    assert isinstance(refusal, str) and refusal.startswith("no OpenCL device here can compile kernels")
+    several = [(name, version, errors) for name, version, _, errors in devices if len(set(errors)) >= 2]
+    assert several, devices                     # Debian's PoCL reports each error on a line of its own
     for name, version, errors in several:
         assert f"{name} ({version}): {errors[0]}" in refusal
         assert errors[-1] not in refusal

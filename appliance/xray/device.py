@@ -7,12 +7,16 @@ for what they need.
 
 from __future__ import annotations
 
+import json
+import signal
+import subprocess
+import sys
 import threading
-from importlib import resources
 
 import numpy as np
 
 from ..errors import FluorosimError
+from . import build_probe
 
 
 def pick_device(device: str):
@@ -44,8 +48,7 @@ def pick_device(device: str):
         raise FluorosimError(f"no OpenCL {'device' if device == 'auto' else device + ' device'} found; "
                              "install PoCL (pip install 'pyopencl[pocl]') or the GPU's OpenCL driver")
     refusals = []
-    for d in choice:
-        why = _cannot_compile(d)
+    for d, why in _probed(choice, platforms):
         if why is None:
             return d
         refusals.append(f"{d.name.strip()} ({d.platform.version.strip()}): {why}")
@@ -54,30 +57,60 @@ def pick_device(device: str):
                          "or a PoCL whose LLVM knows this processor")
 
 
-_PROBE_KERNEL = "__kernel void probe(__global float *a) { a[get_global_id(0)] *= 2.0f; }"
-_compile_checked: dict[int, str | None] = {}
+#: Each device's probe answer this process has had, by the device's handle: None where it
+#: builds drr.cl and makes its kernels, else why not.
+_probe_answers: dict[int, str | None] = {}
+_PROBE_TIMEOUT_S = 600.0
 
 
-def _cannot_compile(d) -> str | None:
-    """Why device `d` cannot build a kernel, or None if it can.
+def _probed(devices: list, platforms: list):
+    """(device, why) for `devices` in order up to the first that builds (why None), each asked
+    of a build_probe process once a process.
 
     A PoCL is built against one LLVM, which names the host processor for code generation; on a
-    processor newer than that LLVM (PoCL 3.0's LLVM 14 on an AMD family 1Ah EPYC, say) it
-    names it 'generic', which LLVM's x86 back end refuses, so every build fails. Another PoCL
-    on the same machine (Debian's picks a kernel-library target by the processor's features)
-    may build fine: the first device that builds a trivial kernel is the one used.
+    processor newer than that LLVM it may refuse every build ('generic' on an AMD family 1Ah
+    EPYC) or, worse, build drr.cl and make none of its kernels (LLVM 14 on Zen 4), and then
+    abort the process when the build is released. So the builds are tried in a process of
+    their own; another PoCL on the same machine (Debian's picks a kernel-library target by the
+    processor's features) may build fine, and its kernels come from the compiler's cache when
+    the renderer builds them here.
     """
-    import pyopencl as cl
+    for d in devices:
+        if d.int_ptr not in _probe_answers:
+            _ask_probe([e for e in devices if e.int_ptr not in _probe_answers], platforms)
+        why = _probe_answers[d.int_ptr]
+        yield d, why
+        if why is None:
+            return
 
-    key = d.int_ptr
-    if key not in _compile_checked:
+
+def _ask_probe(devices: list, platforms: list) -> None:
+    """Run one build_probe over `devices`: its lines answer those it tried; the first without a
+    line, where the probe died, is answered with how it died. The rest wait for the next."""
+    specs = {f"{platforms.index(d.platform)}:{d.platform.get_devices().index(d)}": d for d in devices}
+    try:
+        out = subprocess.run([sys.executable, str(build_probe.__file__), *specs], capture_output=True,
+                             stdin=subprocess.DEVNULL, text=True, timeout=_PROBE_TIMEOUT_S)
+        answers = [json.loads(line) for line in out.stdout.splitlines() if line.startswith("{")]
+        said = (out.stderr.strip().splitlines() or [""])[-1]
+        died = (f"its compiler killed the probe process ({_exit_status(out.returncode)}{': ' + said if said else ''})"
+                if out.returncode else "the probe process ended before trying it")
+    except subprocess.TimeoutExpired:
+        answers, died = [], f"its compiler did not finish drr.cl within {_PROBE_TIMEOUT_S:.0f} s"
+    for answer in answers:
+        _probe_answers[specs[answer["device"]].int_ptr] = answer["why"]
+    untried = [d for d in devices if d.int_ptr not in _probe_answers]
+    if untried and all(answer["why"] is not None for answer in answers):
+        _probe_answers[untried[0].int_ptr] = died
+
+
+def _exit_status(returncode: int) -> str:
+    if returncode < 0:
         try:
-            cl.Program(cl.Context([d]), _PROBE_KERNEL).build()
-            _compile_checked[key] = None
-        except cl.Error as e:
-            lines = [ln.strip() for ln in str(e).splitlines() if "error:" in ln]
-            _compile_checked[key] = lines[0] if lines else str(e).splitlines()[0]
-    return _compile_checked[key]
+            return signal.Signals(-returncode).name
+        except ValueError:
+            pass
+    return f"exit status {returncode}"
 
 
 class ClDevice:
@@ -94,8 +127,8 @@ class ClDevice:
         self.ctx = cl.Context([self.device])
         self.queue = cl.CommandQueue(self.ctx)
         self.is_cpu = bool(self.device.type & cl.device_type.CPU)
-        self.source = resources.files("appliance.xray").joinpath("drr.cl").read_text()
-        self.options = ["-DUNALIGNED_PAIRS"] if self.is_cpu else []
+        self.source = build_probe.SOURCE.read_text()
+        self.options = build_probe.build_options(self.is_cpu)
         self.program = cl.Program(self.ctx, self.source).build(options=self.options)
         self._blend_program: cl.Program | None = None
         self.lock = threading.Lock()
