@@ -32,14 +32,18 @@ WHEEL_ICD = Path(cl.__file__).parent / ".libs" / "pocl.icd"
 SYSTEM_VENDORS = Path("/etc/OpenCL/vendors")
 DRR_CL = resources.files("appliance.xray").joinpath("drr.cl").read_text()
 
-#: Run with the chosen vendors: this process's CPU devices, as "platform:device" indices with
-#: their names and versions.
+#: Run with the chosen vendors: this process's CPU devices, each once, as "platform:device"
+#: indices with their names and versions (a loader that reads one PoCL's vendor file twice
+#: lists its platform twice, the same device in both).
 LIST = """
 import json
 import pyopencl as cl
-devices = [[f"{i}:{j}", d.name.strip(), p.version.strip()]
-           for i, p in enumerate(cl.get_platforms()) for j, d in enumerate(p.get_devices())
-           if d.type & cl.device_type.CPU]
+devices, seen = [], set()
+for i, p in enumerate(cl.get_platforms()):
+    for j, d in enumerate(p.get_devices()):
+        if d.type & cl.device_type.CPU and d.int_ptr not in seen:
+            seen.add(d.int_ptr)
+            devices.append([f"{i}:{j}", d.name.strip(), p.version.strip()])
 print(json.dumps(devices))
 """
 
@@ -221,3 +225,37 @@ def test_a_device_that_cannot_build_is_named_with_its_compilers_first_error(tmp_
     for name, version, errors in several:
         assert f"{name} ({version}): {errors[0]}" in refusal
         assert errors[-1] not in refusal
+
+
+#: On PYTHONPATH as sitecustomize: a build probe whose first device is $KILL_PROBE_OF aborts at
+#: once, as a compiler that takes its process with it does (the abort is real, only its cause is
+#: staged; a later probe starting from another device runs as it would).
+KILLER = """
+import os, signal, sys
+if sys.argv[0].endswith("build_probe.py") and sys.argv[1:2] == [os.environ.get("KILL_PROBE_OF")]:
+    os.kill(os.getpid(), signal.SIGABRT)
+"""
+
+
+def test_a_device_whose_probe_dies_is_named_by_its_signal_and_the_next_is_tried(tmp_path, listed):
+    """The first device's probe process is killed by SIGABRT: the pick goes on, in a new probe,
+    to the devices after it, and picks the first of them that builds by the ground truth; where
+    none does, the refusal names the first device with the signal and each after it with its
+    own reason. Both with this machine's vendors and with the wheel's PoCL alone."""
+    (tmp_path / "site").mkdir()
+    (tmp_path / "site" / "sitecustomize.py").write_text(KILLER)
+    for system in (True, False):
+        folder = tmp_path / f"system-{system}"
+        folder.mkdir()
+        env = vendors(folder, system=system)
+        devices = listed["devices"] if system else tried(env)
+        spec, name, version = python(LIST, env)[0]
+        picked = python(PICK, {**env, "PYTHONPATH": str(tmp_path / "site"), "KILL_PROBE_OF": spec})
+        builders = [d[:2] for d in devices[1:] if d[2]]
+        if builders:
+            assert picked == builders[0]
+            continue
+        assert isinstance(picked, str), picked
+        first, *rest = picked[picked.index("machine (") + 9:picked.rindex("); install")].split("; ")
+        assert f"{name} ({version}): its compiler killed the probe process (SIGABRT" in first
+        assert len(rest) == len(devices) - 1 and not any("SIGABRT" in part for part in rest)

@@ -30,13 +30,16 @@ def pick_device(device: str):
         platforms = cl.get_platforms()
     except cl.Error:
         platforms = []
-    gpus, cpus = [], []
+    gpus, cpus, seen = [], [], set()
     for p in platforms:
         try:
             devs = p.get_devices()
         except cl.Error:
             continue
         for d in devs:
+            if d.int_ptr in seen:       # a loader that reads one vendor file twice lists its platform twice
+                continue
+            seen.add(d.int_ptr)
             if d.type & cl.device_type.GPU:
                 gpus.append(d)
             elif d.type & cl.device_type.CPU:
