@@ -70,17 +70,22 @@ print(json.dumps(answer), flush=True)
 os._exit(0)
 """
 
-#: Run with the chosen vendors: pick_device's answer, the device's name and version or its refusal.
+#: Run with the chosen vendors: pick_device's answer, the device's name and version or its
+#: refusal, then the warnings it logged.
 PICK = """
-import json
+import json, logging
 from appliance.errors import FluorosimError
 from appliance.xray.device import pick_device
+warned = []
+handler = logging.Handler(logging.WARNING)
+handler.emit = lambda record: warned.append(record.getMessage())
+logging.getLogger("appliance").addHandler(handler)
 try:
     d = pick_device("cpu")
     picked = [d.name.strip(), d.platform.version.strip()]
 except FluorosimError as e:
     picked = str(e)
-print(json.dumps(picked))
+print(json.dumps([picked, warned]))
 """
 
 
@@ -123,7 +128,8 @@ def listed(tmp_path_factory) -> dict:
     """Each device's own build with the wheel's PoCL first and this machine's vendors after it,
     and pick_device's answer there."""
     env = vendors(tmp_path_factory.mktemp("icd"), system=True)
-    return {"devices": tried(env), "picked": python(PICK, env)}
+    picked, warned = python(PICK, env)
+    return {"devices": tried(env), "picked": picked, "warned": warned}
 
 
 def test_a_device_that_cannot_build_is_skipped_for_the_first_that_can(listed):
@@ -132,6 +138,10 @@ def test_a_device_that_cannot_build_is_skipped_for_the_first_that_can(listed):
     builders = [d[:2] for d in devices if d[2]]
     if builders:
         assert picked == builders[0]
+        passed_over = devices[:[d[:2] for d in devices].index(builders[0])]
+        assert len(listed["warned"]) == len(passed_over)     # each named in the log, why included
+        for (name, version, *_), line in zip(passed_over, listed["warned"]):
+            assert f"skipped, it cannot compile the renderer's kernels: {name} ({version}): " in line
     else:
         assert isinstance(picked, str) and "pocl-opencl-icd" in picked
         assert all(name in picked for name, *_ in devices)
@@ -218,7 +228,7 @@ def test_a_device_that_cannot_build_is_named_with_its_compilers_first_error(tmp_
     env = {**vendors(tmp_path, system=True),
            "POCL_EXTRA_BUILD_FLAGS": "-Dget_global_id(x)=(x+undeclared_first+undeclared_second)"}
     devices = tried(env)
-    refusal = python(PICK, env)
+    refusal, _ = python(PICK, env)
     assert isinstance(refusal, str) and refusal.startswith("no OpenCL device here can compile kernels")
     several = [(name, version, errors) for name, version, _, errors in devices if len(set(errors)) >= 2]
     assert several, devices                     # Debian's PoCL reports each error on a line of its own
@@ -250,7 +260,7 @@ def test_a_device_whose_probe_dies_is_named_by_its_signal_and_the_next_is_tried(
         env = vendors(folder, system=system)
         devices = listed["devices"] if system else tried(env)
         spec, name, version = python(LIST, env)[0]
-        picked = python(PICK, {**env, "PYTHONPATH": str(tmp_path / "site"), "KILL_PROBE_OF": spec})
+        picked, _ = python(PICK, {**env, "PYTHONPATH": str(tmp_path / "site"), "KILL_PROBE_OF": spec})
         builders = [d[:2] for d in devices[1:] if d[2]]
         if builders:
             assert picked == builders[0]

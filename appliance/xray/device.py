@@ -8,6 +8,7 @@ for what they need.
 from __future__ import annotations
 
 import json
+import logging
 import signal
 import subprocess
 import sys
@@ -17,6 +18,8 @@ import numpy as np
 
 from ..errors import FluorosimError
 from . import build_probe
+
+log = logging.getLogger(__name__)
 
 
 def pick_device(device: str):
@@ -50,9 +53,11 @@ def pick_device(device: str):
     if not choice:
         raise FluorosimError(f"no OpenCL {'device' if device == 'auto' else device + ' device'} found; "
                              "install PoCL (pip install 'pyopencl[pocl]') or the GPU's OpenCL driver")
-    refusals = []
+    refusals: list[str] = []
     for d, why in _probed(choice, platforms):
         if why is None:
+            for refusal in refusals:        # a service technician sees why a device was passed over
+                log.warning("OpenCL device skipped, it cannot compile the renderer's kernels: %s", refusal)
             return d
         refusals.append(f"{d.name.strip()} ({d.platform.version.strip()}): {why}")
     raise FluorosimError("no OpenCL device here can compile kernels for this machine ("
