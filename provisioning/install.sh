@@ -111,6 +111,17 @@ install_file() {   # install_file MODE SOURCE DEST (DEST under $ROOT); replaced 
     install -D -m "$1" "$SRC/$2" "$ROOT$3"
 }
 
+install_nvidia_modules() {   # only where the tree has the driver: a module not there fails the boot's module loading
+    local conf=/etc/modules-load.d/fluorosim-nvidia.conf found
+    found=$(find "$ROOT/lib/modules" "$ROOT/usr/lib/modules" -name 'nvidia-uvm.ko*' 2>/dev/null || true)
+    if [ -n "$found" ]; then
+        install_file 0644 provisioning/modules-fluorosim-nvidia.conf "$conf"
+    else
+        rm -f "$ROOT$conf"
+        echo "    no NVIDIA driver (nvidia-uvm.ko) under $ROOT/lib/modules: nothing to load"
+    fi
+}
+
 code_tar() {   # the code as a reproducible tar stream: same tree, same bytes, same release id
     tar -C "$SRC" --exclude=__pycache__ --exclude='*.pyc' --exclude='*.egg-info' --sort=name --mtime=@0 \
         --owner=0 --group=0 --numeric-owner -cf - \
@@ -311,6 +322,8 @@ file_step "install the udev rules /etc/udev/rules.d/99-fluorosim.rules (/dev/flu
     install_file 0644 systemd/99-fluorosim.rules /etc/udev/rules.d/99-fluorosim.rules
 file_step "load the device drivers at boot (/etc/modules-load.d/fluorosim.conf)" \
     install_file 0644 provisioning/modules-fluorosim.conf /etc/modules-load.d/fluorosim.conf
+file_step "load NVIDIA's compute driver at boot where it is installed (/etc/modules-load.d/fluorosim-nvidia.conf)" \
+    install_nvidia_modules
 file_step "keep the journal across reboots (/var/log/journal, journald.conf.d/fluorosim.conf)" persistent_journal
 system_step "apply the journal settings (systemd-tmpfiles, restart systemd-journald)" apply_journal
 file_step "boot into the service: enable fluorosim.service, default multi-user.target, no getty on tty1, quiet boot" \

@@ -204,6 +204,27 @@ def test_grub_password_script_emits_the_superuser(tmp_path):
                                           "password_pbkdf2 fluorosim-admin grub.pbkdf2.sha512.10000.AB.CD"]
 
 
+def test_nvidias_compute_driver_is_loaded_at_boot_only_where_the_tree_has_it(installed, tmp_path):
+    """The modules-load file for NVIDIA's driver (nvidia-uvm, which its OpenCL needs and the
+    sandboxed service cannot load itself) is installed where the tree being installed holds
+    that module (as DKMS builds it), and taken away again once the module is gone: a module
+    named there but missing fails the boot's module loading."""
+    conf = "etc/modules-load.d/fluorosim-nvidia.conf"
+    root, out = installed
+    assert not (root / conf).exists() and "no NVIDIA driver (nvidia-uvm.ko)" in out
+    image = tmp_path / "root"
+    module = image / "lib/modules/6.1.0-28-amd64/updates/dkms/nvidia-uvm.ko.xz"
+    module.parent.mkdir(parents=True)
+    module.write_bytes(b"")                 # the driver package's file; its content is not read
+    assert run_install("--root", str(image)).returncode == 0
+    assert (image / conf).read_bytes() == (REPO / "provisioning/modules-fluorosim-nvidia.conf").read_bytes()
+    loaded = [ln for ln in (image / conf).read_text().splitlines() if ln and not ln.startswith("#")]
+    assert loaded == ["nvidia", "nvidia-uvm"]
+    module.unlink()
+    again = run_install("--root", str(image))
+    assert again.returncode == 0 and not (image / conf).exists()
+
+
 def test_system_changes_are_listed_as_skipped_under_root(installed):
     _, out = installed
     skipped = [line for line in out.splitlines() if line.startswith("skipped (--root):")]

@@ -153,6 +153,9 @@ def test_unit_user_groups_devices_and_writable_state():
     allowed = {v.split()[0]: v.split()[1] for v in s[("Service", "DeviceAllow")]}
     for device in ("char-input", "char-video4linux", "char-ttyUSB", "char-ttyACM", "/dev/fb0"):
         assert allowed.get(device) == "rw", device
+    # The GPU's OpenCL: render nodes, NVIDIA's nodes under either name of its major, its UVM, AMD's KFD.
+    for device in ("char-drm", "char-nvidia", "char-nvidia-frontend", "char-nvidia-uvm", "char-kfd"):
+        assert allowed.get(device) == "rw", device
     assert one(s, "Service", "IPAddressDeny") == "any"
     assert "AF_NETLINK" in one(s, "Service", "RestrictAddressFamilies").split()
     assert one(s, "Service", "CapabilityBoundingSet") == ""
