@@ -16,8 +16,9 @@ BIN    := $(VENV)/bin
 # PACS the DICOM sending tests store into, on loopback in a network namespace of their own
 # (iproute2 brings its lo up); openssl makes the certificates of the DICOM-over-TLS test;
 # grub-common gives Debian's grub.d scripts, grub-mkpasswd-pbkdf2 and grub-script-check, which
-# make and parse the locked boot menu provisioning writes.
-APT_PACKAGES := libsystemd-dev pkg-config pocl-opencl-icd dicom3tools systemd python3-venv gcc linux-libc-dev alsa-utils dcmtk orthanc iproute2 openssl grub-common
+# make and parse the locked boot menu provisioning writes; clang-15 (PoCL's own compiler) also
+# compiles drr.cl for GPU targets in a test, where no GPU is.
+APT_PACKAGES := libsystemd-dev pkg-config pocl-opencl-icd clang-15 dicom3tools systemd python3-venv gcc linux-libc-dev alsa-utils dcmtk orthanc iproute2 openssl grub-common
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 .PHONY: demo test lint setup system-packages bench mutation mutation-console mutation-display mutation-dose \
