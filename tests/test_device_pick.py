@@ -269,3 +269,21 @@ def test_a_device_whose_probe_dies_is_named_by_its_signal_and_the_next_is_tried(
         first, *rest = picked[picked.index("machine (") + 9:picked.rindex("); install")].split("; ")
         assert f"{name} ({version}): its compiler killed the probe process (SIGABRT" in first
         assert len(rest) == len(devices) - 1 and not any("SIGABRT" in part for part in rest)
+
+
+#: On PYTHONPATH as sitecustomize: a build probe's standard output opens with lines a driver
+#: might print there (POCL_DEBUG and some ICDs write to it), one of them JSON of another shape.
+NOISY = """
+import sys
+if sys.argv[0].endswith("build_probe.py"):
+    print("{ driver banner", flush=True)
+    print('{"version": 3}', flush=True)
+    print("[pocl] debug line", flush=True)
+"""
+
+
+def test_what_a_driver_prints_beside_the_probes_answers_is_not_taken_for_one(tmp_path, listed):
+    (tmp_path / "site").mkdir()
+    (tmp_path / "site" / "sitecustomize.py").write_text(NOISY)
+    picked, _ = python(PICK, {**vendors(tmp_path, system=True), "PYTHONPATH": str(tmp_path / "site")})
+    assert picked == listed["picked"]

@@ -99,7 +99,7 @@ def _ask_probe(devices: list, platforms: list) -> None:
     try:
         out = subprocess.run([sys.executable, str(build_probe.__file__), *specs], capture_output=True,
                              stdin=subprocess.DEVNULL, text=True, timeout=_PROBE_TIMEOUT_S)
-        answers = [json.loads(line) for line in out.stdout.splitlines() if line.startswith("{")]
+        answers = [a for a in map(_answer, out.stdout.splitlines()) if a is not None and a["device"] in specs]
         said = (out.stderr.strip().splitlines() or [""])[-1]
         died = (f"its compiler killed the probe process ({_exit_status(out.returncode)}{': ' + said if said else ''})"
                 if out.returncode else "the probe process ended before trying it")
@@ -110,6 +110,15 @@ def _ask_probe(devices: list, platforms: list) -> None:
     untried = [d for d in devices if d.int_ptr not in _probe_answers]
     if untried and all(answer["why"] is not None for answer in answers):
         _probe_answers[untried[0].int_ptr] = died
+
+
+def _answer(line: str) -> dict | None:
+    """A build_probe line, or None for anything else a driver may print on its standard output."""
+    try:
+        answer = json.loads(line)
+    except ValueError:
+        return None
+    return answer if isinstance(answer, dict) and isinstance(answer.get("device"), str) else None
 
 
 def _exit_status(returncode: int) -> str:
