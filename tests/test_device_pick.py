@@ -187,8 +187,8 @@ def test_the_device_picked_here_builds_drr_cl_with_and_without_blending(device):
     assert ClDevice(device).device.int_ptr == d.int_ptr
 
 
-#: Run with the chosen vendors: how many build probes each of three pick_device("cpu") calls
-#: starts (every process device.py starts counted, the probes themselves real).
+#: Run with the chosen vendors: how many build probes three pick_device("cpu") calls at once
+#: start, then each of two more (every process device.py starts counted, the probes real).
 COUNTED = """
 import json
 from appliance.errors import FluorosimError
@@ -199,21 +199,30 @@ def counted(*args, **kwargs):
     started.append(1)
     return run(*args, **kwargs)
 device.subprocess.run = counted
-per_call = []
-for _ in range(3):
-    before = len(started)
+def pick():
     try:
         device.pick_device("cpu")
     except FluorosimError:
         pass
+import threading
+together = [threading.Thread(target=pick) for _ in range(3)]      # three renderers made at once
+for t in together:
+    t.start()
+for t in together:
+    t.join()
+per_call = [len(started)]
+for _ in range(2):
+    before = len(started)
+    pick()
     per_call.append(len(started) - before)
 print(json.dumps(per_call))
 """
 
 
 def test_each_device_is_tried_once_a_process(tmp_path, listed):
-    """The first pick probes the devices in order up to the first that builds (all of them when
-    none does), in one process unless a build kills it; later picks probe nothing again."""
+    """The first picks, three at once, probe the devices in order up to the first that builds
+    (all of them when none does) once, in one process unless a build kills it; later picks
+    probe nothing again."""
     builds = [d[2] for d in listed["devices"]]
     tried = builds.index(True) + 1 if True in builds else len(builds)
     first, *later = python(COUNTED, vendors(tmp_path, system=True))

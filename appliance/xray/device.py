@@ -54,12 +54,15 @@ def pick_device(device: str):
         raise FluorosimError(f"no OpenCL {'device' if device == 'auto' else device + ' device'} found; "
                              "install PoCL (pip install 'pyopencl[pocl]') or the GPU's OpenCL driver")
     refusals: list[str] = []
-    for d, why in _probed(choice, platforms):
-        if why is None:
-            for refusal in refusals:        # a service technician sees why a device was passed over
-                log.warning("OpenCL device skipped, it cannot compile the renderer's kernels: %s", refusal)
-            return d
-        refusals.append(f"{d.name.strip()} ({d.platform.version.strip()}): {why}")
+    with _probe_lock:                       # two renderers made at once probe once
+        for d, why in _probed(choice, platforms):
+            if why is None:
+                for refusal in refusals:    # a service technician sees why a device was passed over, once
+                    if refusal not in _logged:
+                        _logged.add(refusal)
+                        log.warning("OpenCL device skipped, it cannot compile the renderer's kernels: %s", refusal)
+                return d
+            refusals.append(f"{d.name.strip()} ({d.platform.version.strip()}): {why}")
     raise FluorosimError("no OpenCL device here can compile kernels for this machine ("
                          + "; ".join(refusals) + "); install Debian's pocl-opencl-icd (make setup does) "
                          "or a PoCL whose LLVM knows this processor")
@@ -68,6 +71,9 @@ def pick_device(device: str):
 #: Each device's probe answer this process has had, by the device's handle: None where it
 #: builds drr.cl and makes its kernels, else why not.
 _probe_answers: dict[int, str | None] = {}
+_probe_lock = threading.Lock()
+#: The devices passed over that this process has logged (their refusals).
+_logged: set[str] = set()
 _PROBE_TIMEOUT_S = 600.0
 
 
