@@ -12,6 +12,7 @@ the first device picked.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import subprocess
@@ -147,12 +148,8 @@ def test_a_device_that_cannot_build_is_skipped_for_the_first_that_can(listed):
         assert all(name in picked for name, *_ in devices)
 
 
-def test_with_no_device_that_builds_the_command_says_so_in_one_line(tmp_path, listed):
-    """`fluorosim render` with only the wheel's PoCL (the probe's first device): on a processor
-    its LLVM does not know, it cannot build, and the command exits with one line naming the
-    device and pocl-opencl-icd, no traceback; where it builds, the render succeeds."""
-    env = vendors(tmp_path, system=False)
-    wheel = listed["devices"][0]
+def render_a_box(tmp_path: Path, env: dict[str, str]) -> subprocess.CompletedProcess:
+    """`fluorosim render` of a small water box in `tmp_path`, to li.npy there."""
     vol, _, _ = box_volume((8, 8, 8), (5.0, 5.0, 5.0), (2, 2, 2), (5, 5, 5), hu=0)
     img = sitk.GetImageFromArray(vol.hu)
     img.SetSpacing((5.0, 5.0, 5.0))
@@ -160,10 +157,18 @@ def test_with_no_device_that_builds_the_command_says_so_in_one_line(tmp_path, li
     sitk.WriteImage(img, str(tmp_path / "box.nii.gz"))
     (tmp_path / "pose.yaml").write_text("T_xray_from_ct:\n  - [1, 0, 0, 0]\n  - [0, 1, 0, 0]\n  - [0, 0, 1, 750]\n"
                                         "  - [0, 0, 0, 1]\n")
-    out = subprocess.run([sys.executable, "-m", "appliance", "render", "--volume", "box.nii.gz", "--fluoroscope",
-                          str(REPO / "configs/fluoroscopes/generic-flat-detector.yaml"), "--pose", "pose.yaml",
-                          "--quantity", "line-integral", "--size", "32", "--output", "li.npy"],
-                         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    return subprocess.run([sys.executable, "-m", "appliance", "render", "--volume", "box.nii.gz", "--fluoroscope",
+                           str(REPO / "configs/fluoroscopes/generic-flat-detector.yaml"), "--pose", "pose.yaml",
+                           "--quantity", "line-integral", "--size", "32", "--output", "li.npy"],
+                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+
+
+def test_with_no_device_that_builds_the_command_says_so_in_one_line(tmp_path, listed):
+    """`fluorosim render` with only the wheel's PoCL (the probe's first device): on a processor
+    its LLVM does not know, it cannot build, and the command exits with one line naming the
+    device and pocl-opencl-icd, no traceback; where it builds, the render succeeds."""
+    wheel = listed["devices"][0]
+    out = render_a_box(tmp_path, vendors(tmp_path, system=False))
     if wheel[2]:
         assert out.returncode == 0, out.stderr
         assert np.load(tmp_path / "li.npy").max() > 0
@@ -296,3 +301,43 @@ def test_what_a_driver_prints_beside_the_probes_answers_is_not_taken_for_one(tmp
     (tmp_path / "site" / "sitecustomize.py").write_text(NOISY)
     picked, _ = python(PICK, {**vendors(tmp_path, system=True), "PYTHONPATH": str(tmp_path / "site")})
     assert picked == listed["picked"]
+
+
+@pytest.fixture
+def full_folder(tmp_path):
+    """A folder on a 64 KiB tmpfs filled to the last block (a full disk), where this process
+    may mount one; else the test using it is skipped."""
+    folder = tmp_path / "full"
+    folder.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(folder)],
+                      capture_output=True).returncode != 0:
+        pytest.skip("cannot mount a tmpfs here (needs root): the full disk is not staged")
+    try:
+        with open(folder / "fill", "wb", buffering=0) as f:
+            with contextlib.suppress(OSError):
+                while True:
+                    f.write(bytes(4096))
+        yield folder
+    finally:
+        subprocess.run(["umount", str(folder)], capture_output=True)
+
+
+@pytest.mark.parametrize("where", ["under a file", "on a full disk"])
+def test_a_kernel_cache_that_cannot_be_written_is_named_in_one_line(tmp_path, request, where):
+    """PoCL compiles into its kernel cache (POCL_CACHE_DIR): where that cannot be written, it
+    lists no device or fails every build. The command says so in one line naming the folder and
+    what to do, not "install another OpenCL", with no traceback and no image written."""
+    if where == "under a file":
+        (tmp_path / "a-file").write_text("")
+        cache = tmp_path / "a-file" / "pocl"
+    else:
+        cache = request.getfixturevalue("full_folder") / "pocl"
+    work = tmp_path / "work"
+    work.mkdir()
+    out = render_a_box(work, {**os.environ, "POCL_CACHE_DIR": str(cache)})
+    lines = out.stderr.strip().splitlines()
+    assert out.returncode != 0 and "Traceback" not in out.stderr
+    assert lines[-1].startswith("fluorosim: no OpenCL device can compile kernels: PoCL's kernel cache"), lines
+    assert str(cache) in lines[-1] and "POCL_CACHE_DIR" in lines[-1]
+    assert len([ln for ln in lines if ln.startswith("fluorosim:")]) == 1
+    assert not (work / "li.npy").exists()

@@ -9,10 +9,13 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
+from pathlib import Path
 
 import numpy as np
 
@@ -51,6 +54,7 @@ def pick_device(device: str):
         raise FluorosimError(f"OpenCL device '{device}' is not one of auto, cpu, gpu")
     choice = (gpus if device == "gpu" else cpus if device == "cpu" else gpus + cpus)
     if not choice:
+        _refuse_for_the_cache()
         raise FluorosimError(f"no OpenCL {'device' if device == 'auto' else device + ' device'} found; "
                              "install PoCL (pip install 'pyopencl[pocl]') or the GPU's OpenCL driver")
     refusals: list[str] = []
@@ -63,9 +67,34 @@ def pick_device(device: str):
                         log.warning("OpenCL device skipped, it cannot compile the renderer's kernels: %s", refusal)
                 return d
             refusals.append(f"{d.name.strip()} ({d.platform.version.strip()}): {why}")
+    _refuse_for_the_cache()
     raise FluorosimError("no OpenCL device here can compile kernels for this machine ("
                          + "; ".join(refusals) + "); install Debian's pocl-opencl-icd (make setup does) "
                          "or a PoCL whose LLVM knows this processor")
+
+
+def pocl_cache_dir() -> Path:
+    """Where PoCL keeps the kernels it compiled (its own rule: POCL_CACHE_DIR, else the XDG cache)."""
+    if os.environ.get("POCL_CACHE_DIR"):
+        return Path(os.environ["POCL_CACHE_DIR"])
+    xdg = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(xdg) / "pocl" / "kcache"
+
+
+def _refuse_for_the_cache() -> None:
+    """Refuse naming PoCL's kernel cache where it cannot be written (a full disk, a file in the
+    way): PoCL then lists no device or fails every build, and the refusal's usual advice, to
+    install another OpenCL, would send the technician the wrong way."""
+    folder = pocl_cache_dir()
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder) as f:
+            f.write(bytes(64 * 1024))          # a compiled kernel's size, written through
+            f.flush()
+            os.fsync(f.fileno())
+    except OSError as e:
+        raise FluorosimError(f"no OpenCL device can compile kernels: PoCL's kernel cache {folder} cannot be written "
+                             f"({e.strerror or e}); free space there, or set POCL_CACHE_DIR to a writable folder") from None
 
 
 #: Each device's probe answer this process has had, by the device's handle: None where it
