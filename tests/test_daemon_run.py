@@ -264,3 +264,42 @@ def test_an_opencl_device_failure_falls_back_to_the_cpu_and_keeps_imaging(tmp_pa
         stop.set()
         runner.join(10)
     assert not runner.is_alive()
+
+
+class RecordingRenderer:
+    """The appliance's own ProgressiveRenderer, with what each live frame asked of it written down."""
+
+    def __init__(self, renderer):
+        self._renderer = renderer
+        self.asked: list[tuple[np.ndarray, np.ndarray | None]] = []
+
+    def render(self, volume, T_xray_from_ct, view, **kwargs):
+        self.asked.append((np.array(T_xray_from_ct), kwargs.get("measured")))
+        return self._renderer.render(volume, T_xray_from_ct, view, **kwargs)
+
+    def __getattr__(self, name):
+        return getattr(self._renderer, name)
+
+
+def test_each_live_frame_is_rendered_with_the_pose_measured_before_the_filter(tmp_path):
+    """The render worker hands the renderer the tracker's measured pose beside the filtered one
+    (the renderer judges a stop on it, progressive.py): on the demo path's first seconds, which
+    move, every live frame has one, a rigid transform, and the filter's lag sets the two apart."""
+    config = make_appliance(tmp_path, display=DISPLAY)
+    app = Appliance(ProfileKeeper(config), Notifier({}))
+    spy = app.parts.renderer = RecordingRenderer(app.parts.renderer)
+    stop = threading.Event()
+    runner = threading.Thread(target=app.run, kwargs={"until": stop.is_set, "signals": False})
+    runner.start()
+    try:
+        assert _wait(lambda: len(spy.asked) >= 20, 60), app.supervisor.banners()
+    finally:
+        stop.set()
+        runner.join(10)
+    assert not runner.is_alive()
+    asked = spy.asked[:20]
+    assert all(measured is not None for _, measured in asked)
+    for _, measured in asked:
+        np.testing.assert_allclose(measured[:3, :3] @ measured[:3, :3].T, np.eye(3), atol=1e-9)
+    apart = [np.linalg.norm(T[:3, 3] - measured[:3, 3]) for T, measured in asked]
+    assert np.median(apart) > 0.05                  # mm: the filter lags the moving path

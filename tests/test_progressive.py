@@ -513,6 +513,73 @@ def test_rest_begins_while_the_pose_still_creeps_within_the_hold(renderer, box):
         assert matrices == ([64] * full_after + [128] if full_after else [64] * 3 + [64])
 
 
+FAST_CREEP = (3.0, 1.8, 0.9, 0.5, 0.3, 0.15, 0.08)
+
+
+def _creep_after_stop(renderer, prepared, view, measured_px, creep_px=FAST_CREEP):
+    """Two moving frames, then the stop: the filtered pose creeping in to POSE (`creep_px` short
+    of it, frame by frame: a first-order filter's lag), the measured pose given as POSE shifted
+    by `measured_px[i]` (None: no measured pose). The matrix of each frame after the stop, the
+    full-matrix image of the first such frame and the progressive renderer."""
+    clock = Clock()
+    pr = ProgressiveRenderer(renderer, HOLD, clock=clock)
+    for dx in (-4.0, -2.0):
+        clock.t += 0.04
+        pr.render(prepared, shifted(dx), view, measured=None if measured_px is None else shifted(dx))
+    matrices, first = [], None
+    for i, px in enumerate(creep_px):
+        clock.t += 0.04
+        measured = None if measured_px is None else shifted(_mm_for_px(renderer, prepared, measured_px[i]))
+        frame = pr.render(prepared, shifted(-_mm_for_px(renderer, prepared, px)), view, measured=measured)
+        matrices.append(pr.matrix)
+        if pr.matrix == 128 and first is None:
+            first = frame.image
+    return matrices, first, pr
+
+
+def test_a_stop_judged_on_the_measured_pose_rests_before_the_filter_s_creep_ends(renderer, box):
+    """The measured pose stands at POSE from the stop; the filtered pose creeps on, each of its
+    first steps beyond the hold. Rest comes settle_s (0.1 s: the fourth frame) after the measured
+    pose stood still, where the filtered pose is within the hold of it (0.5 px), and the view is
+    held at the measured pose: the full matrix's image there, the box's closed-form transmission.
+    On the filtered pose alone rest waits for its creep to stay within the hold for settle_s."""
+    prepared, lo, hi = box
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    matrices, first, pr = _creep_after_stop(renderer, prepared, view, [0.0] * 7)
+    assert matrices == [64] * 3 + [128] * 4
+    assert pr.full.shape == (128, 128) and pr.cache().counts.casts == 1          # cast once, at the held pose
+    circle = renderer._circle(None)
+    assert pr.cache().adopted(POSE, 1, None, True, circle)
+    assert not pr.cache().adopted(shifted(-_mm_for_px(renderer, prepared, 0.5)), 1, None, True, circle)
+    np.testing.assert_array_equal(first, renderer.render(prepared, POSE, view).image)
+    assert _implied_ok(renderer, first, POSE, lo, hi) < 0.01
+    matrices, _, _ = _creep_after_stop(renderer, prepared, view, None)
+    assert matrices == [64] * 6 + [128]
+
+
+def test_a_measured_stop_waits_for_the_filtered_pose_to_come_within_the_hold(renderer, box):
+    """A slower creep (0.45 px a frame): settle_s after the measured pose stood still the filtered
+    pose is still 1.65 px from it, beyond the hold, where a view held at the measured pose would
+    be let go at the next frame. Rest comes once the filtered pose is within the hold (0.9 px),
+    and the view stays held from there."""
+    prepared, _, _ = box
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    slow = (3.0, 2.55, 2.1, 1.65, 1.2, 0.9, 0.6)
+    matrices, _, _ = _creep_after_stop(renderer, prepared, view, [0.0] * 7, slow)
+    assert matrices == [64] * 5 + [128] * 2
+    matrices, _, _ = _creep_after_stop(renderer, prepared, view, None, slow)
+    assert matrices == [64] * 7
+
+
+def test_a_measured_pose_that_jitters_beyond_the_hold_leaves_rest_to_the_filtered_pose(renderer, box):
+    """A camera whose measured pose jumps 1.5 px about POSE frame to frame (more than the hold)
+    gives no earlier rest: the filtered pose's rule, as without a measured pose."""
+    prepared, _, _ = box
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    matrices, _, _ = _creep_after_stop(renderer, prepared, view, [0.75, -0.75] * 3 + [0.75])
+    assert matrices == [64] * 6 + [128]
+
+
 def test_a_view_let_go_of_rests_again_only_after_settle_s(renderer, box):
     """Rest began at the start of a creep (0.6 px before the pose it was held at); a move back past
     that start, beyond the hold from the held pose but within it of where the rest began, is

@@ -137,14 +137,18 @@ class RenderWorker(Worker):
         t_rendered = now
         if (tracked is not None and tracked.pose.ok and phase is not None
                 and phase.generation == self.parts.generation and state.image_due(self._drawn)):
-            T_xray_from_ct = (cfg.fluoroscope.T_xray_from_webcam() @ tracked.pose.T_webcam_from_phantom
-                              @ np.asarray(cfg.case.T_phantom_from_ct, dtype=np.float64))
+            T_xray_from_webcam = cfg.fluoroscope.T_xray_from_webcam()
+            T_phantom_from_ct = np.asarray(cfg.case.T_phantom_from_ct, dtype=np.float64)
+            T_xray_from_ct = T_xray_from_webcam @ tracked.pose.T_webcam_from_phantom @ T_phantom_from_ct
+            # Where the filtered pose is headed: the renderer may judge a stop on it (progressive.py).
+            measured = (None if tracked.pose.T_measured is None
+                        else T_xray_from_webcam @ tracked.pose.T_measured @ T_phantom_from_ct)
             # The renderer wants no pose until this frame is on screen (pose_demand.py).
             if self.demand is not None:
                 self.demand.rendering(now)
             frame = None
             try:
-                frame = self._render(cfg, T_xray_from_ct, phase, state)
+                frame = self._render(cfg, T_xray_from_ct, phase, state, measured)
                 t_rendered = time.monotonic()
             finally:
                 if frame is None and self.demand is not None:
@@ -204,14 +208,15 @@ class RenderWorker(Worker):
         return True
 
     def _render(self, cfg: ApplianceConfig, T_xray_from_ct: np.ndarray, phase: PhaseValue,
-                state: ConsoleState) -> Frame | None:
+                state: ConsoleState, measured: np.ndarray | None = None) -> Frame | None:
         blend = (phase.prepared_b, phase.weight) if phase.prepared_b is not None else None
         view = view_for(cfg, state)
         self._request = (phase.prepared_a, T_xray_from_ct, view, blend)
         grace = WARM_UP_GRACE_S if self.stats.frames < WARM_UP_FRAMES else cfg.appliance.daemon.stall_timeout_s
         try:
             with self.grace(grace):
-                return self.parts.renderer.render(phase.prepared_a, T_xray_from_ct, view, blend=blend)
+                return self.parts.renderer.render(phase.prepared_a, T_xray_from_ct, view, blend=blend,
+                                                  measured=measured)
         except FluorosimError:
             raise
         except Exception as e:  # noqa: BLE001 - an OpenCL fault must not end the appliance

@@ -59,6 +59,9 @@ class Pose:
     t_monotonic: float                           # capture time of the image (s)
     rms_px: float | None = None                  # corner reprojection RMS of the pose (pixels)
     used: list[int] = field(default_factory=list)   # markers the pose was computed from
+    #: The pose as measured in this image, before the smoothing filter (mm): where the filtered
+    #: pose is headed once the phantom stands still. None: unfiltered (T_webcam_from_phantom is it).
+    T_measured: np.ndarray | None = None
 
 
 class Tracker:
@@ -110,6 +113,7 @@ class Tracker:
             self._last = (t, pose.T_webcam_from_phantom.copy())
             if self.filter is not None:
                 f0 = time.perf_counter()
+                pose.T_measured = pose.T_webcam_from_phantom
                 pose.T_webcam_from_phantom = self.filter(pose.T_webcam_from_phantom, t)
                 self.filter_s = time.perf_counter() - f0
         return pose

@@ -17,8 +17,10 @@ pre-integrated slabs (slabs.py), half the samples, where the field's rays allow;
 the pose has stayed unchanged (within the projection cache's tolerance) for
 `rendering.settle_s`, the full matrix is cast once and then served from the projection cache,
 so a held view is sharp and costs only the detector per frame. With `rendering.rest_hold_px`
-rest is judged against the hold instead (no move beyond it for `settle_s`), and the rested
-view is held at the pose it rested at until the tracked pose leaves it by more than the hold:
+rest is judged against the hold instead (no move beyond it for `settle_s`; where the tracker
+gives its measured pose, before the filter, that pose's stop counts, so the filter's creep is
+no wait), and the rested view is held at the pose it rested at until the tracked pose leaves it
+by more than the hold:
 the pose filter's creep as the C-arm stops and the tracker's jitter, steps beyond the cache's
 tolerance but under a pixel, would otherwise count as motion, put off the full matrix and,
 once it is shown, drop the sharp view to the moving matrix and cast it again.
@@ -132,6 +134,9 @@ class ProgressiveRenderer:
         #: With the hold: the pose the tracked pose has stayed within the hold of, and since when.
         self._still_pose: np.ndarray | None = None
         self._still_since = np.inf
+        #: The same for the measured pose (before the tracker's filter), where the caller gives it.
+        self._measured_pose: np.ndarray | None = None
+        self._measured_since = np.inf
         self._last_motion = -np.inf
         self._last_used: Renderer = renderer
         self._last_image: np.ndarray | None = None
@@ -218,23 +223,22 @@ class ProgressiveRenderer:
 
     def render(self, volume: PreparedVolume, T_xray_from_ct: np.ndarray, view: View,
                blend: tuple[PreparedVolume, float] | None = None,
-               concentration_factor: float | None = None) -> Frame:
-        """The full-matrix frame of `Renderer.render` (line integrals always at the full matrix)."""
+               concentration_factor: float | None = None, measured: np.ndarray | None = None) -> Frame:
+        """The full-matrix frame of `Renderer.render` (line integrals always at the full matrix).
+        `measured`: the tracked pose before its smoothing filter (T_xray_from_ct), whose stop
+        `rendering.rest_hold_px` may judge sooner than the filtered pose's (`_rested`); None:
+        the pose given is the measured one."""
         import cv2
 
         now = self.clock()
         T = np.asarray(T_xray_from_ct, dtype=np.float64)
         T, released = self._hold(volume, T, view)
-        moved = self._moved(volume, T, view.zoom)
-        if moved:
-            self._last_motion = now
-            self._refined_since_motion = False
-            self._last_pose = T
-            # A cast beside the live frames for a pose left behind stops at its next band; the
-            # tracker's jitter about the resting pose (within the tolerance of it) does not stop it.
-            if self.refine is not None and not self._fits(self.refine, volume, T, view):
-                self.refine.cancel = True
-        resting = self._rested(volume, T, view, now, released)
+        moved = self._note_motion(volume, T, view, now)
+        resting = self._rested(volume, T, view, now, released, measured)
+        if resting and self._held is not None and self._held is not T:
+            # Rest was judged on the measured pose: the view is held there from this frame on.
+            T = self._held
+            moved = self._note_motion(volume, T, view, now) or moved
         moving = self.moving
         if not moved and self._last_used is not self.full:
             # The controller picks the matrix of a moving cast. A pose that stays keeps the matrix
@@ -294,6 +298,20 @@ class ProgressiveRenderer:
         self._last_image = image
         return frame if image is frame.image else dataclasses.replace(frame, image=image)
 
+    def _note_motion(self, volume: PreparedVolume, T: np.ndarray, view: View, now: float) -> bool:
+        """Whether `T` moved from the last frame's pose (beyond the cache's tolerance); a move
+        starts the rest anew and stops a cast beside the live frames for a pose left behind."""
+        moved = self._moved(volume, T, view.zoom)
+        if moved:
+            self._last_motion = now
+            self._refined_since_motion = False
+            self._last_pose = T
+            # A cast beside the live frames for a pose left behind stops at its next band; the
+            # tracker's jitter about the resting pose (within the tolerance of it) does not stop it.
+            if self.refine is not None and not self._fits(self.refine, volume, T, view):
+                self.refine.cancel = True
+        return moved
+
     def _hold(self, volume: PreparedVolume, T: np.ndarray, view: View) -> tuple[np.ndarray, bool]:
         """(the pose to render, whether a held view was let go at this frame). A rested view is
         held at the pose it came to rest at while the tracked pose stays within
@@ -311,23 +329,40 @@ class ProgressiveRenderer:
         self._held = None
         return T, True
 
-    def _rested(self, volume: PreparedVolume, T: np.ndarray, view: View, now: float, released: bool) -> bool:
+    def _rested(self, volume: PreparedVolume, T: np.ndarray, view: View, now: float, released: bool,
+                measured: np.ndarray | None = None) -> bool:
         """Whether the pose has rested `rendering.settle_s`: no move beyond the cache's tolerance
         for that long; with `rendering.rest_hold_px`, none beyond the hold. The filter's creep
         after a stop, steps of a few tenths of a pixel for a tenth of a second or two, then
         counts as rest, as the hold will count it: the full matrix is begun that much sooner,
-        at a pose within the hold of where the view comes to rest, and the view is held there."""
+        at a pose within the hold of where the view comes to rest, and the view is held there.
+
+        With the hold and the `measured` pose (before the filter) as well, rest comes as soon
+        as the measured pose has stayed within the hold that long and the filtered one is within
+        the hold of it: the filter's creep after a stop (a first-order lag, a pixel or two for a
+        tenth of a second and more) then costs no wait, and the view is held at the measured
+        pose, where the creep ends. A camera whose measured pose jitters by more than the hold
+        at rest leaves this to the filtered pose's rule."""
         hold = self.settings.rest_hold_px
         if hold is None or view.quantity == "line-integral":
             return now - self._last_motion >= self.settings.settle_s
         if self._held is not None:
             return True
-        if released or not pose_unchanged(self.full.fluoroscope, volume, view.zoom, self._still_pose, T, hold):
+        fluoroscope, zoom = self.full.fluoroscope, view.zoom
+        if released or not pose_unchanged(fluoroscope, volume, zoom, self._still_pose, T, hold):
             self._still_pose, self._still_since = T, now
-        if now - self._still_since < self.settings.settle_s:
-            return False
-        self._held = T                  # the pose the view rests at, held from here (`_hold`)
-        return True
+        if measured is not None:
+            measured = np.asarray(measured, dtype=np.float64)
+            if released or not pose_unchanged(fluoroscope, volume, zoom, self._measured_pose, measured, hold):
+                self._measured_pose, self._measured_since = measured, now
+        if now - self._still_since >= self.settings.settle_s:
+            self._held = T              # the pose the view rests at, held from here (`_hold`)
+            return True
+        if (measured is not None and now - self._measured_since >= self.settings.settle_s
+                and pose_unchanged(fluoroscope, volume, zoom, measured, T, hold)):
+            self._held = measured
+            return True
+        return False
 
     def _kept(self, use: Renderer, cast: Callable | None) -> Callable:
         """A stand-in for `use`'s cast (`cast`, or the caster's own) that keeps the one phase's
