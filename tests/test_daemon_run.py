@@ -14,6 +14,7 @@ from types import SimpleNamespace
 
 import cv2
 import numpy as np
+import pytest
 from appliance_setup import REPO, make_appliance
 from notify_listener import NotifyListener
 from stop_deadline import stop_deadline_s
@@ -303,3 +304,31 @@ def test_each_live_frame_is_rendered_with_the_pose_measured_before_the_filter(tm
         np.testing.assert_allclose(measured[:3, :3] @ measured[:3, :3].T, np.eye(3), atol=1e-9)
     apart = [np.linalg.norm(T[:3, 3] - measured[:3, 3]) for T, measured in asked]
     assert np.median(apart) > 0.05                  # mm: the filter lags the moving path
+
+
+def test_without_a_gpu_a_profile_without_a_matrix_renders_the_cpu_s_and_keeps_it_on_reload(tmp_path):
+    """A profile naming no render_matrix_px on PoCL's CPU device renders daemon.cpu_fallback_matrix_px
+    (here 64 of the detector's 128), and a reloaded fluoroscope profile is read out at that matrix
+    too, not at the detector's."""
+    from appliance.daemon.parts import is_cpu_device
+    from appliance.xray.device import pick_device
+
+    if not is_cpu_device(pick_device("auto")):
+        pytest.skip("this machine has a GPU: the appliance renders the detector's matrix there")
+    config = make_appliance(tmp_path, display=DISPLAY, render_px=64)
+    text = config.read_text()
+    assert "render_matrix_px: 64" in text and "cpu_fallback_matrix_px: 256" in text
+    config.write_text(text.replace("render_matrix_px: 64", "").replace("cpu_fallback_matrix_px: 256",
+                                                                          "cpu_fallback_matrix_px: 64"))
+    app = Appliance(ProfileKeeper(config), Notifier({}))
+    try:
+        assert app.parts.renderer.shape == (64, 64) and app.keeper.current.fluoroscope.detector.columns == 128
+        fluoroscope = tmp_path / "configs" / "fluoroscopes" / "generic-ii-carm.yaml"
+        edited = fluoroscope.read_text().replace("kvp: 75", "kvp: 80", 1)
+        assert edited != fluoroscope.read_text()
+        fluoroscope.write_text(edited)
+        app.reload()
+        assert app.parts.renderer.fluoroscope.tube.kvp == 80
+        assert app.parts.renderer.shape == (64, 64)
+    finally:
+        app.parts.close()

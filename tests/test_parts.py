@@ -31,6 +31,37 @@ def test_render_matrix_and_cpu_fallback_scale_the_fluoroscope():
     assert fl.intrinsics.cx == pytest.approx((511.5 + 0.5) / 4 - 0.5)
     assert rendered_fluoroscope(cfg, fallback=True).detector.columns == daemon.cpu_fallback_matrix_px
     assert rendered_fluoroscope(with_daemon(render_matrix_px=128), fallback=True).detector.columns == 128
+    # On a CPU device a profile without a matrix renders the CPU's; one that names a matrix keeps it.
+    assert rendered_fluoroscope(cfg, cpu=True).detector.columns == daemon.cpu_fallback_matrix_px == 256
+    assert rendered_fluoroscope(with_daemon(render_matrix_px=512), cpu=True).detector.columns == 512
+    assert rendered_fluoroscope(with_daemon(cpu_fallback_matrix_px=2048), cpu=True) is cfg.fluoroscope
+
+
+def test_without_a_gpu_the_real_profile_renders_the_cpu_matrix_and_says_so(caplog):
+    """configs/appliance.yaml names no render_matrix_px (a GPU renders the detector's 1024): where
+    the OpenCL device picked is PoCL's CPU device, the appliance renders daemon.cpu_fallback_matrix_px
+    and logs one line a service technician can act on; `bench e2e` measured 1.7 frames/s and
+    726 ms median latency for this profile's 1024 on two CPU cores."""
+    import logging
+
+    from appliance.config import load_appliance
+    from appliance.daemon.parts import is_cpu_device, make_renderer
+    from appliance.xray.device import pick_device
+
+    if not is_cpu_device(pick_device("auto")):
+        pytest.skip("this machine has a GPU: the appliance renders the detector's matrix there")
+    cfg = load_appliance(CONFIGS / "appliance.yaml")
+    assert cfg.appliance.daemon.render_matrix_px is None and cfg.fluoroscope.detector.columns == 1024
+    with caplog.at_level(logging.WARNING, logger="appliance.daemon.parts"):
+        progressive = make_renderer(cfg)
+    assert progressive.full.shape == (256, 256)
+    lines = [r.getMessage() for r in caplog.records if r.name == "appliance.daemon.parts"]
+    assert len(lines) == 1 and "256 x 256 (daemon.cpu_fallback_matrix_px)" in lines[0]
+    assert "1024 x 1024 needs a GPU" in lines[0] and "daemon.render_matrix_px" in lines[0]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="appliance.daemon.parts"):
+        assert make_renderer(cfg, "cpu").full.shape == (256, 256)     # the fall-back after a failed GPU: its own banner
+    assert not [r for r in caplog.records if r.name == "appliance.daemon.parts"]
 
 
 def test_the_screen_file_is_under_the_data_dir_in_force(tmp_path):

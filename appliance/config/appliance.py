@@ -81,8 +81,9 @@ class Daemon(Section):
     render_matrix_px: int | None = Field(None, ge=64, le=8192, description="Render the X-ray image at this square matrix "
                                          "instead of the detector's own, scaled up on screen; for a computer too slow "
                                          "for the full matrix; omit to render at the detector's matrix (pixels).")
-    cpu_fallback_matrix_px: int = Field(256, ge=64, le=8192, description="Matrix rendered after the OpenCL device "
-                                        "failed and rendering fell back to the CPU, which is far slower (pixels).")
+    cpu_fallback_matrix_px: int = Field(256, ge=64, le=8192, description="Matrix rendered on the CPU, which is far "
+                                        "slower than a GPU: after the OpenCL device failed and rendering fell back to "
+                                        "it, and where no GPU is found and render_matrix_px is not set (pixels).")
     clock_rate: float = Field(1.0, gt=0, le=100, description="Simulated seconds per wall-clock second for the console and its "
                               "scripted input (fluoroscopy time, dose, alarm); 1 on a real appliance (dimensionless).")
     clock_pace_s: float | None = Field(None, gt=0, le=60, description="On an accelerated clock (the demo's): the most "

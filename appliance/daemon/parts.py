@@ -29,7 +29,7 @@ from ..display.target import open_target
 from ..patient.timeline import PhaseTimeline, Timeline
 from ..tracking.tracker import Tracker
 from ..xray.progressive import ProgressiveRenderer
-from ..xray.renderer import Renderer, at_resolution
+from ..xray.renderer import Renderer, at_resolution, pick_device
 
 log = logging.getLogger(__name__)
 
@@ -44,12 +44,14 @@ def patient_phases(cfg: ApplianceConfig, progress: Callable[[str], None] | None 
     return [(ph.time_s, (lambda p=resolve(cfg.case_path, ph.volume): load_volume(p))) for ph in case.phases or ()]
 
 
-def rendered_fluoroscope(cfg: ApplianceConfig, fallback: bool = False) -> FluoroscopeProfile:
+def rendered_fluoroscope(cfg: ApplianceConfig, fallback: bool = False, cpu: bool = False) -> FluoroscopeProfile:
     """The fluoroscope as rendered: read out at `daemon.render_matrix_px` when the profile sets it,
-    and at no more than `daemon.cpu_fallback_matrix_px` once rendering fell back to the CPU."""
+    and at no more than `daemon.cpu_fallback_matrix_px` once rendering fell back to the CPU
+    (`fallback`) or where it renders on a CPU device (`cpu`) and the profile sets no matrix: the
+    detector's own is a GPU's (1024 x 1024 renders under 2 frames/s on two CPU cores)."""
     d = cfg.appliance.daemon
     n = d.render_matrix_px or cfg.fluoroscope.detector.columns
-    if fallback:
+    if fallback or (cpu and d.render_matrix_px is None):
         n = min(n, d.cpu_fallback_matrix_px)
     if n == cfg.fluoroscope.detector.columns == cfg.fluoroscope.detector.rows:
         return cfg.fluoroscope
@@ -57,11 +59,20 @@ def rendered_fluoroscope(cfg: ApplianceConfig, fallback: bool = False) -> Fluoro
 
 
 def make_renderer(cfg: ApplianceConfig, device: str = "auto") -> ProgressiveRenderer:
-    """The renderer behind its projection cache and progressive matrix (the `rendering` section).
+    """The renderer behind its projection cache and progressive matrix (the `rendering` section),
+    at the matrix `rendered_fluoroscope` gives for the OpenCL device `device` picks.
     A live renderer fits a new kV's energy nodes on a side thread: the exposure control moves
     the kV while the trainee images, and no frame may wait for a fit."""
-    renderer = Renderer(rendered_fluoroscope(cfg, fallback=device == "cpu"), cfg.case.materials,
-                        contrast=cfg.case.contrast, device=device)
+    d = cfg.appliance.daemon
+    on_cpu = is_cpu_device(pick_device(device))
+    fluoroscope = rendered_fluoroscope(cfg, fallback=device == "cpu", cpu=on_cpu)
+    if device == "auto" and on_cpu and d.render_matrix_px is None and fluoroscope is not cfg.fluoroscope:
+        det = cfg.fluoroscope.detector
+        log.warning("no GPU: rendering on the CPU at %d x %d (daemon.cpu_fallback_matrix_px), shown scaled up; "
+                    "the detector's %d x %d needs a GPU and its OpenCL driver (README), or set "
+                    "daemon.render_matrix_px for this computer", fluoroscope.detector.columns,
+                    fluoroscope.detector.rows, det.columns, det.rows)
+    renderer = Renderer(fluoroscope, cfg.case.materials, contrast=cfg.case.contrast, device=device)
     renderer.caster.fit_in_background = True
     return ProgressiveRenderer(renderer, cfg.appliance.rendering)
 
@@ -72,8 +83,13 @@ def device_label(renderer: Renderer | ProgressiveRenderer) -> str:
 
 
 def is_cpu(renderer: Renderer | ProgressiveRenderer) -> bool:
+    return is_cpu_device(renderer.device)
+
+
+def is_cpu_device(device) -> bool:
+    """Whether the OpenCL `device` is a CPU's (PoCL)."""
     import pyopencl as cl
-    return bool(renderer.device.type & cl.device_type.CPU)
+    return bool(device.type & cl.device_type.CPU)
 
 
 def open_camera(cfg: ApplianceConfig, clock: Callable[[], float]) -> CameraSource:

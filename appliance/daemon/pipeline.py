@@ -60,7 +60,7 @@ from .health import (
 )
 from .input_worker import InputWorker
 from .notify import Notifier
-from .parts import Parts, open_parts, rendered_fluoroscope
+from .parts import Parts, is_cpu, open_parts, rendered_fluoroscope
 from .phase_worker import PhaseWorker
 from .pose_demand import PoseDemand
 from .records_worker import RecordsWorker
@@ -229,7 +229,8 @@ class Appliance:
         if not changed:
             return
         if new.fluoroscope != old.fluoroscope:
-            self.parts.renderer.set_fluoroscope(rendered_fluoroscope(new, fallback=self.render.fault is not None))
+            self.parts.renderer.set_fluoroscope(rendered_fluoroscope(new, fallback=self.render.fault is not None,
+                                                                     cpu=is_cpu(self.parts.renderer)))
             # The console belongs to the input worker's thread: it switches there.
             self._new_fluoroscope.put(new.fluoroscope)
             log.info("fluoroscope profile now %s", new.fluoroscope.name)
