@@ -167,7 +167,7 @@ def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None,
         process = psutil.Process()
         rss: list[tuple[float, int]] = []
         cfg = keeper.current
-        matrix = cfg.appliance.daemon.render_matrix_px or cfg.fluoroscope.detector.columns
+        matrix = app.parts.renderer.shape[1]     # the profile's, or the CPU's (parts.rendered_fluoroscope)
         ladder = getattr(app.parts.renderer, "control", None)
         moving = "/".join(str(n) for n in ladder.ladder) if ladder is not None and ladder.ladder else None
         camera = camera or f"{cfg.appliance.devices.camera.source} at {cfg.appliance.devices.camera.fps:g} fps"
