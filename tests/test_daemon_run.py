@@ -323,6 +323,7 @@ def test_without_a_gpu_a_profile_without_a_matrix_renders_the_cpu_s_and_keeps_it
     app = Appliance(ProfileKeeper(config), Notifier({}))
     try:
         assert app.parts.renderer.shape == (64, 64) and app.keeper.current.fluoroscope.detector.columns == 128
+        assert app.status_text().endswith("(CPU) at 64 px")        # what systemctl status shows
         fluoroscope = tmp_path / "configs" / "fluoroscopes" / "generic-ii-carm.yaml"
         edited = fluoroscope.read_text().replace("kvp: 75", "kvp: 80", 1)
         assert edited != fluoroscope.read_text()

@@ -220,7 +220,8 @@ class Appliance:
     def status_text(self) -> str:
         fps = fps_text(self.stats.fps(time.monotonic())).strip()
         return (f"{fps}; camera {self.parts.camera.state}; keypad {self.parts.keypad.state}; "
-                f"pedal {self.parts.pedal.state}; renderer {self.parts.renderer_device}")
+                f"pedal {self.parts.pedal.state}; renderer {self.parts.renderer_device} at "
+                f"{self.parts.renderer.shape[1]} px")
 
     def reload(self) -> None:
         """SIGHUP: take up edited fluoroscope and case profiles; a bad edit keeps the last good set."""
