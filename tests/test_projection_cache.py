@@ -68,6 +68,25 @@ def test_two_phase_pass_gives_each_phase_its_own_cast(renderer):
     assert together.counts.casts == 2       # both were still cached
 
 
+def test_the_caches_of_a_renderers_matrices_share_one_build_of_the_paired_kernel(renderer):
+    """Each matrix's cache casts its pairs through a kernel of its own (arguments set per
+    thread) from the device's one SPLIT build of drr.cl, made once, not once per cache; the
+    second matrix's pass is still each phase's own cast."""
+    (a, *_), (b, *_) = two_phases()
+    pa, pb = renderer.prepare(a), renderer.prepare(b)
+    other = renderer.at_matrix(64, 64)
+    caches = [ProjectionCache(renderer), ProjectionCache(other)]
+    for cache in caches:
+        cache.material_integrals(pa, POSE, View(), blend=(pb, 0.5))
+        assert cache.counts.paired == 1
+    first, second = (c._split for c in caches)
+    assert first is not second and first.program.int_ptr == second.program.int_ptr
+    np.testing.assert_allclose(caches[1].material_integrals(pb, POSE, View()),
+                               other.material_integrals(pb, POSE, View()), rtol=1e-6, atol=1e-6)
+    with pytest.raises(ValueError, match="no build 'SPLITS'"):
+        renderer.dev.kernel("joseph_packet", "SPLITS")
+
+
 def test_phases_on_different_grids_blend_in_projection_space(renderer):
     # Content boxes in different 16-voxel blocks: the phases are cropped to different grids,
     # which a blend of HU cannot mix, but their projections can.

@@ -468,7 +468,7 @@ class Caster:
             kernel, first = self._joseph, (volume.buffer,)
         else:
             if self._joseph_blend is None:
-                self._joseph_blend = dev.kernel(self._joseph_name, blend=True)
+                self._joseph_blend = dev.kernel(self._joseph_name, "BLEND")
             kernel, first = self._joseph_blend, (volume.buffer, blend[0].buffer, np.float32(blend[1]))
         args = (*first, np.int32(nx), np.int32(ny), np.int32(nz), np.int32(volume.slab_axis), dirs, mask_buf,
                 dev.upload(geo), dev.upload(box),

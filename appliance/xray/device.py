@@ -165,6 +165,12 @@ def _exit_status(returncode: int) -> str:
     return f"exit status {returncode}"
 
 
+#: drr.cl's builds beside the plain one, by the macro that makes each: BLEND mixes two phases in
+#: the cast (a moving frame between two phases), SPLIT casts two phases in one pass, each into
+#: its own integrals (the projection cache's pair).
+VARIANTS = ("BLEND", "SPLIT")
+
+
 class ClDevice:
     """One OpenCL device with drr.cl built on it.
 
@@ -182,16 +188,23 @@ class ClDevice:
         self.source = build_probe.SOURCE.read_text()
         self.options = build_probe.build_options(self.is_cpu)
         self.program = cl.Program(self.ctx, self.source).build(options=self.options)
-        self._blend_program: cl.Program | None = None
+        self._variants: dict[str, cl.Program] = {}
+        self._variants_lock = threading.Lock()
         self.lock = threading.Lock()
 
-    def kernel(self, name: str, blend: bool = False):
-        """Kernel `name` of drr.cl; with `blend`, of the build that mixes two phases."""
-        if not blend:
+    def kernel(self, name: str, variant: str | None = None):
+        """Kernel `name` of drr.cl, a new one per call (its arguments are the caller's); with
+        `variant`, of that build (VARIANTS), made once per device for every caller: each of a
+        renderer's matrices asks for them, and a build takes 40-60 ms even from PoCL's cache."""
+        if variant is None:
             return self.cl.Kernel(self.program, name)
-        if self._blend_program is None:
-            self._blend_program = self.cl.Program(self.ctx, self.source).build(options=["-DBLEND", *self.options])
-        return self.cl.Kernel(self._blend_program, name)
+        if variant not in VARIANTS:
+            raise ValueError(f"drr.cl has no build {variant!r}; its builds are {', '.join(VARIANTS)}")
+        with self._variants_lock:
+            if variant not in self._variants:
+                self._variants[variant] = self.cl.Program(self.ctx, self.source).build(
+                    options=[f"-D{variant}", *self.options])
+            return self.cl.Kernel(self._variants[variant], name)
 
     def upload(self, host: np.ndarray, writable: bool = False):
         """A device buffer holding a copy of `host`."""

@@ -190,8 +190,7 @@ class ProjectionCache:
         dev, caster = self.renderer.dev, self.renderer.caster
         cl = dev.cl
         if self._split is None:
-            program = cl.Program(dev.ctx, dev.source).build(options=["-DSPLIT", *dev.options])
-            self._split = cl.Kernel(program, "joseph_packet")
+            self._split = dev.kernel("joseph_packet", "SPLIT")
         rows, cols = caster.shape
         out_a, out_b = dev.scratch(rows * cols * 16), dev.scratch(rows * cols * 16)
         box = caster._box(a, b)
