@@ -310,8 +310,7 @@ def test_without_a_gpu_a_profile_without_a_matrix_renders_the_cpu_s_and_keeps_it
     """A profile naming no render_matrix_px on PoCL's CPU device renders daemon.cpu_fallback_matrix_px
     (here 64 of the detector's 128), and a reloaded fluoroscope profile is read out at that matrix
     too, not at the detector's."""
-    from appliance.daemon.parts import is_cpu_device
-    from appliance.xray.device import pick_device
+    from appliance.xray.device import is_cpu_device, pick_device
 
     if not is_cpu_device(pick_device("auto")):
         pytest.skip("this machine has a GPU: the appliance renders the detector's matrix there")

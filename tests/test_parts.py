@@ -45,8 +45,8 @@ def test_without_a_gpu_the_real_profile_renders_the_cpu_matrix_and_says_so(caplo
     import logging
 
     from appliance.config import load_appliance
-    from appliance.daemon.parts import is_cpu_device, make_renderer
-    from appliance.xray.device import pick_device
+    from appliance.daemon.parts import make_renderer
+    from appliance.xray.device import is_cpu_device, pick_device
 
     if not is_cpu_device(pick_device("auto")):
         pytest.skip("this machine has a GPU: the appliance renders the detector's matrix there")

@@ -28,8 +28,9 @@ from ..display.compositor import Compositor, Overlay
 from ..display.target import open_target
 from ..patient.timeline import PhaseTimeline, Timeline
 from ..tracking.tracker import Tracker
+from ..xray.device import is_cpu_device, pick_device
 from ..xray.progressive import ProgressiveRenderer
-from ..xray.renderer import Renderer, at_resolution, pick_device
+from ..xray.renderer import Renderer, at_resolution
 
 log = logging.getLogger(__name__)
 
@@ -84,12 +85,6 @@ def device_label(renderer: Renderer | ProgressiveRenderer) -> str:
 
 def is_cpu(renderer: Renderer | ProgressiveRenderer) -> bool:
     return is_cpu_device(renderer.device)
-
-
-def is_cpu_device(device) -> bool:
-    """Whether the OpenCL `device` is a CPU's (PoCL)."""
-    import pyopencl as cl
-    return bool(device.type & cl.device_type.CPU)
 
 
 def open_camera(cfg: ApplianceConfig, clock: Callable[[], float]) -> CameraSource:

@@ -165,6 +165,12 @@ def _exit_status(returncode: int) -> str:
     return f"exit status {returncode}"
 
 
+def is_cpu_device(device) -> bool:
+    """Whether the OpenCL `device` is a CPU's (PoCL)."""
+    import pyopencl as cl
+    return bool(device.type & cl.device_type.CPU)
+
+
 #: drr.cl's builds beside the plain one, by the macro that makes each: BLEND mixes two phases in
 #: the cast (a moving frame between two phases), SPLIT casts two phases in one pass, each into
 #: its own integrals (the projection cache's pair).
@@ -184,7 +190,7 @@ class ClDevice:
         self.device = pick_device(device)
         self.ctx = cl.Context([self.device])
         self.queue = cl.CommandQueue(self.ctx)
-        self.is_cpu = bool(self.device.type & cl.device_type.CPU)
+        self.is_cpu = is_cpu_device(self.device)
         self.source = build_probe.SOURCE.read_text()
         self.options = build_probe.build_options(self.is_cpu)
         self.program = cl.Program(self.ctx, self.source).build(options=self.options)
