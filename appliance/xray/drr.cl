@@ -140,7 +140,7 @@ typedef float v8sf_m __attribute__((vector_size(32)));
         const T h = BILINEAR(HU, T, g00, g10, g01, g11); \
         const T bone_w = BILINEAR(BONE_W, T, g00, g10, g01, g11), bone_h = BILINEAR(BONE_H, T, g00, g10, g01, g11); \
         const T rest_w = 1.0f - bone_w, rest_h = h - bone_h; \
-        const T rho_w = select((T)(0.0f), fmax(rest_w + 0.001f * rest_h, 0.0f), on); \
+        const T rho_w = select((T)(0.0f), fmax(rest_w + per_hu * rest_h, 0.0f), on); \
         const M is_air = rest_h <= air_max * rest_w, is_con = bone_h >= con_min * bone_w; \
         air += select((T)(0.0f), rho_w, is_air); \
         soft += select(rho_w, (T)(0.0f), is_air); \
@@ -150,12 +150,17 @@ typedef float v8sf_m __attribute__((vector_size(32)));
 // tissue, lungs, air) without the bone parts, which are zero there: the same sums to the bit, a
 // quarter less CPU time for a chest's cast (the bone path is taken in under a tenth of its steps),
 // and 12-31 % less for two phases (BLEND, SPLIT: each phase's corners tested on their own).
-#define SAMPLE_PACKET(g00, g10, g01, g11, on, air, soft, bone, con) do { \
-        if (ANY16((fmax(fmax(g00, g10), fmax(g01, g11)) >= bone_min) & (on))) { \
+// `bony`: whether a corner of any lane is at or above bone_min, lanes off their own ray included
+// (they take the bone path, whose sums for them are masked the same). CORNERS answers it, from the
+// voxels' int16s where it has them (ROWS, two compares of 32 shorts), else from the floats (BONY).
+// A blend of two phases (BLEND) lies between the two, so either phase's answer covers it.
+#define BONY(g00, g10, g01, g11) ANY16(fmax(fmax(g00, g10), fmax(g01, g11)) >= bone_min)
+#define SAMPLE_PACKET(bony, g00, g10, g01, g11, on, air, soft, bone, con) do { \
+        if (bony) { \
             SAMPLE(float16, int16, g00, g10, g01, g11, on, air, soft, bone, con); \
         } else { \
             const float16 h = BILINEAR(HU, float16, g00, g10, g01, g11); \
-            const float16 rho_w = select((float16)(0.0f), fmax(1.0f + 0.001f * h, 0.0f), on); \
+            const float16 rho_w = select((float16)(0.0f), fmax(1.0f + per_hu * h, 0.0f), on); \
             const int16 is_air = h <= air_max; \
             air += select((float16)(0.0f), rho_w, is_air); \
             soft += select(rho_w, (float16)(0.0f), is_air); \
@@ -216,7 +221,7 @@ kernel void joseph_materials(global const short *vol,
     const float b0 = sv[b] - sv[a] * db, c0 = sv[c] - sv[a] * dc;
     const float step_mm = fabs(inv_da) * mm_per_t;
     const float air_max = mat[0], bone_min = mat[1], con_min = mat[2];
-    const float bone_off = mat[3], bone_slope = mat[4];
+    const float bone_off = mat[3], bone_slope = mat[4], per_hu = 0.001f;
     // In-slice coordinates stay inside the padding: clamp guards float rounding at the edges.
     const float bmax = (float)(dims[b] - 2), cmax = (float)(dims[c] - 2);
     // The pixel's footprint in voxels along b and c at the middle of the ray's path through the
@@ -274,6 +279,14 @@ kernel void joseph_materials(global const short *vol,
                                 (v)[(i).s6], (v)[(i).s7], (v)[(i).s8], (v)[(i).s9], (v)[(i).sa], (v)[(i).sb], \
                                 (v)[(i).sc], (v)[(i).sd], (v)[(i).se], (v)[(i).sf]))
 
+// A packet's corners are HU times HU_SCALE (2^16): where a voxel is the high half of a 32-bit word
+// (PAIR, ROWS), the word with its low half cleared is that, and the low one's is the word shifted
+// up, one instruction each where sign-extending it takes two. Scaling by a power of two is exact, and
+// the thresholds and per-HU slopes are scaled with it, so the sums are those of plain HU to the bit.
+#define HU_SCALE 65536.0f
+#define GATHER_HU(v, i) (GATHER(v, i) * HU_SCALE)
+#define HI_HU(w) convert_float16((w) & (int)0xffff0000)
+#define LO_HU(w) convert_float16((w) << 16)
 #ifdef UNALIGNED_PAIRS
 // Where the in-slice axis b is x (stride 1), a voxel and its b-neighbour are adjacent int16s:
 // one 32-bit load fetches both, halving the loads. Such loads are only 2-byte aligned, which
@@ -286,8 +299,8 @@ kernel void joseph_materials(global const short *vol,
 // (NO_HW_GATHER turns it off, so tests can check the portable path on such a CPU too.)
 #define WORDS(v, i) __builtin_astype(__builtin_ia32_gathersiv16si(__builtin_astype((int16)(0), v16si), \
     (const void *)(ulong)(v), __builtin_astype((i), v16si), (ushort)0xffff, 2), int16)
-#undef GATHER
-#define GATHER(v, i) convert_float16((WORDS(v, i) << 16) >> 16)
+#undef GATHER_HU
+#define GATHER_HU(v, i) LO_HU(WORDS(v, i))
 #else
 #define W(v, i) (*(global const int *)((global const char *)(v) + 2 * (i)))
 #define WORDS(v, i) ((int16)(W(v, (i).s0), W(v, (i).s1), W(v, (i).s2), W(v, (i).s3), W(v, (i).s4), W(v, (i).s5), \
@@ -295,7 +308,7 @@ kernel void joseph_materials(global const short *vol,
                              W(v, (i).sc), W(v, (i).sd), W(v, (i).se), W(v, (i).sf)))
 #endif
 #define PAIR(v, i, lo, hi) do { const int16 w_ = WORDS(v, i); \
-    lo = convert_float16((w_ << 16) >> 16); hi = convert_float16(w_ >> 16); } while (0)
+    lo = LO_HU(w_); hi = HI_HU(w_); } while (0)
 #if defined(__AVX512BW__) && !defined(NO_HW_GATHER)
 // Where a packet's sixteen samples lie, at every slice, in two neighbouring rows of the slice and
 // within a few tens of voxels along them (`windows`, decided before the packet's loop), a row's
@@ -314,7 +327,9 @@ typedef short v32hi __attribute__((vector_size(64)));
 #define SHORT_PAIRS(v, at, idx) ({ global const int *w_ = (global const int *)((v) + (at)); \
     __builtin_astype(__builtin_ia32_vpermi2varhi512(__builtin_astype(vload16(0, w_), v32hi), \
         __builtin_astype((idx), v32hi), __builtin_astype(vload16(1, w_), v32hi)), int16); })
-#define ROWS(v, g00, g10, g01, g11) do { \
+#define BONY_WORDS(r0, r1) ((__builtin_ia32_cmpw512_mask(__builtin_astype((r0), v32hi), bone_s, 5, 0xffffffffu) | \
+                             __builtin_ia32_cmpw512_mask(__builtin_astype((r1), v32hi), bone_s, 5, 0xffffffffu)) != 0)
+#define ROWS(v, g00, g10, g01, g11, bony) do { \
     int16 r0_, r1_; \
     bool gather_ = !windows; \
     if (windows) { \
@@ -330,17 +345,20 @@ typedef short v32hi __attribute__((vector_size(64)));
         } \
     } \
     if (gather_) { INDICES; r0_ = WORDS(v, i00); r1_ = WORDS(v, i01); } \
-    g00 = convert_float16((r0_ << 16) >> 16); g10 = convert_float16(r0_ >> 16); \
-    g01 = convert_float16((r1_ << 16) >> 16); g11 = convert_float16(r1_ >> 16); } while (0)
+    bony = BONY_WORDS(r0_, r1_); \
+    g00 = LO_HU(r0_); g10 = HI_HU(r0_); g01 = LO_HU(r1_); g11 = HI_HU(r1_); } while (0)
 #else
-#define ROWS(v, g00, g10, g01, g11) do { INDICES; PAIR(v, i00, g00, g10); PAIR(v, i01, g01, g11); } while (0)
+#define ROWS(v, g00, g10, g01, g11, bony) do { INDICES; PAIR(v, i00, g00, g10); PAIR(v, i01, g01, g11); \
+    bony = BONY(g00, g10, g01, g11); } while (0)
 #endif
-#define CORNERS(v, g00, g10, g01, g11) do { \
-    if (sb == 1) ROWS(v, g00, g10, g01, g11); \
-    else { INDICES; g00 = GATHER(v, i00); g10 = GATHER(v, i10); g01 = GATHER(v, i01); g11 = GATHER(v, i11); } } while (0)
+#define CORNERS(v, g00, g10, g01, g11, bony) do { \
+    if (sb == 1) ROWS(v, g00, g10, g01, g11, bony); \
+    else { INDICES; g00 = GATHER_HU(v, i00); g10 = GATHER_HU(v, i10); g01 = GATHER_HU(v, i01); g11 = GATHER_HU(v, i11); \
+           bony = BONY(g00, g10, g01, g11); } } while (0)
 #else
-#define CORNERS(v, g00, g10, g01, g11) do { INDICES; \
-    g00 = GATHER(v, i00); g10 = GATHER(v, i10); g01 = GATHER(v, i01); g11 = GATHER(v, i11); } while (0)
+#define CORNERS(v, g00, g10, g01, g11, bony) do { INDICES; \
+    g00 = GATHER_HU(v, i00); g10 = GATHER_HU(v, i10); g01 = GATHER_HU(v, i01); g11 = GATHER_HU(v, i11); \
+    bony = BONY(g00, g10, g01, g11); } while (0)
 #endif
 
 // SPLIT: two phases on one voxel grid in one pass, each phase's integrals to its own output
@@ -422,19 +440,24 @@ kernel void joseph_packet(global const short *vol,
     int16 k1 = min(convert_int16_rtn(fmax(a0, a1)), hi_i[a]);
     k0 = select((int16)(INT_MAX), k0, hit);
     k1 = select((int16)(INT_MIN), k1, hit);
-    int kmin = INT_MAX, kmax = INT_MIN;
+    int kmin = INT_MAX, kmax = INT_MIN, kin = INT_MIN, kout = INT_MAX;
     for (int l = 0; l < LANES; ++l) {
         kmin = min(kmin, k0[l]);
         kmax = max(kmax, k1[l]);
+        kin = max(kin, k0[l]);
+        kout = min(kout, k1[l]);
     }
     const float16 inv_da = 1.0f / dv[a];
     const float16 db = dv[b] * inv_da, dc = dv[c] * inv_da;
     const float16 b0 = s[b] - s[a] * db, c0 = s[c] - s[a] * dc;
     const float16 step_mm = fabs(inv_da) * mm_per_t;
-    const float air_max = mat[0], bone_min = mat[1], con_min = mat[2];
-    const float bone_off = mat[3], bone_slope = mat[4];
+    // The packet's corners are HU x HU_SCALE, and so are its thresholds (see HU_SCALE).
+    const float air_max = mat[0] * HU_SCALE, bone_min = mat[1] * HU_SCALE, con_min = mat[2] * HU_SCALE;
+    const float bone_off = mat[3], bone_slope = mat[4] / HU_SCALE, per_hu = 0.001f / HU_SCALE;
     const float bmax = (float)(dims[b] - 2), cmax = (float)(dims[c] - 2);
 #ifdef WINDOWS_AVAILABLE
+    const short bone_ms = (short)clamp(ceil(mat[1]), -32768.0f, 32767.0f);
+    const v32hi bone_s = __builtin_astype((int16)(((int)bone_ms << 16) | (int)(ushort)bone_ms), v32hi);
     // All rays pass through the focal spot, outside the volume, so along the ray the lanes keep
     // their order across b and across c, and their spread across either is largest at the first
     // or the last slice (a difference of two lines): the spreads and the lowest lanes there
@@ -483,28 +506,36 @@ kernel void joseph_packet(global const short *vol,
 #ifdef SPLIT
     float16 bcc_air = 0.0f, bcc_soft = 0.0f, bcc_bone = 0.0f, bcc_con = 0.0f;
 #endif
-    for (int k = kmin; k <= kmax; ++k) {
-        const float16 fb = CLAMP16(b0 + (float)k * db, bmax);
-        const float16 fc = CLAMP16(c0 + (float)k * dc, cmax);
-        const int16 ib = convert_int16(fb), ic = convert_int16(fc);
-        float16 wb = fb - convert_float16(ib), wc = fc - convert_float16(ic);
-        if (blocks_b) wb = VOXEL_WEIGHT(wb, inv_b, off_b);
-        if (blocks_c) wc = VOXEL_WEIGHT(wc, inv_c, off_c);
-        float16 g00, g10, g01, g11;
-        CORNERS(vol, g00, g10, g01, g11);
-#if defined(BLEND) || defined(SPLIT)
-        float16 b00, b10, b01, b11;
-        CORNERS(vol_b, b00, b10, b01, b11);
+    // One Joseph step at slice k. Between kin and kout every lane is on its own ray, inside the
+    // content box grown by a voxel, so its in-slice position is inside the padding without the
+    // clamp (MIDDLE: neither the clamp nor the lanes' mask spent); at the packet's ends, EDGE.
+#define STEP(k, fb_, fc_, on) do { \
+        const float16 fb = fb_, fc = fc_; \
+        const int16 ib = convert_int16(fb), ic = convert_int16(fc); \
+        float16 wb = fb - convert_float16(ib), wc = fc - convert_float16(ic); \
+        if (blocks_b) wb = VOXEL_WEIGHT(wb, inv_b, off_b); \
+        if (blocks_c) wc = VOXEL_WEIGHT(wc, inv_c, off_c); \
+        float16 g00, g10, g01, g11; \
+        bool bony, bony_b; \
+        CORNERS(vol, g00, g10, g01, g11, bony); \
+        SECOND_PHASE(on); \
+        SAMPLE_PACKET(bony, g00, g10, g01, g11, on, acc_air, acc_soft, acc_bone, acc_con); } while (0)
+#if defined(BLEND)
+#define SECOND_PHASE(on) float16 b00, b10, b01, b11; CORNERS(vol_b, b00, b10, b01, b11, bony_b); \
+        g00 = mix(g00, b00, w_b); g10 = mix(g10, b10, w_b); g01 = mix(g01, b01, w_b); g11 = mix(g11, b11, w_b); \
+        bony |= bony_b
+#elif defined(SPLIT)
+#define SECOND_PHASE(on) float16 b00, b10, b01, b11; CORNERS(vol_b, b00, b10, b01, b11, bony_b); \
+        SAMPLE_PACKET(bony_b, b00, b10, b01, b11, on, bcc_air, bcc_soft, bcc_bone, bcc_con)
+#else
+#define SECOND_PHASE(on) (void)bony_b
 #endif
-#ifdef BLEND
-        g00 = mix(g00, b00, w_b); g10 = mix(g10, b10, w_b); g01 = mix(g01, b01, w_b); g11 = mix(g11, b11, w_b);
-#endif
-        const int16 on = (k >= k0) & (k <= k1);
-        SAMPLE_PACKET(g00, g10, g01, g11, on, acc_air, acc_soft, acc_bone, acc_con);
-#ifdef SPLIT
-        SAMPLE_PACKET(b00, b10, b01, b11, on, bcc_air, bcc_soft, bcc_bone, bcc_con);
-#endif
-    }
+#define EDGE(k) STEP(k, CLAMP16(b0 + (float)(k) * db, bmax), CLAMP16(c0 + (float)(k) * dc, cmax), (k >= k0) & (k <= k1))
+#define MIDDLE(k) STEP(k, b0 + (float)(k) * db, c0 + (float)(k) * dc, (int16)(-1))
+    const int mid0 = kin <= kout ? kin : kmax + 1, mid1 = kin <= kout ? kout : kmax;
+    for (int k = kmin; k < mid0; ++k) EDGE(k);
+    for (int k = mid0; k <= mid1; ++k) MIDDLE(k);
+    for (int k = mid1 + 1; k <= kmax; ++k) EDGE(k);
     for (int l = 0; l < LANES; ++l)
         if (u0 + l < cols) {
             const float st = step_mm[l];
