@@ -134,7 +134,16 @@ typedef float v8sf_m __attribute__((vector_size(32)));
 // air or soft tissue within the second), as Siddon reads the grid's piecewise-constant voxels.
 #define BONE_W(T, g) select((T)(0.0f), (T)(1.0f), (g) >= bone_min)
 #define BONE_H(T, g) select((T)(0.0f), (g), (g) >= bone_min)
-#define BILINEAR(f, T, g00, g10, g01, g11) mix(mix(f(T, g00), f(T, g10), wb), mix(f(T, g01), f(T, g11), wb), wc)
+// mix(a, b, t) = a + (b - a) t, with the multiply and add fused where the device has a fused
+// multiply-add (x86's FMA, GPUs): PoCL's mix() keeps them two instructions, and the interpolation
+// is most of a sample's arithmetic. fma() is exact (one rounding), not an approximation; where
+// emulated in software it would be slow, so mix() is kept there.
+#if defined(__FMA__) || defined(FP_FAST_FMAF)
+#define LERP(a, b, t) fma((b) - (a), (t), (a))
+#else
+#define LERP(a, b, t) mix((a), (b), (t))
+#endif
+#define BILINEAR(f, T, g00, g10, g01, g11) LERP(LERP(f(T, g00), f(T, g10), wb), LERP(f(T, g01), f(T, g11), wb), wc)
 #define HU(T, g) (g)
 #define SAMPLE(T, M, g00, g10, g01, g11, on, air, soft, bone, con) do { \
         const T h = BILINEAR(HU, T, g00, g10, g01, g11); \
