@@ -22,6 +22,16 @@
 
 #define PAD 2
 
+// a b + c in one instruction where the device has a fused multiply-add (x86's FMA, GPUs): PoCL
+// keeps mad() and mix() a multiply and an add, and they are most of a sample's arithmetic. fma()
+// is exact (one rounding), not an approximation; where it would be emulated in software, which
+// is slow, the two operations stay. Every kernel here uses the same, so they agree to the bit.
+#if defined(__FMA__) || defined(FP_FAST_FMAF)
+#define FMA(a, b, c) fma((a), (b), (c))
+#else
+#define FMA(a, b, c) ((a) * (b) + (c))
+#endif
+
 inline float3 ray_dir(constant float *geo, float2 n)
 {
     return (float3)(geo[0] * n.x + geo[1] * n.y + geo[2],
@@ -77,7 +87,7 @@ inline bool clip_planes(constant float *planes, float3 s, float3 d, float *t0, f
 // (LINEAR_SAMPLES: never, the plain kernel `bench drr` times this sampling against). fmin(fmax()), not clamp(): PoCL's float16
 // clamp made the packet kernel 10-20 % slower where these are single vector instructions.
 #define VOXEL_SLOPE(width) (1.0f / fmin(fmax((width), 1e-3f), 1.0f))
-#define VOXEL_WEIGHT(w, inv, off) fmin(fmax(mad((w), (inv), (off)), 0.0f), 1.0f)
+#define VOXEL_WEIGHT(w, inv, off) fmin(fmax(FMA((w), (inv), (off)), 0.0f), 1.0f)
 #ifdef LINEAR_SAMPLES
 #define BLOCKS(wanted) false
 #else
@@ -134,15 +144,8 @@ typedef float v8sf_m __attribute__((vector_size(32)));
 // air or soft tissue within the second), as Siddon reads the grid's piecewise-constant voxels.
 #define BONE_W(T, g) select((T)(0.0f), (T)(1.0f), (g) >= bone_min)
 #define BONE_H(T, g) select((T)(0.0f), (g), (g) >= bone_min)
-// mix(a, b, t) = a + (b - a) t, with the multiply and add fused where the device has a fused
-// multiply-add (x86's FMA, GPUs): PoCL's mix() keeps them two instructions, and the interpolation
-// is most of a sample's arithmetic. fma() is exact (one rounding), not an approximation; where
-// emulated in software it would be slow, so mix() is kept there.
-#if defined(__FMA__) || defined(FP_FAST_FMAF)
-#define LERP(a, b, t) fma((b) - (a), (t), (a))
-#else
-#define LERP(a, b, t) mix((a), (b), (t))
-#endif
+// mix(a, b, t), a + (b - a) t, through FMA.
+#define LERP(a, b, t) FMA((b) - (a), (t), (a))
 #define BILINEAR(f, T, g00, g10, g01, g11) LERP(LERP(f(T, g00), f(T, g10), wb), LERP(f(T, g01), f(T, g11), wb), wc)
 #define HU(T, g) (g)
 #define SAMPLE(T, M, g00, g10, g01, g11, on, air, soft, bone, con) do { \
