@@ -7,8 +7,9 @@ the first device that works. It ends with os._exit, releasing nothing.
 
 Why a process of its own: a compiler can fail in ways that take the process with it. The
 PoCL 3.0 that pyopencl's wheel carries (LLVM 14) builds drr.cl on an AMD Zen 4 with no
-error, yet makes none of its kernels, and releasing that build's context aborts the process
-("still have references to IRs"). A device whose probe dies that way has no line; the parent
+error, yet makes none of its kernels (of some sources only when the build is read back from its
+kernel cache), and releasing that build's context aborts the process ("still have references
+to IRs"). A device whose probe dies that way has no line; the parent
 names it from the exit status and tries the next in a new probe.
 
 This file imports pyopencl only, so the parent's `device.py` can take `build_options` from it.
@@ -44,20 +45,25 @@ def first_error(text: str) -> str:
 
 
 def cannot_build(d, source: str) -> str | None:
-    """Why device `d` cannot build `source` and make each of its kernels, or None if it can."""
+    """Why device `d` cannot build `source` and make each of its kernels, or None if it can:
+    built twice, since the renderer's build is the second (PoCL's kernel cache has the probe's),
+    and the wheel's PoCL 3.0 on a Zen 4 makes every kernel of a fresh build of drr.cl and none
+    of the same build read back from its cache."""
     import pyopencl as cl
 
-    program = cl.Program(cl.Context([d]), source)
-    _kept.append(program)
-    try:
-        program.build(options=build_options(bool(d.type & cl.device_type.CPU)))
-    except cl.Error as e:
-        return first_error(str(e))
-    for name in kernel_names(source):
+    for again in (False, True):
+        program = cl.Program(cl.Context([d]), source)
+        _kept.append(program)
         try:
-            cl.Kernel(program, name)
+            program.build(options=build_options(bool(d.type & cl.device_type.CPU)))
         except cl.Error as e:
-            return f"drr.cl builds but its compiler made no kernel {name} ({e})"
+            return first_error(str(e))
+        for name in kernel_names(source):
+            try:
+                cl.Kernel(program, name)
+            except cl.Error as e:
+                built = " built again from its kernel cache" if again else ""
+                return f"drr.cl builds but its compiler made no kernel {name}{built} ({e})"
     return None
 
 
