@@ -243,7 +243,11 @@ ROLLED = make_transform(rotation_about([0.0, 0.0, 1.0], np.radians(4.0)) @ ALONG
 
 
 @pytest.mark.parametrize("pose", [ALONG_X, ROLLED, OBLIQUE])
-def test_a_slab_copys_loads_agree_on_every_path(renderer, pose):
+@pytest.mark.parametrize("shape, spacing", [((30, 34, 28), (1.5, 1.25, 2.0)),
+                                            # voxels a third of a pixel at the depth: a packet's
+                                            # sixteen rays span 30-50 of them, the wide window
+                                            ((24, 90, 40), (0.5, 0.55, 2.0))])
+def test_a_slab_copys_loads_agree_on_every_path(renderer, pose, shape, spacing):
     """A slab copy's casts by the hardware's loads (row windows where a packet's samples lie in
     one or two rows of a slice, else gathers of 32-bit pairs), by the portable 32-bit pair loads,
     by single voxels (no unaligned loads) and by the one-ray-per-work-item kernel (the GPU's)
@@ -252,8 +256,8 @@ def test_a_slab_copys_loads_agree_on_every_path(renderer, pose):
     import pyopencl as cl
 
     rng = np.random.default_rng(5)
-    hu = rng.integers(-900, 2000, size=(30, 34, 28)).astype(np.int16)
-    prepared = renderer.prepare(Volume(hu=hu, T_ct_from_voxel=np.diag([1.5, 1.25, 2.0, 1.0]), source="noise"))
+    hu = rng.integers(-900, 2000, size=shape).astype(np.int16)
+    prepared = renderer.prepare(Volume(hu=hu, T_ct_from_voxel=np.diag([*spacing, 1.0]), source="noise"))
     cache = SlabCache(renderer.dev, 1)
     caster = renderer.caster
     fast = caster._joseph

@@ -336,6 +336,14 @@ kernel void joseph_materials(global const short *vol,
 #define BROADCAST(x, lane) __builtin_astype(__builtin_ia32_permvarsi512(__builtin_astype((x), v16si), \
     __builtin_astype((int16)(lane), v16si)), int16)
 typedef short v32hi __attribute__((vector_size(64)));
+// Where the packet spans fewer voxels across b (`narrow`: under ROW_SHORTS_NARROW less the same
+// margin at both ends, as at 512 pixels and more on the adult chest), half the window: one
+// vector load and a permute of one register's shorts.
+#define ROW_SHORTS_NARROW 32
+#define SHORT_PAIRS_NARROW(v, at, idx) ({ global const int *w_ = (global const int *)((v) + (at)); \
+    __builtin_astype(__builtin_ia32_permvarhi512(__builtin_astype(vload16(0, w_), v32hi), \
+        __builtin_astype((idx), v32hi)), int16); })
+#define WINDOW(v, at, idx) (narrow ? SHORT_PAIRS_NARROW(v, at, idx) : SHORT_PAIRS(v, at, idx))
 #define SHORT_PAIRS(v, at, idx) ({ global const int *w_ = (global const int *)((v) + (at)); \
     __builtin_astype(__builtin_ia32_vpermi2varhi512(__builtin_astype(vload16(0, w_), v32hi), \
         __builtin_astype((idx), v32hi), __builtin_astype(vload16(1, w_), v32hi)), int16); })
@@ -348,10 +356,10 @@ typedef short v32hi __attribute__((vector_size(64)));
         const int16 bm_ = BROADCAST(ib, lane_b), cm_ = BROADCAST(ic, lane_c); \
         const int16 o_ = ib - bm_, first_ = (ic == cm_) & (o_ >= 0), idx_ = o_ | ((o_ + 1) << 16); \
         const int row_ = k * sa + cm_.s0 * sc + bm_.s0; \
-        r0_ = SHORT_PAIRS(v, row_, idx_); r1_ = SHORT_PAIRS(v, row_ + sc, idx_); \
+        r0_ = WINDOW(v, row_, idx_); r1_ = WINDOW(v, row_ + sc, idx_); \
         if (!ALL16(first_)) { \
             if (ALL16(first_ | ((ic == cm_ + 1) & (o_ >= 0)))) { \
-                const int16 r2_ = SHORT_PAIRS(v, row_ + 2 * sc, idx_); \
+                const int16 r2_ = WINDOW(v, row_ + 2 * sc, idx_); \
                 r0_ = select(r1_, r0_, first_); r1_ = select(r2_, r1_, first_); \
             } else gather_ = true; \
         } \
@@ -474,7 +482,7 @@ kernel void joseph_packet(global const short *vol,
     // their order across b and across c, and their spread across either is largest at the first
     // or the last slice (a difference of two lines): the spreads and the lowest lanes there
     // decide `windows` for all the slices between (with a few voxels' margin below ROWS' limits).
-    bool windows = false;
+    bool windows = false, narrow = false;
     int lane_b = 0, lane_c = 0;
     if (sb == 1 && kmin <= kmax) {
         const float span_b = ROW_SHORTS - 4;
@@ -489,6 +497,7 @@ kernel void joseph_packet(global const short *vol,
             if (fc1[l] < fc1[last_c]) last_c = l;
             hb0 = fmax(hb0, fb0[l]); hb1 = fmax(hb1, fb1[l]); hc0 = fmax(hc0, fc0[l]); hc1 = fmax(hc1, fc1[l]);
         }
+        narrow = hb0 - fb0[lane_b] < ROW_SHORTS_NARROW - 4 && hb1 - fb1[lane_b] < ROW_SHORTS_NARROW - 4;
         windows = lane_b == last_b && lane_c == last_c && hb0 - fb0[lane_b] < span_b && hb1 - fb1[lane_b] < span_b &&
                   hc0 - fc0[lane_c] < 0.99f && hc1 - fc1[lane_c] < 0.99f;
     }
