@@ -381,6 +381,23 @@ typedef short v32hi __attribute__((vector_size(64)));
     bony = BONY(g00, g10, g01, g11); } while (0)
 #endif
 
+// A packet's four sums times each lane's mm per step (0 off the beam) as its sixteen pixels'
+// float4s: a whole packet in four vector stores of the interleaved lanes, the one at a row's end
+// lane by lane.
+#define QUAD(A, S, B, C, i, j, k, l) (float16)(A.s##i, S.s##i, B.s##i, C.s##i, A.s##j, S.s##j, B.s##j, C.s##j, \
+                                              A.s##k, S.s##k, B.s##k, C.s##k, A.s##l, S.s##l, B.s##l, C.s##l)
+#define STORE_LINES(o, air, soft, bone, con) do { \
+    const float16 A_ = select((float16)(0.0f), air * step_mm, hit), S_ = select((float16)(0.0f), soft * step_mm, hit); \
+    const float16 B_ = select((float16)(0.0f), bone * step_mm, hit), C_ = select((float16)(0.0f), con * step_mm, hit); \
+    if (whole) { \
+        global float *f_ = (global float *)((o) + p0); \
+        vstore16(QUAD(A_, S_, B_, C_, 0, 1, 2, 3), 0, f_); vstore16(QUAD(A_, S_, B_, C_, 4, 5, 6, 7), 1, f_); \
+        vstore16(QUAD(A_, S_, B_, C_, 8, 9, a, b), 2, f_); vstore16(QUAD(A_, S_, B_, C_, c, d, e, f), 3, f_); \
+    } else { \
+        for (int l = 0; l < LANES; ++l) \
+            if (u0 + l < cols) (o)[p0 + l] = (float4)(A_[l], S_[l], B_[l], C_[l]); \
+    } } while (0)
+
 // SPLIT: two phases on one voxel grid in one pass, each phase's integrals to its own output
 // (out, out_b): the projection cache blends them later in projection space, and sampling both
 // at the same positions costs little more than one, since the addresses are shared.
@@ -404,12 +421,23 @@ kernel void joseph_packet(global const short *vol,
     const int p0 = v * cols + u0;
     float16 nxv, nyv;
     int16 on_beam;
-    for (int l = 0; l < LANES; ++l) {
-        const int u = min(u0 + l, cols - 1);
-        const float2 n = dirs[v * cols + u];
-        nxv[l] = n.x;
-        nyv[l] = n.y;
-        on_beam[l] = (u0 + l < cols) && mask[v * cols + u] ? -1 : 0;
+    // A whole packet's directions and beam mask are vector loads (two and one), split into lanes by
+    // swizzles; the packet at a row's end, lane by lane.
+    const bool whole = u0 + LANES <= cols;
+    if (whole) {
+        global const float *df = (global const float *)(dirs + p0);
+        const float16 d0 = vload16(0, df), d1 = vload16(1, df);
+        nxv = (float16)(d0.even, d1.even);
+        nyv = (float16)(d0.odd, d1.odd);
+        on_beam = convert_int16(vload16(0, mask + p0)) != 0;
+    } else {
+        for (int l = 0; l < LANES; ++l) {
+            const int u = min(u0 + l, cols - 1);
+            const float2 n = dirs[v * cols + u];
+            nxv[l] = n.x;
+            nyv[l] = n.y;
+            on_beam[l] = (u0 + l < cols) && mask[v * cols + u] ? -1 : 0;
+        }
     }
     const float16 dx = geo[0] * nxv + geo[1] * nyv + geo[2];
     const float16 dy = geo[3] * nxv + geo[4] * nyv + geo[5];
@@ -557,14 +585,10 @@ kernel void joseph_packet(global const short *vol,
     for (int k = kmin; k < mid0; ++k) EDGE(k);
     for (int k = mid0; k <= mid1; ++k) MIDDLE(k);
     for (int k = mid1 + 1; k <= kmax; ++k) EDGE(k);
-    for (int l = 0; l < LANES; ++l)
-        if (u0 + l < cols) {
-            const float st = step_mm[l];
-            out[p0 + l] = hit[l] ? (float4)(acc_air[l], acc_soft[l], acc_bone[l], acc_con[l]) * st : (float4)(0.0f);
+    STORE_LINES(out, acc_air, acc_soft, acc_bone, acc_con);
 #ifdef SPLIT
-            out_b[p0 + l] = hit[l] ? (float4)(bcc_air[l], bcc_soft[l], bcc_bone[l], bcc_con[l]) * st : (float4)(0.0f);
+    STORE_LINES(out_b, bcc_air, bcc_soft, bcc_bone, bcc_con);
 #endif
-        }
 }
 
 // Energy-integrating detector: I/I0 = sum_e w_e exp(-sum_m mu_rho[e][m] * L_m), with L in
