@@ -7,10 +7,10 @@ the first device that works. It ends with os._exit, releasing nothing.
 
 Why a process of its own: a compiler can fail in ways that take the process with it. The
 PoCL 3.0 that pyopencl's wheel carries (LLVM 14) builds drr.cl on an AMD Zen 4 with no
-error, yet makes none of its kernels (of some sources only when the build is read back from its
-kernel cache), and releasing that build's context aborts the process ("still have references
-to IRs"). A device whose probe dies that way has no line; the parent
-names it from the exit status and tries the next in a new probe.
+error, yet makes none of its kernels (of some sources only when the build is read back from
+its kernel cache), and releasing that build's context aborts the process ("still have
+references to IRs"). A device whose probe dies that way has no line; the parent names it
+from the exit status and tries the next in a new probe.
 
 This file imports pyopencl only, so the parent's `device.py` can take `build_options` from it.
 """
