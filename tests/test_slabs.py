@@ -8,6 +8,7 @@ import pytest
 from appliance.config.case import Materials
 from appliance.config.rendering import Rendering
 from appliance.geometry import make_transform, rotation_about
+from appliance.patient.adult_chest import SIZES, build_adult_chest
 from appliance.patient.volume import Volume
 from appliance.xray.bench import flat_profile
 from appliance.xray.casting import PAD
@@ -117,6 +118,66 @@ def test_steep_rays_are_cast_through_the_full_volume(renderer):
     cache = SlabCache(renderer.dev, 2)
     assert slab_cast(renderer.caster, cache, prepared, OBLIQUE, 1, None, 1.0) is None and cache.made == 0
     assert slab_cast(renderer.caster, cache, prepared, OBLIQUE, 1, None, shift + 0.1) is not None
+
+
+@pytest.fixture(scope="module")
+def chest_phases(renderer):
+    """The adult chest on the quick grid and a second phase on its grid (its slices shifted one
+    down): ribs, vessels and lung, whose edges a packet's choice of grid would show."""
+    hu, spacing, origin = build_adult_chest(*SIZES["small"], seed=2)
+    T = np.diag([spacing[2], spacing[1], spacing[0], 1.0])
+    T[:3, 3] = origin
+    return (renderer.prepare(Volume(hu=hu, T_ct_from_voxel=T, source="adult chest")),
+            renderer.prepare(Volume(hu=np.roll(hu, 1, axis=0), T_ct_from_voxel=T, source="adult chest, moved")))
+
+
+def ray_shift_px(K, pose, prepared, axis, shape):
+    """Each pixel's ray's shift across `axis` within one slab (pixels), from first principles: the
+    two points of the (undistorted) ray SLAB voxels apart along the axis, their offset across it
+    in mm, seen at the depth of the content box's middle through the pinhole's focal length."""
+    _, d = pixel_rays_ct(K, pose, *shape)
+    index_from_ct = prepared.T_index_from_ct[:3, :3]
+    step = d @ index_from_ct.T                                       # voxel indices per mm of ray
+    step = step * (2.0 / np.abs(step[..., axis]))[..., None]         # across one slab, two slices
+    step[..., axis] = 0.0
+    across_mm = np.linalg.norm(step @ np.linalg.inv(index_from_ct).T, axis=-1)
+    centre = np.append((np.asarray(prepared.box[0], float) + prepared.box[1]) / 2.0, 1.0)
+    depth = (pose @ np.linalg.inv(prepared.T_index_from_ct) @ centre)[2]
+    return across_mm * K[0, 0] / depth
+
+
+@pytest.mark.parametrize("blended", [False, True])
+def test_where_only_some_rays_allow_slabs_each_packet_takes_its_own_grid(renderer, chest_phases, blended):
+    """A moving frame whose field's steepest ray shifts more than the rule within a slab, but its
+    principal ray less: each sixteen-pixel packet all of whose rays shift at most the rule's
+    pixels (worked out ray by ray above) is the cast through the slabs to the bit, every other
+    one the cast through the full volume to the bit, for a phase alone and for two blended."""
+    a, b = chest_phases
+    pose = make_transform(rotation_about([1.0, 0.2, 0.0], np.radians(12)) @ ALONG_Y[:3, :3], [4.0, 2.0, 700.0])
+    K = zoomed_K(renderer.fluoroscope, 1)
+    axis = dominant_axis(a, pose)
+    steepest = in_slab_shift_px(K, renderer.shape, a, pose, axis)
+    principal = in_slab_shift_px(K, renderer.shape, a, pose, axis, principal=True)
+    limit = (steepest + principal) / 2.0
+    blend = (b, 0.3) if blended else None
+    cache = SlabCache(renderer.dev, 2)
+    mixed = slab_cast(renderer.caster, cache, a, pose, 1, blend, limit)
+    assert mixed is not None
+
+    def lines(cast):
+        buf, _ = cast(a, pose, 1, None, blend, False, False)
+        return renderer.dev.download(buf, np.empty(renderer.shape + (4,), np.float32))
+    got = lines(mixed)
+    slabs = lines(slab_cast(renderer.caster, cache, a, pose, 1, blend, np.inf))
+    full = lines(renderer.caster.cast)
+    packets = ray_shift_px(K, pose, a, axis, renderer.shape).reshape(128, 8, 16).max(-1)
+    clear = np.abs(packets - limit) > 1e-3 * limit                  # not on the rule's edge in float32
+    thin = np.repeat(packets <= limit, 16, axis=1)
+    assert 0.2 < thin.mean() < 0.8 and clear.mean() > 0.95
+    use = np.repeat(clear, 16, axis=1)
+    np.testing.assert_array_equal(got[use & thin], slabs[use & thin])
+    np.testing.assert_array_equal(got[use & ~thin], full[use & ~thin])
+    assert not np.array_equal(slabs[thin], full[thin])               # the two grids do differ there
 
 
 def test_moving_frames_go_through_slabs_and_a_held_view_does_not(renderer):

@@ -149,7 +149,8 @@ SLAB_MAX_SHIFT_PX = 1.0
 
 def _moving_cast(renderer, prepared, T):
     """(method, image of summed material integrals) as a moving frame casts it: through the
-    pre-integrated slabs where the shift rule allows them (slabs.py), else the full volume."""
+    pre-integrated slabs where the shift rule allows them (slabs.py: the whole field, or the
+    packets whose rays it allows), else the full volume."""
     from .renderer import View, zoomed_K
     from .slabs import SlabCache, dominant_axis, in_slab_shift_px, slab_cast
 
@@ -161,7 +162,8 @@ def _moving_cast(renderer, prepared, T):
         return f"moving: full ({shift:.1f} px)", lines.sum(-1)
     buf, _ = cast(prepared, T, 1, None, None, False, False)
     lines = renderer.dev.download(buf, np.empty(renderer.shape + (4,), dtype=np.float32))
-    return f"moving: slabs ({shift:.1f} px)", lines.sum(-1)
+    where = "slabs" if shift <= SLAB_MAX_SHIFT_PX else "slabs by packet"
+    return f"moving: {where} ({shift:.1f} px)", lines.sum(-1)
 
 
 def _sub_K(K, step):
@@ -271,9 +273,10 @@ def run(args) -> int:
               f"display quantity with noise, focal-spot blur and vignetting; {args.frames} frames each, medians.")
         print("'cpu ms' is the process's CPU time per frame (all threads): on an otherwise idle machine with N cores\n"
               "the wall time approaches cpu ms / N; 'ms/frame' is what this run measured, other load included.\n"
-              f"'through slabs': the same frames, alternating with those, as the appliance casts a moving frame where the\n"
-              f"steepest ray shifts at most {SLAB_MAX_SHIFT_PX:g} px within a slab (rendering.slab_max_shift_px; "
-              "slabs.py), polychromatic with noise as the others.")
+              f"'through slabs': the same frames, alternating with those, as the appliance casts a moving frame: the whole\n"
+              f"field through slabs where its steepest ray shifts at most {SLAB_MAX_SHIFT_PX:g} px within one "
+              "(rendering.slab_max_shift_px; slabs.py), else each\n16-pixel packet all of whose rays do, the others "
+              "through the full volume; polychromatic with noise as the others.")
         print(f"{'image':>10} {'beam':>6} {'view':>8} {'ms/frame':>9} {'cpu ms':>8} {'fps':>6}  cast")
         for size in [int(s) for s in args.sizes.split(",") if s.strip()]:
             renderer = Renderer(at_resolution(ii, size, size), materials, contrast, device=args.device)

@@ -200,6 +200,7 @@ class Caster:
         self._joseph_name = name
         self._joseph = dev.kernel(name)
         self._joseph_blend = None
+        self._joseph_slabbed: dict[str, cl.Kernel] = {}
         self._poly_kernel = dev.kernel("polychromatic_packet" if self.packet else "polychromatic")
         self._siddon = dev.kernel("siddon_water")
         self._gather = dev.kernel("gather_lines")
@@ -431,9 +432,13 @@ class Caster:
         return cutting(self._planes(*vols), T_index_from_xray, self._rays(zoom, distorted)[1],
                        box[:3] - 1.0, box[4:7] + 1.0)
 
-    def cast(self, volume, T_xray_from_ct, zoom, collimation_mm, blend, distorted, circle, bands=None):
+    def cast(self, volume, T_xray_from_ct, zoom, collimation_mm, blend, distorted, circle, bands=None, thin=None):
         """Device buffer of (rows, cols, 4) float32 material integrals over the exposed field
         (the edge's penumbra included; zero beyond it), and that field's mask.
+
+        `thin` = (slab, slab_blend, rule), the packet kernel only: each packet whose rays allow by
+        `rule` (slabs.thin_rule) reads `slab`, the slab copy of `volume` (and `slab_blend`, of the
+        blended phase), instead of the full volume (drr.cl's SLABBED).
 
         `bands` = (lock, n) or (lock, n, cancelled): cast in n bands of detector rows, holding
         `lock` for one band at a time, so that a long cast (a saved image at the native matrix on
@@ -474,6 +479,9 @@ class Caster:
                 dev.upload(geo), dev.upload(box),
                 dev.upload(self._field_planes(vols, box, T_xray_from_ct, zoom, distorted)), self._mat_buf)
         tail = (np.int32(cols), lines) if self.packet else (lines,)
+        if thin is not None and self.packet:
+            kernel, extra = self._thin_args(thin, blend is not None, T_xray_from_ct, zoom, distorted)
+            tail = (*tail, *extra)
         width = -(-cols // PACKET) if self.packet else cols
         if bands is None:
             kernel(dev.queue, (width, rows), None, *args, *tail)
@@ -489,6 +497,24 @@ class Caster:
                 dev.queue.finish()
             time.sleep(BAND_YIELD_S)    # a frame waiting for the lock gets it (Python's lock is not fair)
         return lines, mask
+
+    def _thin_args(self, thin, blended: bool, T_xray_from_ct, zoom: int, distorted: bool):
+        """The SLABBED build of the packet kernel and its arguments after the plain build's: the
+        slab grid's phases, shape, layout, geometry, box and outline, then the rule."""
+        slab, slab_blend, rule = thin
+        variant = "SLABBED BLEND" if blended else "SLABBED"
+        if variant not in self._joseph_slabbed:
+            self._joseph_slabbed[variant] = self.dev.kernel(self._joseph_name, variant)
+        vols = (slab,) if not blended else (slab, slab_blend)
+        box = self._box(*vols)
+        assert box is not None, "a slab copy keeps its phase's content box"     # cast() returned on none
+        nx, ny, nz = slab.shape_xyz
+        dev = self.dev
+        return self._joseph_slabbed[variant], (
+            *(v.buffer for v in vols), np.int32(nx), np.int32(ny), np.int32(nz), np.int32(slab.slab_axis),
+            dev.upload(self._geometry(slab, T_xray_from_ct)), dev.upload(box),
+            dev.upload(self._field_planes(vols, box, T_xray_from_ct, zoom, distorted)),
+            dev.upload(np.asarray(rule, np.float32)))
 
     def material_integrals(self, volume, T_xray_from_ct, zoom, collimation_mm, blend, distorted, circle) -> np.ndarray:
         """(rows, cols, 4) float32: each material's density integrated along each ray

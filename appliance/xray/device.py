@@ -173,8 +173,9 @@ def is_cpu_device(device) -> bool:
 
 #: drr.cl's builds beside the plain one, by the macro that makes each: BLEND mixes two phases in
 #: the cast (a moving frame between two phases), SPLIT casts two phases in one pass, each into
-#: its own integrals (the projection cache's pair).
-VARIANTS = ("BLEND", "SPLIT")
+#: its own integrals (the projection cache's pair); SLABBED reads each packet of a moving frame from
+#: the slab copy where its rays allow, else from the full volume (slabs.py), alone or with BLEND.
+VARIANTS = ("BLEND", "SPLIT", "SLABBED", "SLABBED BLEND")
 
 
 class ClDevice:
@@ -209,7 +210,7 @@ class ClDevice:
         with self._variants_lock:
             if variant not in self._variants:
                 self._variants[variant] = self.cl.Program(self.ctx, self.source).build(
-                    options=[f"-D{variant}", *self.options])
+                    options=[*(f"-D{m}" for m in variant.split()), *self.options])
             return self.cl.Kernel(self._variants[variant], name)
 
     def upload(self, host: np.ndarray, writable: bool = False):

@@ -398,47 +398,39 @@ typedef short v32hi __attribute__((vector_size(64)));
             if (u0 + l < cols) (o)[p0 + l] = (float4)(A_[l], S_[l], B_[l], C_[l]); \
     } } while (0)
 
+// The second phase's arguments of the packet kernels (BLEND: mixed in the cast; SPLIT: cast into
+// its own integrals, out_b), in the kernel's order; SLABBED picks each packet's grid from two.
+#if defined(BLEND)
+#define SECOND_PARAMS global const short *vol_b, const float w_b,
+#define SECOND_ARGS(vb) vb, w_b,
+#elif defined(SPLIT)
+#define SECOND_PARAMS global const short *vol_b,
+#define SECOND_ARGS(vb) vb,
+#else
+#define SECOND_PARAMS
+#define SECOND_ARGS(vb)
+#endif
+#ifdef SPLIT
+#define OUT_B_PARAM , global float4 *out_b
+#define OUT_B_ARG , out_b
+#else
+#define OUT_B_PARAM
+#define OUT_B_ARG
+#endif
+
+// One packet's sixteen rays (directions nxv, nyv; on the beam where on_beam) through one voxel grid.
+//
 // SPLIT: two phases on one voxel grid in one pass, each phase's integrals to its own output
 // (out, out_b): the projection cache blends them later in projection space, and sampling both
 // at the same positions costs little more than one, since the addresses are shared.
-kernel void joseph_packet(global const short *vol,
-#ifdef BLEND
-                          global const short *vol_b, const float w_b,
-#endif
-#ifdef SPLIT
-                          global const short *vol_b,
-#endif
-                          const int nx, const int ny, const int nz, const int slab_axis,
-                          global const float2 *dirs, global const uchar *mask,
-                          constant float *geo, constant int *box, constant float *planes,
-                          constant float *mat, const int cols, global float4 *out
-#ifdef SPLIT
-                          , global float4 *out_b
-#endif
-                          )
+inline void packet_lines(global const short *vol, SECOND_PARAMS
+                         const int nx, const int ny, const int nz, const int slab_axis,
+                         global const float2 *dirs, constant float *geo, constant int *box, constant float *planes,
+                         constant float *mat, const int cols, global float4 *out OUT_B_PARAM,
+                         const int u0, const int v, const float16 nxv, const float16 nyv, const int16 on_beam)
 {
-    const int u0 = get_global_id(0) * LANES, v = get_global_id(1);
     const int p0 = v * cols + u0;
-    float16 nxv, nyv;
-    int16 on_beam;
-    // A whole packet's directions and beam mask are vector loads (two and one), split into lanes by
-    // swizzles; the packet at a row's end, lane by lane.
     const bool whole = u0 + LANES <= cols;
-    if (whole) {
-        global const float *df = (global const float *)(dirs + p0);
-        const float16 d0 = vload16(0, df), d1 = vload16(1, df);
-        nxv = (float16)(d0.even, d1.even);
-        nyv = (float16)(d0.odd, d1.odd);
-        on_beam = convert_int16(vload16(0, mask + p0)) != 0;
-    } else {
-        for (int l = 0; l < LANES; ++l) {
-            const int u = min(u0 + l, cols - 1);
-            const float2 n = dirs[v * cols + u];
-            nxv[l] = n.x;
-            nyv[l] = n.y;
-            on_beam[l] = (u0 + l < cols) && mask[v * cols + u] ? -1 : 0;
-        }
-    }
     const float16 dx = geo[0] * nxv + geo[1] * nyv + geo[2];
     const float16 dy = geo[3] * nxv + geo[4] * nyv + geo[5];
     const float16 dz = geo[6] * nxv + geo[7] * nyv + geo[8];
@@ -588,6 +580,65 @@ kernel void joseph_packet(global const short *vol,
     STORE_LINES(out, acc_air, acc_soft, acc_bone, acc_con);
 #ifdef SPLIT
     STORE_LINES(out_b, bcc_air, bcc_soft, bcc_bone, bcc_con);
+#endif
+}
+
+// SLABBED: a moving frame through pre-integrated slabs where its rays allow (slabs.py): each
+// packet none of whose rays on the beam shifts more than the rule's pixels within a slab reads
+// the slab copy (vol_s, its own grid: shape, layout, geometry, box and outline); the others read
+// the full volume, as the plain build would. rule (constant float[4]): the slab's axis a, then
+// r_b, r_c: a ray's shift within a slab in pixels is |(r_b d_b, r_c d_c)| / |d_a| for its
+// direction d in the full volume's indices, then the most pixels allowed.
+#ifdef SLABBED
+#if defined(BLEND) || defined(SPLIT)
+#define SLAB_SECOND_PARAM global const short *vol_sb,
+#else
+#define SLAB_SECOND_PARAM
+#endif
+#define SLABBED_PARAMS , global const short *vol_s, SLAB_SECOND_PARAM const int snx, const int sny, const int snz, \
+    const int s_axis, constant float *geo_s, constant int *box_s, constant float *planes_s, constant float *rule
+#else
+#define SLABBED_PARAMS
+#endif
+kernel void joseph_packet(global const short *vol, SECOND_PARAMS
+                          const int nx, const int ny, const int nz, const int slab_axis,
+                          global const float2 *dirs, global const uchar *mask,
+                          constant float *geo, constant int *box, constant float *planes,
+                          constant float *mat, const int cols, global float4 *out OUT_B_PARAM SLABBED_PARAMS)
+{
+    const int u0 = get_global_id(0) * LANES, v = get_global_id(1);
+    const int p0 = v * cols + u0;
+    float16 nxv, nyv;
+    int16 on_beam;
+    // A whole packet's directions and beam mask are vector loads (two and one), split into lanes by
+    // swizzles; the packet at a row's end, lane by lane.
+    if (u0 + LANES <= cols) {
+        global const float *df = (global const float *)(dirs + p0);
+        const float16 d0 = vload16(0, df), d1 = vload16(1, df);
+        nxv = (float16)(d0.even, d1.even);
+        nyv = (float16)(d0.odd, d1.odd);
+        on_beam = convert_int16(vload16(0, mask + p0)) != 0;
+    } else {
+        for (int l = 0; l < LANES; ++l) {
+            const int u = min(u0 + l, cols - 1);
+            const float2 n = dirs[v * cols + u];
+            nxv[l] = n.x;
+            nyv[l] = n.y;
+            on_beam[l] = (u0 + l < cols) && mask[v * cols + u] ? -1 : 0;
+        }
+    }
+#ifdef SLABBED
+    const int ra = (int)rule[0], rb = ra == 0 ? 1 : 0, rc = ra == 2 ? 1 : 2;
+    const float16 da = geo[3 * ra] * nxv + geo[3 * ra + 1] * nyv + geo[3 * ra + 2];
+    const float16 sb_ = rule[1] * (geo[3 * rb] * nxv + geo[3 * rb + 1] * nyv + geo[3 * rb + 2]);
+    const float16 sc_ = rule[2] * (geo[3 * rc] * nxv + geo[3 * rc + 1] * nyv + geo[3 * rc + 2]);
+    const bool thin = !ANY16((sb_ * sb_ + sc_ * sc_ > (rule[3] * rule[3]) * (da * da)) & on_beam);
+    packet_lines(thin ? vol_s : vol, SECOND_ARGS(thin ? vol_sb : vol_b) thin ? snx : nx, thin ? sny : ny,
+                 thin ? snz : nz, thin ? s_axis : slab_axis, dirs, thin ? geo_s : geo, thin ? box_s : box,
+                 thin ? planes_s : planes, mat, cols, out OUT_B_ARG, u0, v, nxv, nyv, on_beam);
+#else
+    packet_lines(vol, SECOND_ARGS(vol_b) nx, ny, nz, slab_axis, dirs, geo, box, planes, mat, cols, out OUT_B_ARG,
+                 u0, v, nxv, nyv, on_beam);
 #endif
 }
 

@@ -81,29 +81,37 @@ def dominant_axis(volume: PreparedVolume, T_xray_from_ct: np.ndarray) -> int:
     return int(np.argmax(np.abs(d)))
 
 
-def in_slab_shift_px(K: np.ndarray, shape: tuple[int, int], volume: PreparedVolume, T_xray_from_ct: np.ndarray,
-                     axis: int) -> float:
-    """How far the steepest ray of the field (a corner's) moves across `axis` within one slab,
-    seen on the detector at the depth of the volume's middle (pixels of the matrix of `K`)."""
-    rows, cols = shape
+def shift_scale(K: np.ndarray, volume: PreparedVolume, T_xray_from_ct: np.ndarray, axis: int) -> np.ndarray:
+    """(r_b, r_c): a ray with direction d in `volume`'s voxel indices moves |(r_b d_b, r_c d_c)| / |d_a|
+    pixels of the matrix of `K` across `axis` (a) within one slab, seen on the detector at the depth
+    of the volume's middle (b < c the other two axes). Within a slab the ray advances SLAB voxels
+    along a; across it, in mm, SLAB d_b / |d_a| voxels of b's spacing and as many of c's."""
     T = np.asarray(T_xray_from_ct, float)
-    index_from_xray = volume.T_index_from_ct @ invert(T)
-    corners = np.array([[0, 0, 1], [cols - 1, 0, 1], [0, rows - 1, 1], [cols - 1, rows - 1, 1],
-                        [K[0, 2], K[1, 2], 1]], float)
-    dirs = corners @ np.linalg.inv(K).T                                  # xray frame, z = 1
-    d_index = dirs @ index_from_xray[:3, :3].T                           # voxels per unit of z
-    # Within a slab the ray advances SLAB voxels along the axis; across it, in mm of the xray
-    # frame, this much (the other index axes scaled back to mm by the grid's spacing).
     ct_from_index = np.linalg.inv(volume.T_index_from_ct)[:3, :3]
     per_voxel_mm = np.linalg.norm(ct_from_index, axis=0)
-    others = [i for i in range(3) if i != axis]
-    across_mm = np.hypot(*(d_index[:, i] * per_voxel_mm[i] for i in others)) * SLAB / np.abs(d_index[:, axis])
     box = volume.box
-    if box is None:
-        return 0.0
+    if box is None:                     # nothing but air: no ray crosses anything to shift
+        return np.zeros(2)
     centre = np.append((np.asarray(box[0], float) + box[1]) / 2.0, 1.0)
     depth = float((T @ np.linalg.inv(volume.T_index_from_ct) @ centre)[2])
-    return float(np.max(across_mm) * K[0, 0] / max(depth, 1e-6))
+    return np.delete(per_voxel_mm, axis) * SLAB * K[0, 0] / max(depth, 1e-6)
+
+
+def in_slab_shift_px(K: np.ndarray, shape: tuple[int, int], volume: PreparedVolume, T_xray_from_ct: np.ndarray,
+                     axis: int, principal: bool = False) -> float:
+    """How far the steepest ray of the field (a corner's; `principal`: the principal ray) moves
+    across `axis` within one slab, seen on the detector at the depth of the volume's middle
+    (pixels of the matrix of `K`, see shift_scale)."""
+    if volume.box is None:
+        return 0.0
+    rows, cols = shape
+    index_from_xray = volume.T_index_from_ct @ invert(np.asarray(T_xray_from_ct, float))
+    rays = [[K[0, 2], K[1, 2], 1]] if principal else [[0, 0, 1], [cols - 1, 0, 1], [0, rows - 1, 1],
+                                                      [cols - 1, rows - 1, 1], [K[0, 2], K[1, 2], 1]]
+    d_index = np.array(rays, float) @ np.linalg.inv(K).T @ index_from_xray[:3, :3].T
+    r = shift_scale(K, volume, T_xray_from_ct, axis)
+    d_b, d_c = np.delete(d_index, axis, axis=1).T
+    return float(np.max(np.hypot(r[0] * d_b, r[1] * d_c) / np.abs(d_index[:, axis])))
 
 
 class SlabCache:
@@ -181,13 +189,34 @@ def slab_copy(caster, cache: SlabCache, volume: PreparedVolume, T_xray_from_ct: 
 def slab_cast(caster, cache: SlabCache, volume: PreparedVolume, T_xray_from_ct: np.ndarray, zoom: int,
               blend: tuple[PreparedVolume, float] | None, max_shift_px: float):
     """A stand-in for `caster.cast` (Renderer.render's `cast`) through the slabs of `volume` and
-    of the blended phase, or None where the field's steepest ray shifts more than `max_shift_px`
-    within a slab (then the frame is cast through the full volume)."""
-    slab = slab_copy(caster, cache, volume, T_xray_from_ct, zoom, max_shift_px)
-    if slab is None:
-        return None
+    of the blended phase where the rays shift at most `max_shift_px` (pixels of the caster's
+    matrix) within a slab: the whole field where its steepest ray does; else, with the packet
+    kernel, each packet all of whose rays do (the field's middle: drr.cl's SLABBED), the others
+    through the full volume. None where not even the principal ray does (then the frame is cast
+    through the full volume)."""
+    axis = dominant_axis(volume, T_xray_from_ct)
+    K = zoomed_K(caster.fluoroscope, zoom)
+    thin = None
+    if in_slab_shift_px(K, caster.shape, volume, T_xray_from_ct, axis) > max_shift_px:
+        if not caster.packet or in_slab_shift_px(K, caster.shape, volume, T_xray_from_ct, axis, True) > max_shift_px:
+            return None
+        thin = thin_rule(K, volume, T_xray_from_ct, axis, max_shift_px)
+    slab = cache.get(volume, axis)
     slab_blend = None if blend is None else (cache.get(blend[0], slab.slab_axis), blend[1])
+    if thin is not None:
+        def cast_packets(_volume, T, zoom_, collimation_mm, _blend, distorted, circle):
+            return caster.cast(volume, T, zoom_, collimation_mm, blend, distorted, circle,
+                               thin=(slab, None if slab_blend is None else slab_blend[0], thin))
+        return cast_packets
 
     def cast(_volume, T, zoom_, collimation_mm, _blend, distorted, circle):
         return caster.cast(slab, T, zoom_, collimation_mm, slab_blend, distorted, circle)
     return cast
+
+
+def thin_rule(K: np.ndarray, volume: PreparedVolume, T_xray_from_ct: np.ndarray, axis: int,
+              max_shift_px: float) -> np.ndarray:
+    """drr.cl's SLABBED rule: the slab's axis, shift_scale's (r_b, r_c) and the most pixels a ray
+    may shift within a slab for its packet to read the slab copy."""
+    r = shift_scale(K, volume, T_xray_from_ct, axis)
+    return np.array([axis, r[0], r[1], max_shift_px], np.float32)
