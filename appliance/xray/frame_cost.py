@@ -209,11 +209,14 @@ def _plastimatch_frame_s(exe: str, ct_path: Path, out_dir: Path, algorithm: str,
 def plastimatch_side_by_side(renderer, volume: Volume, rounds: int, frames: int) -> list[str]:
     """Rows comparing this renderer with plastimatch's exact and uniform `drr` on one CT and
     geometry, alternating: per round, plastimatch's seconds per image and this renderer's,
-    and their ratio (> 1: this renderer is faster)."""
+    and their ratio (> 1: this renderer is faster). "display" is a frame at a new pose through
+    the full volume, as a held view's first; "moving" the same frame as a moving one is cast,
+    through slabs where the shift rule allows (slabs.py, the bench's SLAB_MAX_SHIFT_PX)."""
     import SimpleITK as sitk
 
-    from .bench import pa_pose
+    from .bench import SLAB_MAX_SHIFT_PX, pa_pose
     from .renderer import View
+    from .slabs import SlabCache, slab_cast
 
     exe = plastimatch_binary()
     if exe is None:
@@ -223,6 +226,11 @@ def plastimatch_side_by_side(renderer, volume: Volume, rounds: int, frames: int)
     sod = fl.geometry.source_to_isocentre_mm
     prepared = renderer.prepare(volume)
     display, exact = View(), View(quantity="line-integral")
+    slabs = SlabCache(renderer.dev, 1)
+
+    def moving_cast(T):
+        return slab_cast(renderer.caster, slabs, prepared, T, 1, None, SLAB_MAX_SHIFT_PX)
+    casts = (("display", display, lambda T: None), ("moving", display, moving_cast), ("exact", exact, lambda T: None))
     lines = [f"plastimatch {exe}: {fl.detector.columns}x{fl.detector.rows} pixels of {fl.detector.pixel_pitch_mm:g} mm, "
              f"SAD {sod:g} mm, SID {fl.geometry.source_to_image_mm:g} mm, {frames} images per run; "
              "its time per image includes its CT read and HU conversion shared by the run's images"]
@@ -235,19 +243,20 @@ def plastimatch_side_by_side(renderer, volume: Volume, rounds: int, frames: int)
         image.SetOrigin(tuple(float(x) for x in T[:3, 3]))
         sitk.WriteImage(image, str(ct_path))
         for name, gantry, tilt in (("PA", 0.0, 0.0), ("lateral", 90.0, 90.0)):
-            for view in (display, exact):
-                renderer.render(prepared, pa_pose(sod, tilt), view)
+            for _, view, cast in casts:                 # per-view caches and the slab copy made
+                renderer.render(prepared, pa_pose(sod, tilt), view, cast=cast(pa_pose(sod, tilt)))
             ratios: dict[tuple[str, str], list[float]] = {}
             times: dict[str, list[float]] = {}
             for _ in range(rounds):
                 for algorithm in ("exact", "uniform"):
                     pm = _plastimatch_frame_s(exe, ct_path, tmp_dir, algorithm, fl, gantry, frames)
                     times.setdefault(f"plastimatch {algorithm}", []).append(pm)
-                    for view, label in ((display, "display"), (exact, "exact")):
+                    for label, view, cast in casts:
                         ts = []
                         for f in range(frames):
+                            pose = pa_pose(sod, tilt + 1.7 * f)
                             t0 = time.perf_counter()
-                            renderer.render(prepared, pa_pose(sod, tilt + 1.7 * f), view)
+                            renderer.render(prepared, pose, view, cast=cast(pose))
                             ts.append(time.perf_counter() - t0)
                         ours = float(np.median(ts))
                         times.setdefault(f"fluorosim {label}", []).append(ours)
