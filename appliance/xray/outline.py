@@ -134,9 +134,13 @@ def cutting(planes: np.ndarray, T_index_from_xray: np.ndarray, rim: np.ndarray, 
         ta, tb = (lo - source) / dirs, (hi - source) / dirs
     # A ray parallel to an axis: the whole line within that slab, or none of it.
     inside = (source >= lo) & (source <= hi)
-    t_in = np.where(dirs == 0, np.where(inside, -np.inf, np.inf), np.minimum(ta, tb)).max(axis=1)
-    t_out = np.where(dirs == 0, np.where(inside, np.inf, -np.inf), np.maximum(ta, tb)).min(axis=1)
-    t_in = np.maximum(t_in, 0.0)
+    enter = np.where(dirs == 0, np.where(inside, -np.inf, np.inf), np.minimum(ta, tb))
+    leave = np.where(dirs == 0, np.where(inside, np.inf, -np.inf), np.maximum(ta, tb))
+    # The three axes' columns reduced pairwise, and the planes' values below with the points
+    # along the rows: NumPy's reductions across short or strided axes cost most of this
+    # function, which every moving frame runs (min and max are exact in any order).
+    t_in = np.maximum(np.maximum(np.maximum(enter[:, 0], enter[:, 1]), enter[:, 2]), 0.0)
+    t_out = np.minimum(np.minimum(leave[:, 0], leave[:, 1]), leave[:, 2])
     hit = t_out > t_in
     points = [source + t[hit, None] * dirs[hit] for t in (t_in, t_out)]
     # The box's corners within the field: in front of the focal spot, their direction within the
@@ -148,6 +152,6 @@ def cutting(planes: np.ndarray, T_index_from_xray: np.ndarray, rim: np.ndarray, 
     seen = np.all((d >= rim.min(axis=0)) & (d <= rim.max(axis=0)), axis=1)
     points.append(corners[ahead][seen])
     p = np.concatenate(points)
-    v = p @ rows[:, :3].T
-    keep = (v.min(axis=0, initial=np.inf) < rows[:, 3]) | (v.max(axis=0, initial=-np.inf) > rows[:, 4])
+    v = rows[:, :3] @ p.T
+    keep = (v.min(axis=1, initial=np.inf) < rows[:, 3]) | (v.max(axis=1, initial=-np.inf) > rows[:, 4])
     return np.concatenate([[keep.sum()], rows[keep].ravel()]).astype(np.float32)
