@@ -180,6 +180,16 @@ def test_where_only_some_rays_allow_slabs_each_packet_takes_its_own_grid(rendere
     assert not np.array_equal(slabs[thin], full[thin])               # the two grids do differ there
 
 
+def test_the_warm_up_builds_the_packet_by_packet_kernels(renderer, chest_phases):
+    """A fresh build of the SLABBED kernels takes seconds: the renderer's warm-up makes them for
+    every moving matrix, so no frame in a session waits for one."""
+    a, _ = chest_phases
+    pr = ProgressiveRenderer(renderer, Rendering(moving_matrix_px=64, slab_max_shift_px=1.0))
+    pr.warm(a, ALONG_Y)
+    for r in (pr.full, *pr._movers.values()):
+        assert set(r.caster._joseph_slabbed) == {"SLABBED", "SLABBED BLEND"}
+
+
 def test_moving_frames_go_through_slabs_and_a_held_view_does_not(renderer):
     vol, _, _ = box_volume((48, 64, 64), (1.5, 1.25, 2.5), (9, 14, 6), (52, 47, 40))
     prepared = renderer.prepare(vol)

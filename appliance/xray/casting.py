@@ -498,19 +498,24 @@ class Caster:
             time.sleep(BAND_YIELD_S)    # a frame waiting for the lock gets it (Python's lock is not fair)
         return lines, mask
 
+    def slabbed_kernel(self, blended: bool):
+        """The packet kernel's SLABBED build (with BLEND where `blended`), built on first use: a
+        renderer's warm-up asks for both, since a fresh build takes seconds on PoCL."""
+        variant = "SLABBED BLEND" if blended else "SLABBED"
+        if variant not in self._joseph_slabbed:
+            self._joseph_slabbed[variant] = self.dev.kernel(self._joseph_name, variant)
+        return self._joseph_slabbed[variant]
+
     def _thin_args(self, thin, blended: bool, T_xray_from_ct, zoom: int, distorted: bool):
         """The SLABBED build of the packet kernel and its arguments after the plain build's: the
         slab grid's phases, shape, layout, geometry, box and outline, then the rule."""
         slab, slab_blend, rule = thin
-        variant = "SLABBED BLEND" if blended else "SLABBED"
-        if variant not in self._joseph_slabbed:
-            self._joseph_slabbed[variant] = self.dev.kernel(self._joseph_name, variant)
         vols = (slab,) if not blended else (slab, slab_blend)
         box = self._box(*vols)
         assert box is not None, "a slab copy keeps its phase's content box"     # cast() returned on none
         nx, ny, nz = slab.shape_xyz
         dev = self.dev
-        return self._joseph_slabbed[variant], (
+        return self.slabbed_kernel(blended), (
             *(v.buffer for v in vols), np.int32(nx), np.int32(ny), np.int32(nz), np.int32(slab.slab_axis),
             dev.upload(self._geometry(slab, T_xray_from_ct)), dev.upload(box),
             dev.upload(self._field_planes(vols, box, T_xray_from_ct, zoom, distorted)),

@@ -198,6 +198,12 @@ class ProgressiveRenderer:
         if self.slabs is not None:              # compiles the slab kernel (a quarter second on PoCL)
             self.slabs.get(volume, 0)
             self.slabs.clear()
+            # and the packet kernel's builds for slabs packet by packet (slabs.slab_cast), which a
+            # moving frame a few degrees off the volume's axis first needs in the middle of a session
+            for r in (self.full, *self._movers.values()):
+                if r.caster.packet and self.settings.slab_max_shift_px is not None:
+                    for blended in (False, True):
+                        r.caster.slabbed_kernel(blended)
 
     def _held_through(self, renderer: Renderer):
         """The projection cache's `through` for a held view's matrix: its slab copies where the
