@@ -26,7 +26,7 @@ from appliance.xray.casting import (
 )
 from appliance.xray.projection_cache import ProjectionCache
 from appliance.xray.renderer import Renderer, View, zoomed_K
-from appliance.xray.slabs import SlabCache, slab_cast
+from appliance.xray.slabs import SlabCache, Through, slab_cast
 from appliance.xray.truth.analytic import ellipsoid_volume, pixel_rays_ct
 
 SIZE = 128
@@ -270,8 +270,8 @@ def test_casts_through_slabs_and_the_two_phase_pass_drop_only_air():
         np.testing.assert_array_equal(got[..., 1:], box[..., 1:])
         assert np.all(got[..., 0] <= box[..., 0] + 1e-6) and np.any(got[..., 0] < box[..., 0] - 1e-3)
     split = ProjectionCache(r)
-    got = [download(x) for x in split._cast_two(a, b, OBLIQUE, 1, None, False, False)]
-    box = [download(x) for x in split._cast_two(*bare, OBLIQUE, 1, None, False, False)]
+    got = [download(x) for x in split._cast_two(Through(a), Through(b), OBLIQUE, 1, None, False, False)]
+    box = [download(x) for x in split._cast_two(*map(Through, bare), OBLIQUE, 1, None, False, False)]
     for g, x in zip(got, box):
         assert x[..., 1].max() > 20
         np.testing.assert_array_equal(g[..., 1:], x[..., 1:])

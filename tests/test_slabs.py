@@ -146,6 +146,39 @@ def ray_shift_px(K, pose, prepared, axis, shape):
     return across_mm * K[0, 0] / depth
 
 
+#: A posterior-anterior view tilted 12 degrees: the quick chest's steepest ray shifts about twice
+#: as far within a slab as its principal ray.
+TILTED = make_transform(rotation_about([1.0, 0.2, 0.0], np.radians(12)) @ ALONG_Y[:3, :3], [4.0, 2.0, 700.0])
+
+
+def between_rays(renderer, prepared, pose) -> float:
+    """A rule halfway between the principal ray's shift within a slab and the steepest ray's."""
+    K = zoomed_K(renderer.fluoroscope, 1)
+    axis = dominant_axis(prepared, pose)
+    return (in_slab_shift_px(K, renderer.shape, prepared, pose, axis)
+            + in_slab_shift_px(K, renderer.shape, prepared, pose, axis, principal=True)) / 2.0
+
+
+def packet_plan(renderer, prepared, pose, limit, on=None):
+    """Pixel masks (thin, clear): the packets all of whose rays (on the beam `on`) shift at most
+    `limit` within a slab (ray_shift_px), and those not on the rule's edge in float32."""
+    K = zoomed_K(renderer.fluoroscope, 1)
+    shift = ray_shift_px(K, pose, prepared, dominant_axis(prepared, pose), renderer.shape)
+    if on is not None:
+        shift = np.where(on, shift, 0.0)
+    rows, cols = renderer.shape
+    packets = shift.reshape(rows, cols // 16, 16).max(-1)
+    clear = np.abs(packets - limit) > 1e-3 * limit
+    return np.repeat(packets <= limit, 16, axis=1), np.repeat(clear, 16, axis=1)
+
+
+def assert_packet_by_packet(got, slabs, full, thin, clear):
+    assert 0.2 < thin.mean() < 0.8 and clear.mean() > 0.95
+    np.testing.assert_array_equal(got[clear & thin], slabs[clear & thin])
+    np.testing.assert_array_equal(got[clear & ~thin], full[clear & ~thin])
+    assert not np.array_equal(slabs[thin], full[thin])               # the two grids do differ there
+
+
 @pytest.mark.parametrize("blended", [False, True])
 def test_where_only_some_rays_allow_slabs_each_packet_takes_its_own_grid(renderer, chest_phases, blended):
     """A moving frame whose field's steepest ray shifts more than the rule within a slab, but its
@@ -153,12 +186,8 @@ def test_where_only_some_rays_allow_slabs_each_packet_takes_its_own_grid(rendere
     pixels (worked out ray by ray above) is the cast through the slabs to the bit, every other
     one the cast through the full volume to the bit, for a phase alone and for two blended."""
     a, b = chest_phases
-    pose = make_transform(rotation_about([1.0, 0.2, 0.0], np.radians(12)) @ ALONG_Y[:3, :3], [4.0, 2.0, 700.0])
-    K = zoomed_K(renderer.fluoroscope, 1)
-    axis = dominant_axis(a, pose)
-    steepest = in_slab_shift_px(K, renderer.shape, a, pose, axis)
-    principal = in_slab_shift_px(K, renderer.shape, a, pose, axis, principal=True)
-    limit = (steepest + principal) / 2.0
+    pose = TILTED
+    limit = between_rays(renderer, a, pose)
     blend = (b, 0.3) if blended else None
     cache = SlabCache(renderer.dev, 2)
     mixed = slab_cast(renderer.caster, cache, a, pose, 1, blend, limit)
@@ -170,14 +199,39 @@ def test_where_only_some_rays_allow_slabs_each_packet_takes_its_own_grid(rendere
     got = lines(mixed)
     slabs = lines(slab_cast(renderer.caster, cache, a, pose, 1, blend, np.inf))
     full = lines(renderer.caster.cast)
-    packets = ray_shift_px(K, pose, a, axis, renderer.shape).reshape(128, 8, 16).max(-1)
-    clear = np.abs(packets - limit) > 1e-3 * limit                  # not on the rule's edge in float32
-    thin = np.repeat(packets <= limit, 16, axis=1)
-    assert 0.2 < thin.mean() < 0.8 and clear.mean() > 0.95
-    use = np.repeat(clear, 16, axis=1)
-    np.testing.assert_array_equal(got[use & thin], slabs[use & thin])
-    np.testing.assert_array_equal(got[use & ~thin], full[use & ~thin])
-    assert not np.array_equal(slabs[thin], full[thin])               # the two grids do differ there
+    assert_packet_by_packet(got, slabs, full, *packet_plan(renderer, a, pose, limit))
+
+
+def test_a_held_view_goes_through_the_slabs_packet_by_packet_too(renderer, chest_phases):
+    """A held view under rendering.rest_slab_max_shift_px between the principal and the steepest
+    ray's shift: its cached integrals, cast at once and in bands beside the live frames, and the
+    pair of phases cast in one pass (SPLIT, each through its own slab copy), are packet by packet
+    the whole-field casts through the slabs and through the full volume, to the bit."""
+    a, b = chest_phases
+    pose = TILTED
+    limit = between_rays(renderer, a, pose)
+    circle = renderer._circle(None)
+    plan = packet_plan(renderer, a, pose, limit, renderer.caster.beam(1, None, circle).exposed)
+    copies = SlabCache(renderer.dev, 2)
+
+    def download(buf):
+        return renderer.dev.download(buf, np.empty(renderer.shape + (4,), np.float32))
+
+    def whole(p):                       # the whole field through the slabs, and through the full volume
+        through = slab_cast(renderer.caster, copies, p, pose, 1, None, np.inf)
+        return (download(through(p, pose, 1, None, None, True, circle)[0]),
+                download(renderer.caster.cast(p, pose, 1, None, None, True, circle)[0]))
+    pr = ProgressiveRenderer(renderer, Rendering(rest_slab_max_shift_px=limit))
+    cache = pr.cache()
+    assert_packet_by_packet(cache.material_integrals(a, pose, View()), *whole(a), *plan)
+    cache.clear()
+    assert cache.fill([a], pose, 1, None, True, circle, 3, lambda: False)
+    assert_packet_by_packet(cache.material_integrals(a, pose, View()), *whole(a), *plan)
+    through = pr._held_through(renderer)
+    assert through is not None
+    pair = cache._cast_two(through(a, pose, 1), through(b, pose, 1), pose, 1, None, True, circle)
+    for got, p in zip(pair, (a, b)):
+        assert_packet_by_packet(download(got), *whole(p), *plan)
 
 
 def test_the_warm_up_builds_the_packet_by_packet_kernels(renderer, chest_phases):
@@ -187,7 +241,7 @@ def test_the_warm_up_builds_the_packet_by_packet_kernels(renderer, chest_phases)
     pr = ProgressiveRenderer(renderer, Rendering(moving_matrix_px=64, slab_max_shift_px=1.0))
     pr.warm(a, ALONG_Y)
     for r in (pr.full, *pr._movers.values()):
-        assert set(r.caster._joseph_slabbed) == {"SLABBED", "SLABBED BLEND"}
+        assert set(r.caster._joseph_slabbed) == {"SLABBED", "SLABBED BLEND", "SLABBED SPLIT"}
 
 
 def test_moving_frames_go_through_slabs_and_a_held_view_does_not(renderer):

@@ -480,7 +480,9 @@ class Caster:
                 dev.upload(self._field_planes(vols, box, T_xray_from_ct, zoom, distorted)), self._mat_buf)
         tail = (np.int32(cols), lines) if self.packet else (lines,)
         if thin is not None and self.packet:
-            kernel, extra = self._thin_args(thin, blend is not None, T_xray_from_ct, zoom, distorted)
+            slab, slab_blend, rule = thin
+            kernel, extra = self.thin_args((slab,) if blend is None else (slab, slab_blend), rule,
+                                           None if blend is None else "BLEND", T_xray_from_ct, zoom, distorted)
             tail = (*tail, *extra)
         width = -(-cols // PACKET) if self.packet else cols
         if bands is None:
@@ -498,27 +500,28 @@ class Caster:
             time.sleep(BAND_YIELD_S)    # a frame waiting for the lock gets it (Python's lock is not fair)
         return lines, mask
 
-    def slabbed_kernel(self, blended: bool):
-        """The packet kernel's SLABBED build (with BLEND where `blended`), built on first use: a
-        renderer's warm-up asks for both, since a fresh build takes seconds on PoCL."""
-        variant = "SLABBED BLEND" if blended else "SLABBED"
+    def slabbed_kernel(self, second: str | None = None):
+        """The packet kernel's SLABBED build (with `second`'s, BLEND or SPLIT, for two phases),
+        built on first use: a renderer's warm-up asks for them, since a fresh build takes seconds
+        on PoCL."""
+        variant = "SLABBED" if second is None else f"SLABBED {second}"
         if variant not in self._joseph_slabbed:
             self._joseph_slabbed[variant] = self.dev.kernel(self._joseph_name, variant)
         return self._joseph_slabbed[variant]
 
-    def _thin_args(self, thin, blended: bool, T_xray_from_ct, zoom: int, distorted: bool):
-        """The SLABBED build of the packet kernel and its arguments after the plain build's: the
-        slab grid's phases, shape, layout, geometry, box and outline, then the rule."""
-        slab, slab_blend, rule = thin
-        vols = (slab,) if not blended else (slab, slab_blend)
-        box = self._box(*vols)
+    def thin_args(self, slabs: tuple[PreparedVolume, ...], rule: np.ndarray, second: str | None, T_xray_from_ct,
+                  zoom: int, distorted: bool):
+        """The SLABBED build of the packet kernel (`second`: see slabbed_kernel) and its arguments
+        after the plain build's: the slab copies of the phases (one, or two on one grid), their
+        grid's shape, layout, geometry, box and outline, then the rule (slabs.thin_rule)."""
+        box = self._box(*slabs)
         assert box is not None, "a slab copy keeps its phase's content box"     # cast() returned on none
-        nx, ny, nz = slab.shape_xyz
+        nx, ny, nz = slabs[0].shape_xyz
         dev = self.dev
-        return self.slabbed_kernel(blended), (
-            *(v.buffer for v in vols), np.int32(nx), np.int32(ny), np.int32(nz), np.int32(slab.slab_axis),
-            dev.upload(self._geometry(slab, T_xray_from_ct)), dev.upload(box),
-            dev.upload(self._field_planes(vols, box, T_xray_from_ct, zoom, distorted)),
+        return self.slabbed_kernel(second), (
+            *(v.buffer for v in slabs), np.int32(nx), np.int32(ny), np.int32(nz), np.int32(slabs[0].slab_axis),
+            dev.upload(self._geometry(slabs[0], T_xray_from_ct)), dev.upload(box),
+            dev.upload(self._field_planes(slabs, box, T_xray_from_ct, zoom, distorted)),
             dev.upload(np.asarray(rule, np.float32)))
 
     def material_integrals(self, volume, T_xray_from_ct, zoom, collimation_mm, blend, distorted, circle) -> np.ndarray:

@@ -174,8 +174,8 @@ def is_cpu_device(device) -> bool:
 #: drr.cl's builds beside the plain one, by the macro that makes each: BLEND mixes two phases in
 #: the cast (a moving frame between two phases), SPLIT casts two phases in one pass, each into
 #: its own integrals (the projection cache's pair); SLABBED reads each packet of a moving frame from
-#: the slab copy where its rays allow, else from the full volume (slabs.py), alone or with BLEND.
-VARIANTS = ("BLEND", "SPLIT", "SLABBED", "SLABBED BLEND")
+#: the slab copy where its rays allow, else from the full volume (slabs.py), alone or with either.
+VARIANTS = ("BLEND", "SPLIT", "SLABBED", "SLABBED BLEND", "SLABBED SPLIT")
 
 
 class ClDevice:

@@ -74,7 +74,7 @@ from .casting import CastCancelled
 from .matrix_control import MatrixController
 from .projection_cache import ProjectionCache, pose_unchanged
 from .renderer import Frame, PreparedVolume, Renderer, View, at_resolution
-from .slabs import SlabCache, slab_cast, slab_copy
+from .slabs import SlabCache, Through, slab_cast, slab_through
 
 log = logging.getLogger(__name__)
 
@@ -198,12 +198,13 @@ class ProgressiveRenderer:
         if self.slabs is not None:              # compiles the slab kernel (a quarter second on PoCL)
             self.slabs.get(volume, 0)
             self.slabs.clear()
-            # and the packet kernel's builds for slabs packet by packet (slabs.slab_cast), which a
-            # moving frame a few degrees off the volume's axis first needs in the middle of a session
-            for r in (self.full, *self._movers.values()):
-                if r.caster.packet and self.settings.slab_max_shift_px is not None:
-                    for blended in (False, True):
-                        r.caster.slabbed_kernel(blended)
+            # and the packet kernel's builds for slabs packet by packet (slabs.slab_through), which a
+            # frame a few degrees off the volume's axis first needs in the middle of a session
+            rules = (self.settings.slab_max_shift_px, self.settings.rest_slab_max_shift_px)
+            for r in (self.full, *self._others()):
+                if r.caster.packet and any(rule is not None for rule in rules):
+                    for second in (None, "BLEND", "SPLIT"):
+                        r.caster.slabbed_kernel(second)
 
     def _held_through(self, renderer: Renderer):
         """The projection cache's `through` for a held view's matrix: its slab copies where the
@@ -215,8 +216,8 @@ class ProgressiveRenderer:
         if limit is None or slabs is None:
             return None
 
-        def through(phase: PreparedVolume, T: np.ndarray, zoom: int) -> PreparedVolume:
-            return slab_copy(renderer.caster, slabs, phase, T, zoom, limit) or phase
+        def through(phase: PreparedVolume, T: np.ndarray, zoom: int) -> Through:
+            return slab_through(renderer.caster, slabs, phase, T, zoom, limit)
         return through
 
     def _others(self) -> list[Renderer]:

@@ -22,6 +22,7 @@ import numpy as np
 
 from .casting import BlendedLines
 from .renderer import PACKET, Frame, PreparedVolume, Renderer, View, zoomed_K
+from .slabs import Through
 
 if TYPE_CHECKING:
     import pyopencl as cl
@@ -81,10 +82,10 @@ class ProjectionCache:
     a phase only when the pose (or the view's geometry) changed since that phase was cast."""
 
     def __init__(self, renderer: Renderer, pose_tolerance_px: float = 0.25, max_phases: int = 12,
-                 through: Callable[[PreparedVolume, np.ndarray, int], PreparedVolume] | None = None):
-        """`through(phase, T_xray_from_ct, zoom)`: the volume a phase is cast through at that pose
-        (its slab copy, slabs.slab_copy, or the phase itself), asked with the device's lock held;
-        None: the phase itself. The integrals are kept as the phase's."""
+                 through: Callable[[PreparedVolume, np.ndarray, int], Through] | None = None):
+        """`through(phase, T_xray_from_ct, zoom)`: how a phase is cast at that pose (slabs.Through:
+        through its slab copy, packet by packet, or the phase itself; slabs.slab_through), asked
+        with the device's lock held; None: the phase itself. The integrals are kept as the phase's."""
         self.renderer = renderer
         self._through = through
         self.pose_tolerance_px = float(pose_tolerance_px)
@@ -142,8 +143,8 @@ class ProjectionCache:
         key = self._geometry_key(zoom, collimation_mm, distorted, circle)
         with r._lock:
             cast_as = {p: self._cast_as(p, T_xray_from_ct, zoom) for p in dict.fromkeys(phases)}
-        lines = {p: r.caster.cast(v, T_xray_from_ct, zoom, collimation_mm, None, distorted, circle,
-                                  bands=(r._lock, bands, cancelled))[0] for p, v in cast_as.items()}
+        lines = {p: r.caster.cast(t.volume, T_xray_from_ct, zoom, collimation_mm, None, distorted, circle,
+                                  bands=(r._lock, bands, cancelled), thin=t.cast_thin)[0] for p, t in cast_as.items()}
         if self._geometry_key(zoom, collimation_mm, distorted, circle) != key:
             return False
         self.keep(lines, T_xray_from_ct, zoom, collimation_mm, distorted, circle)
@@ -165,32 +166,36 @@ class ProjectionCache:
         missing = [p for p in phases if p not in self._lines]
         self.counts.hits += len(phases) - len(missing)
         cast_as = [self._cast_as(p, T, zoom) for p in missing]
-        if len(missing) == 2 and r.packet and cast_as[0].same_grid(cast_as[1]):
+        if (len(missing) == 2 and r.packet and cast_as[0].volume.same_grid(cast_as[1].volume)
+                and (cast_as[0].thin is None) == (cast_as[1].thin is None)):
             self._lines.update(zip(missing, self._cast_two(cast_as[0], cast_as[1], T, zoom, collimation_mm,
                                                            distorted, circle)))
             self.counts.casts += 2
             self.counts.paired += 1
             missing = []
-        for p, v in zip(missing, cast_as):
-            self._lines[p], _ = r.caster.cast(v, T, zoom, collimation_mm, None, distorted, circle)
+        for p, t in zip(missing, cast_as):
+            self._lines[p], _ = r.caster.cast(t.volume, T, zoom, collimation_mm, None, distorted, circle,
+                                              thin=t.cast_thin)
             self.counts.casts += 1
         self._keep_at_most(phases)
 
-    def _cast_as(self, phase: PreparedVolume, T, zoom: int) -> PreparedVolume:
-        """The volume `phase` is cast through at this pose (see `through`)."""
-        return phase if self._through is None else self._through(phase, T, zoom)
+    def _cast_as(self, phase: PreparedVolume, T, zoom: int) -> Through:
+        """How `phase` is cast at this pose (see `through`)."""
+        return Through(phase) if self._through is None else self._through(phase, T, zoom)
 
     def _keep_at_most(self, wanted) -> None:
         """Drop the oldest cached phases beyond `max_phases`, never one of `wanted` (this frame's)."""
         while len(self._lines) > self.max_phases:
             del self._lines[next(k for k in self._lines if k not in wanted)]
 
-    def _cast_two(self, a: PreparedVolume, b: PreparedVolume, T, zoom, collimation_mm, distorted, circle):
-        """Both phases' integrals from one pass of the SPLIT packet kernel over the two volumes."""
+    def _cast_two(self, ta: Through, tb: Through, T, zoom, collimation_mm, distorted, circle):
+        """Both phases' integrals from one pass of the SPLIT packet kernel over the two volumes
+        (packet by packet through their slab copies too where `ta` and `tb` say so)."""
         dev, caster = self.renderer.dev, self.renderer.caster
         cl = dev.cl
         if self._split is None:
             self._split = dev.kernel("joseph_packet", "SPLIT")
+        a, b = ta.volume, tb.volume
         rows, cols = caster.shape
         out_a, out_b = dev.scratch(rows * cols * 16), dev.scratch(rows * cols * 16)
         box = caster._box(a, b)
@@ -199,12 +204,15 @@ class ProjectionCache:
                 cl.enqueue_fill_buffer(dev.queue, out, np.float32(0), 0, rows * cols * 16)
             return out_a, out_b
         mask_buf = caster.beam(zoom, collimation_mm, circle).exposed_buf
+        kernel, thin = self._split, ()
+        if ta.thin is not None and tb.thin is not None:
+            kernel, thin = caster.thin_args((ta.thin[0], tb.thin[0]), ta.thin[1], "SPLIT", T, zoom, distorted)
         a, b = caster.laid_out([a, b], T, zoom, distorted)
         nx, ny, nz = a.shape_xyz
-        self._split(dev.queue, (-(-cols // PACKET), rows), None, a.buffer, b.buffer, np.int32(nx), np.int32(ny),
-                    np.int32(nz), np.int32(a.slab_axis), caster._dirs_buffer(zoom, distorted), mask_buf, dev.upload(caster._geometry(a, T)),
-                    dev.upload(box), dev.upload(caster._field_planes((a, b), box, T, zoom, distorted)), caster._mat_buf,
-                    np.int32(cols), out_a, out_b)
+        kernel(dev.queue, (-(-cols // PACKET), rows), None, a.buffer, b.buffer, np.int32(nx), np.int32(ny),
+               np.int32(nz), np.int32(a.slab_axis), caster._dirs_buffer(zoom, distorted), mask_buf, dev.upload(caster._geometry(a, T)),
+               dev.upload(box), dev.upload(caster._field_planes((a, b), box, T, zoom, distorted)), caster._mat_buf,
+               np.int32(cols), out_a, out_b, *thin)
         return out_a, out_b
 
     def _cached_cast(self, volume, T, zoom, collimation_mm, blend, distorted, circle, fused: bool = True):

@@ -26,6 +26,7 @@ from __future__ import annotations
 import threading
 import weakref
 from collections import OrderedDict
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -175,42 +176,56 @@ class SlabCache:
         return sum(slab.nbytes for _, slab in self._slabs.values())
 
 
-def slab_copy(caster, cache: SlabCache, volume: PreparedVolume, T_xray_from_ct: np.ndarray, zoom: int,
-              max_shift_px: float) -> PreparedVolume | None:
-    """The slab copy of `volume` to cast the field of `caster`'s matrix through, or None where the
-    field's steepest ray shifts more than `max_shift_px` (pixels of that matrix) within a slab."""
+@dataclass(frozen=True)
+class Through:
+    """How a phase is cast at one pose: `volume` (the phase itself, or its slab copy for the whole
+    field) and, for slabs packet by packet, `thin` = (the slab copy, drr.cl's SLABBED rule):
+    Caster.cast's `thin`, the packets whose rays allow reading the copy, the rest `volume`."""
+    volume: PreparedVolume
+    thin: tuple[PreparedVolume, np.ndarray] | None = None
+
+    @property
+    def cast_thin(self):
+        """Caster.cast's `thin` for this phase alone."""
+        return None if self.thin is None else (self.thin[0], None, self.thin[1])
+
+
+def slab_through(caster, cache: SlabCache, volume: PreparedVolume, T_xray_from_ct: np.ndarray, zoom: int,
+                 max_shift_px: float) -> Through:
+    """How to cast `volume` at this pose through its slabs where the rays shift at most
+    `max_shift_px` (pixels of the caster's matrix) within a slab: the whole field through the
+    slab copy where its steepest ray does; else, with the packet kernel, the packets all of whose
+    rays do (the field's middle: drr.cl's SLABBED), the others through the full volume; the full
+    volume alone where not even the principal ray does."""
     axis = dominant_axis(volume, T_xray_from_ct)
     K = zoomed_K(caster.fluoroscope, zoom)
-    if in_slab_shift_px(K, caster.shape, volume, T_xray_from_ct, axis) > max_shift_px:
-        return None
-    return cache.get(volume, axis)
+    if in_slab_shift_px(K, caster.shape, volume, T_xray_from_ct, axis) <= max_shift_px:
+        return Through(cache.get(volume, axis))
+    if not caster.packet or in_slab_shift_px(K, caster.shape, volume, T_xray_from_ct, axis, True) > max_shift_px:
+        return Through(volume)
+    return Through(volume, (cache.get(volume, axis), thin_rule(K, volume, T_xray_from_ct, axis, max_shift_px)))
 
 
 def slab_cast(caster, cache: SlabCache, volume: PreparedVolume, T_xray_from_ct: np.ndarray, zoom: int,
               blend: tuple[PreparedVolume, float] | None, max_shift_px: float):
     """A stand-in for `caster.cast` (Renderer.render's `cast`) through the slabs of `volume` and
-    of the blended phase where the rays shift at most `max_shift_px` (pixels of the caster's
-    matrix) within a slab: the whole field where its steepest ray does; else, with the packet
-    kernel, each packet all of whose rays do (the field's middle: drr.cl's SLABBED), the others
-    through the full volume. None where not even the principal ray does (then the frame is cast
-    through the full volume)."""
-    axis = dominant_axis(volume, T_xray_from_ct)
-    K = zoomed_K(caster.fluoroscope, zoom)
-    thin = None
-    if in_slab_shift_px(K, caster.shape, volume, T_xray_from_ct, axis) > max_shift_px:
-        if not caster.packet or in_slab_shift_px(K, caster.shape, volume, T_xray_from_ct, axis, True) > max_shift_px:
-            return None
-        thin = thin_rule(K, volume, T_xray_from_ct, axis, max_shift_px)
-    slab = cache.get(volume, axis)
-    slab_blend = None if blend is None else (cache.get(blend[0], slab.slab_axis), blend[1])
-    if thin is not None:
+    of the blended phase as slab_through decides, or None where that is the full volume alone
+    (then the frame is cast through the full volume)."""
+    through = slab_through(caster, cache, volume, T_xray_from_ct, zoom, max_shift_px)
+    if through.volume is volume and through.thin is None:
+        return None
+    axis = through.volume.slab_axis if through.thin is None else through.thin[0].slab_axis
+    slab_blend = None if blend is None else (cache.get(blend[0], axis), blend[1])
+    if through.thin is not None:
+        slab, rule = through.thin
+
         def cast_packets(_volume, T, zoom_, collimation_mm, _blend, distorted, circle):
             return caster.cast(volume, T, zoom_, collimation_mm, blend, distorted, circle,
-                               thin=(slab, None if slab_blend is None else slab_blend[0], thin))
+                               thin=(slab, None if slab_blend is None else slab_blend[0], rule))
         return cast_packets
 
     def cast(_volume, T, zoom_, collimation_mm, _blend, distorted, circle):
-        return caster.cast(slab, T, zoom_, collimation_mm, slab_blend, distorted, circle)
+        return caster.cast(through.volume, T, zoom_, collimation_mm, slab_blend, distorted, circle)
     return cast
 
 
