@@ -270,8 +270,8 @@ def test_casts_through_slabs_and_the_two_phase_pass_drop_only_air():
         np.testing.assert_array_equal(got[..., 1:], box[..., 1:])
         assert np.all(got[..., 0] <= box[..., 0] + 1e-6) and np.any(got[..., 0] < box[..., 0] - 1e-3)
     split = ProjectionCache(r)
-    got = [download(x) for x in split._cast_two(Through(a), Through(b), OBLIQUE, 1, None, False, False)]
-    box = [download(x) for x in split._cast_two(*map(Through, bare), OBLIQUE, 1, None, False, False)]
+    got = [download(x) for x in split.cast_two(Through(a), Through(b), OBLIQUE, 1, None, False, False)]
+    box = [download(x) for x in split.cast_two(*map(Through, bare), OBLIQUE, 1, None, False, False)]
     for g, x in zip(got, box):
         assert x[..., 1].max() > 20
         np.testing.assert_array_equal(g[..., 1:], x[..., 1:])

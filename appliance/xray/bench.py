@@ -156,7 +156,7 @@ def _moving_cast(renderer, prepared, T):
 
     shift = in_slab_shift_px(zoomed_K(renderer.fluoroscope, 1), renderer.shape, prepared, T,
                              dominant_axis(prepared, T))
-    cast = slab_cast(renderer.caster, SlabCache(renderer.dev, 1), prepared, T, 1, None, SLAB_MAX_SHIFT_PX)
+    cast = slab_cast(renderer.caster, SlabCache(renderer.dev, 1, thicker=True), prepared, T, 1, None, SLAB_MAX_SHIFT_PX)
     if cast is None:
         lines = renderer.material_integrals(prepared, T, View(), distorted=False, circle=False)
         return f"moving: full ({shift:.1f} px)", lines.sum(-1)
@@ -248,18 +248,21 @@ def run(args) -> int:
                   "(the loader shares the two cores)")
         # The most the appliance holds on top: the moving frames' slab copies as the shipped profiles
         # keep them (rendering.slab_phases: 4), the phases blended now and the last two, each half a
-        # phase; and the renderer's copies of the blended pair laid out for a lateral view's rays
-        # (LAYOUT_PHASES, each a whole phase), made by a lateral frame between them.
-        slabs = SlabCache(renderer.dev, 4)
+        # phase, and as many of the thicker slabs, a quarter each; and the renderer's copies of the
+        # blended pair laid out for a lateral view's rays (LAYOUT_PHASES, each a whole phase), made
+        # by a lateral frame between them.
+        slabs = SlabCache(renderer.dev, 4, thicker=True)
         for p in [p for p in timeline._prepared if p is not None][:4]:
             slabs.get(p, 1)
+            if slabs.thicker is not None:
+                slabs.thicker.get(p, 1)
         a, b, w = timeline.at(0.2)
         renderer.render(a, pa_pose(620.0, 90.0), View(), blend=(b, w) if b is not None else None)
         renderer.dev.queue.finish()
         rss_slabs = proc.memory_info().rss
         layouts = renderer.caster.layouts
         laid = 0 if layouts is None else layouts.nbytes
-        print(f"With 4 slab copies for moving frames and {LAYOUT_PHASES} phases laid out for a lateral view's rays: "
+        print(f"With 4 slab copies for moving frames (and 4 twice as thick) and {LAYOUT_PHASES} phases laid out for a lateral view's rays: "
               f"{slabs.nbytes / 1e9:.2f} + {laid / 1e9:.2f} GB more on the device; process resident "
               f"{rss_slabs / 1e9:.2f} GB; limit 1.0 GB")
         timeline.close()
@@ -281,7 +284,7 @@ def run(args) -> int:
         for size in [int(s) for s in args.sizes.split(",") if s.strip()]:
             renderer = Renderer(at_resolution(ii, size, size), materials, contrast, device=args.device)
             prepared = renderer.prepare(torso)
-            slabs = SlabCache(renderer.dev, 1)
+            slabs = SlabCache(renderer.dev, 1, thicker=True)
             views = [(False, "PA", 0.0), (True, "PA", 0.0)] + ([(True, "lateral", 90.0)] if size == 512 else [])
             for poly, name, base_deg in views:
                 view = View(polychromatic=poly, seed=0)

@@ -888,18 +888,23 @@ kernel void gather_lines(global const float4 *lines, global const int *index, gl
 // even in integers (rint on floats was a library call per voxel, ten times the copy itself): the
 // int16 average is unbiased.
 #define SLAB_TILE 16
-inline short mean_even(int a, int b)
+// The mean of `thick` (2 or 4) slices' HU from their sum s, x.5 (2) or x.5 of 4 to the even
+// neighbour; floor(s / thick) by the shift holds for negative sums too.
+inline int mean_even_n(int s, int thick)
 {
-    const int s = a + b, h = s >> 1;       // floor(s / 2), negative sums included
-    return (short)(h + (s & h & 1));       // x.5 goes to the even neighbour
+    const int sh = thick == 4 ? 2 : 1, mid = thick >> 1, q = s >> sh, r = s & (thick - 1);
+    return q + ((r > mid) | ((r == mid) & (q & 1)));
 }
+#define MEAN_EVEN16(s, thick) ({ const int16 s_ = (s), q_ = s_ >> ((thick) == 4 ? 2 : 1), r_ = s_ & ((thick) - 1); \
+    const int h_ = (thick) >> 1; q_ + (select((int16)(0), (int16)(1), r_ > h_) | (select((int16)(0), (int16)(1), r_ == h_) & q_ & 1)); })
 
-// The slab grid (padded shape ox, oy, oz) of the volume `vol` (plain layout, nx x ny x ...)
-// along `axis`, laid out for rays along it (see LAYOUT): rows along b, then slabs along a, then c.
-// One work-item per c, looping over its slabs and rows: PoCL gives each tiny work-item a
-// work-group of its own.
+// The slab grid (padded shape ox, oy, oz) of the volume `vol` (plain layout, nx x ny x ...,
+// `n_in` slices along `axis`) along `axis`, slabs of `thick` slices (1, 2 or 4; a last slab past
+// the volume's end takes air for the missing slices), laid out for rays along it (see LAYOUT):
+// rows along b, then slabs along a, then c. One work-item per c, looping over its slabs and
+// rows: PoCL gives each tiny work-item a work-group of its own.
 kernel void slab_rows(global const short *vol, const int nx, const int ny, const int axis, const int thick,
-                      const int ox, const int oy, const int oz, global short *out)
+                      const int n_in, const int ox, const int oy, const int oz, global short *out)
 {
     const int ic = get_global_id(0);
     const int dims[3] = {ox, oy, oz};
@@ -913,28 +918,40 @@ kernel void slab_rows(global const short *vol, const int nx, const int ny, const
             for (int i = 0; i < nb; ++i) row[i] = -1000;
             continue;
         }
-        global const short *s0 = vol + (size_t)(thick * (k - PAD) + PAD) * sa + ic * sc, *s1 = s0 + sa;
-        if (axis == 0 && k + SLAB_TILE <= na - PAD) {
+        const int first = thick * (k - PAD) + PAD;              // the slab's first slice of the input
+        global const short *s0 = vol + (size_t)first * sa + ic * sc;
+        if (axis == 0 && k + SLAB_TILE <= na - PAD && first + thick * SLAB_TILE <= n_in) {
             // Along x the output's rows are the input's columns: SLAB_TILE of them at once, each
-            // input row read as a vector (one or two), so the reads run along memory, not across it.
+            // input row read as vectors (one, two or four), so the reads run along memory, not across it.
             for (int ib = 0; ib < nb; ++ib) {
                 global const short *src = s0 + ib * sb;
                 short16 v;
                 if (thick == 1) {
                     v = vload16(0, src);
                 } else {
-                    const int16 lo = convert_int16(vload16(0, src)), hi = convert_int16(vload16(1, src));
-                    const int16 s_ = (int16)(lo.even, hi.even) + (int16)(lo.odd, hi.odd), h_ = s_ >> 1;
-                    v = convert_short16(h_ + (s_ & h_ & 1));       // mean_even, sixteen at a time
+                    const int16 a0 = convert_int16(vload16(0, src)), a1 = convert_int16(vload16(1, src));
+                    int16 sum = (int16)(a0.even, a1.even) + (int16)(a0.odd, a1.odd);     // pairs
+                    if (thick == 4) {
+                        const int16 a2 = convert_int16(vload16(2, src)), a3 = convert_int16(vload16(3, src));
+                        const int16 later = (int16)(a2.even, a3.even) + (int16)(a2.odd, a3.odd);
+                        sum = (int16)(sum.even, later.even) + (int16)(sum.odd, later.odd);  // pairs of pairs
+                    }
+                    v = convert_short16(MEAN_EVEN16(sum, thick));       // sixteen at a time
                 }
                 for (int l = 0; l < SLAB_TILE; ++l) row[(size_t)l * nb + ib] = v[l];
             }
             k += SLAB_TILE - 1;
             continue;
         }
-        if (thick == 1)
+        if (thick == 1) {
             for (int ib = 0; ib < nb; ++ib) row[ib] = s0[ib * sb];
-        else
-            for (int ib = 0; ib < nb; ++ib) row[ib] = mean_even(s0[ib * sb], s1[ib * sb]);
+            continue;
+        }
+        for (int ib = 0; ib < nb; ++ib) {
+            int sum = 0;
+            for (int j = 0; j < thick; ++j)
+                sum += first + j < n_in ? s0[j * sa + ib * sb] : -1000;
+            row[ib] = (short)mean_even_n(sum, thick);
+        }
     }
 }

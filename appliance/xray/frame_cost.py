@@ -226,7 +226,7 @@ def plastimatch_side_by_side(renderer, volume: Volume, rounds: int, frames: int)
     sod = fl.geometry.source_to_isocentre_mm
     prepared = renderer.prepare(volume)
     display, exact = View(), View(quantity="line-integral")
-    slabs = SlabCache(renderer.dev, 1)
+    slabs = SlabCache(renderer.dev, 1, thicker=True)
 
     def moving_cast(T):
         return slab_cast(renderer.caster, slabs, prepared, T, 1, None, SLAB_MAX_SHIFT_PX)

@@ -74,7 +74,7 @@ from .casting import CastCancelled
 from .matrix_control import MatrixController
 from .projection_cache import ProjectionCache, pose_unchanged
 from .renderer import Frame, PreparedVolume, Renderer, View, at_resolution
-from .slabs import SlabCache, Through, slab_cast, slab_through
+from .slabs import SlabCache, Through, dominant_axis, slab_cast, slab_through
 
 log = logging.getLogger(__name__)
 
@@ -108,7 +108,7 @@ class ProgressiveRenderer:
         self.clock = clock
         #: Slab copies of the phases for moving casts, and held views' where the profile says (slabs.py);
         #: None where the profile casts none.
-        self.slabs = (SlabCache(renderer.dev, settings.slab_phases)
+        self.slabs = (SlabCache(renderer.dev, settings.slab_phases, thicker=True)
                       if settings.slab_max_shift_px is not None or settings.rest_slab_max_shift_px is not None else None)
         self._caches = {id(renderer): ProjectionCache(renderer, settings.cache_pose_tolerance_px,
                                                       settings.cache_max_phases, self._held_through(renderer))}
@@ -188,23 +188,57 @@ class ProgressiveRenderer:
             other.set_fluoroscope(at_resolution(fluoroscope, cols, rows))
 
     def warm(self, volume: PreparedVolume, T_xray_from_ct: np.ndarray) -> None:
-        """Build every matrix's kernels and ray tables (a plain and a blended frame each), so the
-        first live frames cost what later ones do."""
+        """Build every matrix's kernels and ray tables (a plain and a blended frame each, and the
+        casts in bands beside the live frames), so the first live frames cost what later ones do.
+        PoCL compiles a kernel again for each work-group size on its first run at that size (a
+        second or more on an empty cache), so each build runs here at each size it will run at."""
+        circle = self.full._circle(None)
         for r in (self.full, *self._others()):
             r.render(volume, T_xray_from_ct, View())
             r.render(volume, T_xray_from_ct, View(), blend=(volume, 0.5))
             self.cache(r).render(volume, T_xray_from_ct, View(), blend=(volume, 0.5))
             self.cache(r).clear()
-        if self.slabs is not None:              # compiles the slab kernel (a quarter second on PoCL)
-            self.slabs.get(volume, 0)
-            self.slabs.clear()
-            # and the packet kernel's builds for slabs packet by packet (slabs.slab_through), which a
-            # frame a few degrees off the volume's axis first needs in the middle of a session
-            rules = (self.settings.slab_max_shift_px, self.settings.rest_slab_max_shift_px)
+        thin = None
+        if self.slabs is not None:
+            # The slab kernel (a quarter second on PoCL), and the packet kernel's builds for slabs
+            # packet by packet (slabs.slab_through), which a frame a few degrees off the volume's
+            # axis first needs in the middle of a session: every packet through the slab copy.
+            slab = self.slabs.get(volume, dominant_axis(volume, T_xray_from_ct))
+            if self.slabs.thicker is not None:
+                self.slabs.thicker.get(volume, slab.slab_axis)
+            thin = (slab, np.array([slab.slab_axis, 0.0, 0.0, 1.0], np.float32))      # no ray shifts
             for r in (self.full, *self._others()):
-                if r.caster.packet and any(rule is not None for rule in rules):
-                    for second in (None, "BLEND", "SPLIT"):
-                        r.caster.slabbed_kernel(second)
+                if r.caster.packet:
+                    r.caster.cast(volume, T_xray_from_ct, 1, None, None, True, circle, thin=(thin[0], None, thin[1]))
+                    r.caster.cast(volume, T_xray_from_ct, 1, None, (volume, 0.5), True, circle,
+                                  thin=(thin[0], thin[0], thin[1]))
+                    self.cache(r).cast_two(Through(volume, thin), Through(volume, thin), T_xray_from_ct, 1, None,
+                                           True, circle)
+        for target in self._refined():
+            bands = self._bands(target)
+            if bands is None:
+                break
+            cache = self.cache(target)
+            cache.fill([volume], T_xray_from_ct, 1, None, True, circle, bands, lambda: False)
+            cache.clear()
+            if thin is not None and target.caster.packet:
+                target.caster.cast(volume, T_xray_from_ct, 1, None, None, True, circle, bands=(target._lock, bands),
+                                   thin=(thin[0], None, thin[1]))
+        self.full.dev.queue.finish()
+        if self.slabs is not None:
+            self.slabs.clear()
+
+    def _refined(self) -> tuple[Renderer, ...]:
+        """The matrices a resting view is cast into beside the live frames, in order."""
+        return (self.full,) if self.interim is None else (self.interim, self.full)
+
+    def _bands(self, target: Renderer) -> int | None:
+        """The bands of rows `target` is cast in beside the live frames (rendering.refine_bands for
+        the full matrix, as many of its cost for a smaller one); None: it is not."""
+        bands = self.settings.refine_bands
+        if bands is None or target is self.full:
+            return bands
+        return max(1, round(bands * (target.shape[0] / self.full.shape[0]) ** 2))
 
     def _held_through(self, renderer: Renderer):
         """The projection cache's `through` for a held view's matrix: its slab copies where the
@@ -404,7 +438,7 @@ class ProgressiveRenderer:
         circle = self.full._circle(None)
         phases = [volume] if blend is None or blend[1] == 0.0 else [volume, blend[0]]
         shown, missing = moving, None
-        for target in (self.full,) if self.interim is None else (self.interim, self.full):
+        for target in self._refined():
             if not self._holds(target, phases, T, view, circle):
                 missing = target
                 break
@@ -413,8 +447,7 @@ class ProgressiveRenderer:
             return None
         if running:
             return shown
-        if missing is not self.full:
-            bands = max(1, round(bands * (missing.shape[0] / self.full.shape[0]) ** 2))
+        bands = self._bands(missing)
         refine = self.refine = Refine(T, _geometry(view), missing)
         threading.Thread(target=self._cast_full, args=(refine, phases, view, circle, bands),
                          name="fluorosim-refine", daemon=True).start()

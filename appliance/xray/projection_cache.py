@@ -168,7 +168,7 @@ class ProjectionCache:
         cast_as = [self._cast_as(p, T, zoom) for p in missing]
         if (len(missing) == 2 and r.packet and cast_as[0].volume.same_grid(cast_as[1].volume)
                 and (cast_as[0].thin is None) == (cast_as[1].thin is None)):
-            self._lines.update(zip(missing, self._cast_two(cast_as[0], cast_as[1], T, zoom, collimation_mm,
+            self._lines.update(zip(missing, self.cast_two(cast_as[0], cast_as[1], T, zoom, collimation_mm,
                                                            distorted, circle)))
             self.counts.casts += 2
             self.counts.paired += 1
@@ -188,7 +188,7 @@ class ProjectionCache:
         while len(self._lines) > self.max_phases:
             del self._lines[next(k for k in self._lines if k not in wanted)]
 
-    def _cast_two(self, ta: Through, tb: Through, T, zoom, collimation_mm, distorted, circle):
+    def cast_two(self, ta: Through, tb: Through, T, zoom, collimation_mm, distorted, circle):
         """Both phases' integrals from one pass of the SPLIT packet kernel over the two volumes
         (packet by packet through their slab copies too where `ta` and `tb` say so)."""
         dev, caster = self.renderer.dev, self.renderer.caster

@@ -36,6 +36,9 @@ from .pixel_geometry import zoomed_K
 
 #: Slices averaged into one slab (count): `slab_rows` averages pairs.
 SLAB = 2
+#: Slices averaged into one of the thicker slabs a field's middle takes where the whole field
+#: allows SLAB (count; `slab_rows` averages four).
+THICK = 2 * SLAB
 #: Phases a renderer keeps laid out for rays along x (one-slice slabs, Caster.laid_out), each as
 #: large as the phase (39 MB for the adult chest's content box): the two a frame blends (count).
 #: Breathing changes the pair every few tenths of a second, one copy pass each (see README).
@@ -120,13 +123,16 @@ class SlabCache:
     frames' pre-integrated slabs, 1 for a phase laid out for rays along an axis), the last
     `keep` (phase, axis) pairs."""
 
-    def __init__(self, dev, keep: int, thickness: int = SLAB):
+    def __init__(self, dev, keep: int, thickness: int = SLAB, thicker: bool = False):
         self.dev, self.keep, self.thickness = dev, keep, thickness
         self._kernel = dev.kernel("slab_rows")
         self._slabs: OrderedDict[tuple[int, int], tuple[weakref.ref[PreparedVolume], PreparedVolume]] = OrderedDict()
         self._lock = threading.Lock()
         #: Copies made (count): one per phase and axis while they stay in the cache.
         self.made = 0
+        #: With `thicker`, the slabs twice as thick (THICK), for the middle of a field whose every
+        #: ray allows SLAB (slab_through), as many kept; else None (the whole field through SLAB).
+        self.thicker = SlabCache(dev, keep, THICK) if thicker and thickness == SLAB else None
 
     def drop_dead(self) -> None:
         """Let go of the copies of phases no longer held elsewhere (a case switched, a timeline
@@ -153,7 +159,8 @@ class SlabCache:
         nx, ny, _ = volume.shape_xyz
         slowest = shape[2] if axis != 2 else shape[1]              # the layout's slowest axis c: one work-item each
         self._kernel(self.dev.queue, (slowest,), None, volume.buffer, np.int32(nx), np.int32(ny), np.int32(axis),
-                     np.int32(self.thickness), np.int32(shape[0]), np.int32(shape[1]), np.int32(shape[2]), out)
+                     np.int32(self.thickness), np.int32(volume.shape_xyz[axis]), np.int32(shape[0]), np.int32(shape[1]),
+                     np.int32(shape[2]), out)
         what = "slabs" if self.thickness > 1 else "rows along the rays"
         slab = PreparedVolume(buffer=out, shape_xyz=shape, T_index_from_ct=S @ volume.T_index_from_ct,
                               box=slab_box(volume.box, axis, self.thickness), nbytes=nbytes,
@@ -169,41 +176,67 @@ class SlabCache:
     def clear(self) -> None:
         with self._lock:
             self._slabs.clear()
+        if self.thicker is not None:
+            self.thicker.clear()
 
     @property
     def nbytes(self) -> int:
-        """Device memory the copies hold (bytes)."""
-        return sum(slab.nbytes for _, slab in self._slabs.values())
+        """Device memory the copies hold (bytes), the thicker slabs' included."""
+        return (sum(slab.nbytes for _, slab in self._slabs.values())
+                + (0 if self.thicker is None else self.thicker.nbytes))
 
 
 @dataclass(frozen=True)
 class Through:
     """How a phase is cast at one pose: `volume` (the phase itself, or its slab copy for the whole
-    field) and, for slabs packet by packet, `thin` = (the slab copy, drr.cl's SLABBED rule):
-    Caster.cast's `thin`, the packets whose rays allow reading the copy, the rest `volume`."""
+    field) and, for slabs packet by packet, `thin` = (the thinner grid's copy, drr.cl's SLABBED
+    rule): Caster.cast's `thin`, the packets whose rays allow reading that copy, the rest
+    `volume`. `copies` and `axis` say where the copies came from (None: the phase itself), for
+    another phase on the same grid (`like`)."""
     volume: PreparedVolume
     thin: tuple[PreparedVolume, np.ndarray] | None = None
+    copies: tuple[SlabCache | None, SlabCache | None] = (None, None)
+    axis: int = -1
 
     @property
     def cast_thin(self):
         """Caster.cast's `thin` for this phase alone."""
         return None if self.thin is None else (self.thin[0], None, self.thin[1])
 
+    def like(self, phase: PreparedVolume) -> Through:
+        """The same decision for `phase`, a phase on this one's grid (a blend's other phase)."""
+        base, thin = self.copies
+        volume = phase if base is None else base.get(phase, self.axis)
+        if self.thin is None or thin is None:
+            return Through(volume, None, self.copies, self.axis)
+        return Through(volume, (thin.get(phase, self.axis), self.thin[1]), self.copies, self.axis)
+
 
 def slab_through(caster, cache: SlabCache, volume: PreparedVolume, T_xray_from_ct: np.ndarray, zoom: int,
                  max_shift_px: float) -> Through:
     """How to cast `volume` at this pose through its slabs where the rays shift at most
-    `max_shift_px` (pixels of the caster's matrix) within a slab: the whole field through the
-    slab copy where its steepest ray does; else, with the packet kernel, the packets all of whose
-    rays do (the field's middle: drr.cl's SLABBED), the others through the full volume; the full
-    volume alone where not even the principal ray does."""
+    `max_shift_px` (pixels of the caster's matrix) within a slab. Where the field's steepest ray
+    does, through the slab copy, and with the packet kernel, where the principal ray does within
+    a slab twice as thick, each packet all of whose rays do through those (drr.cl's SLABBED).
+    Else, with the packet kernel, each packet all of whose rays shift that little within a slab
+    through the slab copy, the others through the full volume; the full volume alone where not
+    even the principal ray does."""
     axis = dominant_axis(volume, T_xray_from_ct)
     K = zoomed_K(caster.fluoroscope, zoom)
     if in_slab_shift_px(K, caster.shape, volume, T_xray_from_ct, axis) <= max_shift_px:
-        return Through(cache.get(volume, axis))
+        slab = cache.get(volume, axis)
+        thicker = cache.thicker
+        # Within a slab of the thicker grid a ray shifts what it does within SLAB of the slab
+        # copy's voxels: the same rule, asked of the slab copy's grid.
+        if (thicker is None or not caster.packet
+                or in_slab_shift_px(K, caster.shape, slab, T_xray_from_ct, axis, True) > max_shift_px):
+            return Through(slab, None, (cache, None), axis)
+        return Through(slab, (thicker.get(volume, axis), thin_rule(K, slab, T_xray_from_ct, axis, max_shift_px)),
+                       (cache, thicker), axis)
     if not caster.packet or in_slab_shift_px(K, caster.shape, volume, T_xray_from_ct, axis, True) > max_shift_px:
         return Through(volume)
-    return Through(volume, (cache.get(volume, axis), thin_rule(K, volume, T_xray_from_ct, axis, max_shift_px)))
+    return Through(volume, (cache.get(volume, axis), thin_rule(K, volume, T_xray_from_ct, axis, max_shift_px)),
+                   (None, cache), axis)
 
 
 def slab_cast(caster, cache: SlabCache, volume: PreparedVolume, T_xray_from_ct: np.ndarray, zoom: int,
@@ -214,18 +247,15 @@ def slab_cast(caster, cache: SlabCache, volume: PreparedVolume, T_xray_from_ct: 
     through = slab_through(caster, cache, volume, T_xray_from_ct, zoom, max_shift_px)
     if through.volume is volume and through.thin is None:
         return None
-    axis = through.volume.slab_axis if through.thin is None else through.thin[0].slab_axis
-    slab_blend = None if blend is None else (cache.get(blend[0], axis), blend[1])
-    if through.thin is not None:
-        slab, rule = through.thin
-
-        def cast_packets(_volume, T, zoom_, collimation_mm, _blend, distorted, circle):
-            return caster.cast(volume, T, zoom_, collimation_mm, blend, distorted, circle,
-                               thin=(slab, None if slab_blend is None else slab_blend[0], rule))
-        return cast_packets
+    other = None if blend is None else through.like(blend[0])
 
     def cast(_volume, T, zoom_, collimation_mm, _blend, distorted, circle):
-        return caster.cast(through.volume, T, zoom_, collimation_mm, slab_blend, distorted, circle)
+        thin = None
+        if through.thin is not None:
+            thin = (through.thin[0], None if other is None or other.thin is None else other.thin[0], through.thin[1])
+        return caster.cast(through.volume, T, zoom_, collimation_mm,
+                           None if other is None or blend is None else (other.volume, blend[1]), distorted, circle,
+                           thin=thin)
     return cast
 
 
