@@ -37,13 +37,14 @@ class Rendering(Section):
         "noise does not make the matrix hunt (dimensionless).")
     slab_max_shift_px: float | None = Field(
         None, ge=0, le=16, description="Moving frames are cast through pre-integrated slabs (pairs of slices averaged "
-        "along the ray's dominant axis, half the samples; appliance/xray/slabs.py) where the steepest ray of the field "
-        "moves less than this across a slab, seen on the detector; none: never (pixels of the moving matrix).")
+        "along the ray's dominant axis, half the samples; appliance/xray/slabs.py) where the rays move less than this "
+        "across a slab, seen on the detector: the whole field where its steepest ray does, else each 16-pixel packet "
+        "all of whose rays do (the packet kernel), and slabs of four slices in the middle where they allow those; "
+        "none: never (pixels of the moving matrix).")
     rest_slab_max_shift_px: float | None = Field(
         None, ge=0, le=16, description="A held view (the full matrix at rest, and the rest matrix) is cast through the "
-        "same slabs where the field's steepest ray moves less than this across a slab, seen on the detector: a shift "
-        "within the detector's own point-spread does not show; none: through the full volume (pixels of the matrix "
-        "cast).")
+        "same slabs by the same rule at this shift across a slab, seen on the detector: a shift within the "
+        "detector's own point-spread does not show; none: through the full volume (pixels of the matrix cast).")
     slab_phases: int = Field(
         4, ge=1, le=64, description="Slab copies kept on the device, one per phase and axis, each half a phase's size "
         "(count).")
