@@ -248,7 +248,7 @@ def run(args) -> int:
                   "(the loader shares the two cores)")
         # The most the appliance holds on top: the moving frames' slab copies as the shipped profiles
         # keep them (rendering.slab_phases: 4), the phases blended now and the last two, each half a
-        # phase, and as many of the thicker slabs, a quarter each; and the renderer's copies of the
+        # phase, and the thicker slabs of the two blended (THICK_PHASES), a quarter each; and the renderer's copies of the
         # blended pair laid out for a lateral view's rays (LAYOUT_PHASES, each a whole phase), made
         # by a lateral frame between them.
         slabs = SlabCache(renderer.dev, 4, thicker=True)
@@ -262,7 +262,7 @@ def run(args) -> int:
         rss_slabs = proc.memory_info().rss
         layouts = renderer.caster.layouts
         laid = 0 if layouts is None else layouts.nbytes
-        print(f"With 4 slab copies for moving frames (and 4 twice as thick) and {LAYOUT_PHASES} phases laid out for a lateral view's rays: "
+        print(f"With 4 slab copies for moving frames (and 2 twice as thick) and {LAYOUT_PHASES} phases laid out for a lateral view's rays: "
               f"{slabs.nbytes / 1e9:.2f} + {laid / 1e9:.2f} GB more on the device; process resident "
               f"{rss_slabs / 1e9:.2f} GB; limit 1.0 GB")
         timeline.close()

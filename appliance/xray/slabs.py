@@ -39,6 +39,9 @@ SLAB = 2
 #: Slices averaged into one of the thicker slabs a field's middle takes where the whole field
 #: allows SLAB (count; `slab_rows` averages four).
 THICK = 2 * SLAB
+#: Phases kept as THICK slabs: the two a frame blends (count; a quarter phase each, 10 MB for the
+#: adult chest's content box; the slab copies' cache keeps more, rendering.slab_phases).
+THICK_PHASES = 2
 #: Phases a renderer keeps laid out for rays along x (one-slice slabs, Caster.laid_out), each as
 #: large as the phase (39 MB for the adult chest's content box): the two a frame blends (count).
 #: Breathing changes the pair every few tenths of a second, one copy pass each (see README).
@@ -131,8 +134,9 @@ class SlabCache:
         #: Copies made (count): one per phase and axis while they stay in the cache.
         self.made = 0
         #: With `thicker`, the slabs twice as thick (THICK), for the middle of a field whose every
-        #: ray allows SLAB (slab_through), as many kept; else None (the whole field through SLAB).
-        self.thicker = SlabCache(dev, keep, THICK) if thicker and thickness == SLAB else None
+        #: ray allows SLAB (slab_through), at most THICK_PHASES kept; else None (the whole field
+        #: through SLAB).
+        self.thicker = SlabCache(dev, min(keep, THICK_PHASES), THICK) if thicker and thickness == SLAB else None
 
     def drop_dead(self) -> None:
         """Let go of the copies of phases no longer held elsewhere (a case switched, a timeline
