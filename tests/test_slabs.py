@@ -153,8 +153,10 @@ def ray_shift_px(K, pose, prepared, axis, shape):
 
 
 #: A posterior-anterior view tilted 12 degrees: the quick chest's steepest ray shifts about twice
-#: as far within a slab as its principal ray.
+#: as far within a slab as its principal ray; and a lateral one (whose full volume the caster
+#: reads through its copy laid out for rays along x).
 TILTED = make_transform(rotation_about([1.0, 0.2, 0.0], np.radians(12)) @ ALONG_Y[:3, :3], [4.0, 2.0, 700.0])
+TILTED_LATERAL = make_transform(rotation_about([0.2, 1.0, 0.0], np.radians(12)) @ ALONG_X[:3, :3], [-3.0, 4.0, 700.0])
 
 
 def between_rays(renderer, prepared, pose) -> float:
@@ -186,16 +188,18 @@ def assert_packet_by_packet(got, slabs, full, thin, clear):
     assert not np.array_equal(slabs[thin], full[thin])               # the two grids do differ there
 
 
+@pytest.mark.parametrize("pose", [TILTED, TILTED_LATERAL], ids=["pa", "lateral"])
 @pytest.mark.parametrize("blended", [False, True])
-def test_where_only_some_rays_allow_slabs_each_packet_takes_its_own_grid(renderer, chest_phases, blended):
+def test_where_only_some_rays_allow_slabs_each_packet_takes_its_own_grid(renderer, chest_phases, blended, pose):
     """A moving frame whose field's steepest ray shifts more than the rule within a slab, but its
     principal ray less: each sixteen-pixel packet all of whose rays shift at most the rule's
     pixels (worked out ray by ray above) is the cast through the slabs to the bit, every other
     one the cast through the full volume to the bit, for a phase alone and for two blended."""
     a, b = chest_phases
-    pose = TILTED
     limit = between_rays(renderer, a, pose)
     blend = (b, 0.3) if blended else None
+    if pose is TILTED_LATERAL:                   # every ray along x: the layout copy's rows
+        assert renderer.caster.layouts is not None and renderer.caster.dominant_axis_of_field(a, pose, 1, False) == 0
     cache = SlabCache(renderer.dev, 2)
     mixed = slab_cast(renderer.caster, cache, a, pose, 1, blend, limit)
     assert mixed is not None
