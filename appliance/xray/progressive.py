@@ -74,7 +74,7 @@ from .casting import CastCancelled
 from .matrix_control import MatrixController
 from .projection_cache import ProjectionCache, pose_unchanged
 from .renderer import Frame, PreparedVolume, Renderer, View, at_resolution
-from .slabs import SlabCache, Through, dominant_axis, slab_cast, slab_through
+from .slabs import SlabCache, Through, dominant_axis, every_packet_rule, slab_cast, slab_through
 
 log = logging.getLogger(__name__)
 
@@ -206,7 +206,7 @@ class ProgressiveRenderer:
             slab = self.slabs.get(volume, dominant_axis(volume, T_xray_from_ct))
             if self.slabs.thicker is not None:
                 self.slabs.thicker.get(volume, slab.slab_axis)
-            thin = (slab, np.array([slab.slab_axis, 0.0, 0.0, 1.0], np.float32))      # no ray shifts
+            thin = (slab, every_packet_rule(slab.slab_axis))
             for r in (self.full, *self._others()):
                 if r.caster.packet:
                     r.caster.cast(volume, T_xray_from_ct, 1, None, None, True, circle, thin=(thin[0], None, thin[1]))

@@ -252,14 +252,13 @@ def slab_cast(caster, cache: SlabCache, volume: PreparedVolume, T_xray_from_ct: 
     if through.volume is volume and through.thin is None:
         return None
     other = None if blend is None else through.like(blend[0])
+    cast_blend = None if other is None or blend is None else (other.volume, blend[1])
+    thin = None
+    if through.thin is not None:
+        thin = (through.thin[0], None if other is None or other.thin is None else other.thin[0], through.thin[1])
 
     def cast(_volume, T, zoom_, collimation_mm, _blend, distorted, circle):
-        thin = None
-        if through.thin is not None:
-            thin = (through.thin[0], None if other is None or other.thin is None else other.thin[0], through.thin[1])
-        return caster.cast(through.volume, T, zoom_, collimation_mm,
-                           None if other is None or blend is None else (other.volume, blend[1]), distorted, circle,
-                           thin=thin)
+        return caster.cast(through.volume, T, zoom_, collimation_mm, cast_blend, distorted, circle, thin=thin)
     return cast
 
 
@@ -269,3 +268,8 @@ def thin_rule(K: np.ndarray, volume: PreparedVolume, T_xray_from_ct: np.ndarray,
     may shift within a slab for its packet to read the slab copy."""
     r = shift_scale(K, volume, T_xray_from_ct, axis)
     return np.array([axis, r[0], r[1], max_shift_px], np.float32)
+
+
+def every_packet_rule(axis: int) -> np.ndarray:
+    """A SLABBED rule by which no ray shifts, so every packet reads the slab copy (the warm-up's)."""
+    return np.array([axis, 0.0, 0.0, 1.0], np.float32)
