@@ -47,9 +47,10 @@ def padded_hu(renderer, prepared) -> np.ndarray:
 @pytest.mark.parametrize("axis", [0, 1, 2])
 def test_slabs_are_the_slices_averaged_and_rounded_half_to_even(renderer, axis, thickness):
     rng = np.random.default_rng(axis)
-    # Lengths no multiple of the thickness: a last slab part air; along x, 45 and 83 voxels: slabs
-    # sixteen at a time and the rest one by one.
-    hu = rng.integers(-1000, 3000, size=(13, 11, 45 if thickness == 2 else 83)).astype(np.int16)
+    # Lengths no multiple of the thickness: a last slab part air. Slabs along x (45 and 83 voxels)
+    # are made in tiles of sixteen rows of y (19 and the padding) and the rest row by row; slabs
+    # along y or z sixteen voxels of x at a time and the rest one by one.
+    hu = rng.integers(-1000, 3000, size=(13, 19, 45 if thickness == 2 else 83)).astype(np.int16)
     hu[0, 0, :12] = hu[0, 0, -12:] = [-3, -1, 1, 3, 5, 0, -2, 4, 7, 8, -6, 9]   # sums ending in .5 both ways
     hu[1, 1, :8] = [-1, -2, -2, -1, 1, 0, 2, 3]                  # .5 of four both ways, .25 and .75
     T = np.diag([0.9, 1.1, 2.0, 1.0])

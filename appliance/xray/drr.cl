@@ -898,6 +898,21 @@ inline int mean_even_n(int s, int thick)
 #define MEAN_EVEN16(s, thick) ({ const int16 s_ = (s), q_ = s_ >> ((thick) == 4 ? 2 : 1), r_ = s_ & ((thick) - 1); \
     const int h_ = (thick) >> 1; q_ + (select((int16)(0), (int16)(1), r_ > h_) | (select((int16)(0), (int16)(1), r_ == h_) & q_ & 1)); })
 
+// Sixteen consecutive slabs of `thick` (1, 2 or 4) voxels each from `src` on, along x.
+inline short16 slab_tile_row(global const short *src, int thick)
+{
+    if (thick == 1)
+        return vload16(0, src);
+    const int16 a0 = convert_int16(vload16(0, src)), a1 = convert_int16(vload16(1, src));
+    int16 sum = (int16)(a0.even, a1.even) + (int16)(a0.odd, a1.odd);     // pairs
+    if (thick == 4) {
+        const int16 a2 = convert_int16(vload16(2, src)), a3 = convert_int16(vload16(3, src));
+        const int16 later = (int16)(a2.even, a3.even) + (int16)(a2.odd, a3.odd);
+        sum = (int16)(sum.even, later.even) + (int16)(sum.odd, later.odd);  // pairs of pairs
+    }
+    return convert_short16(MEAN_EVEN16(sum, thick));       // sixteen at a time
+}
+
 // The slab grid (padded shape ox, oy, oz) of the volume `vol` (plain layout, nx x ny x ...,
 // `n_in` slices along `axis`) along `axis`, slabs of `thick` slices (1, 2 or 4; a last slab past
 // the volume's end takes air for the missing slices), laid out for rays along it (see LAYOUT):
@@ -923,21 +938,19 @@ kernel void slab_rows(global const short *vol, const int nx, const int ny, const
         if (axis == 0 && k + SLAB_TILE <= na - PAD && first + thick * SLAB_TILE <= n_in) {
             // Along x the output's rows are the input's columns: SLAB_TILE of them at once, each
             // input row read as vectors (one, two or four), so the reads run along memory, not across it.
-            for (int ib = 0; ib < nb; ++ib) {
-                global const short *src = s0 + ib * sb;
-                short16 v;
-                if (thick == 1) {
-                    v = vload16(0, src);
-                } else {
-                    const int16 a0 = convert_int16(vload16(0, src)), a1 = convert_int16(vload16(1, src));
-                    int16 sum = (int16)(a0.even, a1.even) + (int16)(a0.odd, a1.odd);     // pairs
-                    if (thick == 4) {
-                        const int16 a2 = convert_int16(vload16(2, src)), a3 = convert_int16(vload16(3, src));
-                        const int16 later = (int16)(a2.even, a3.even) + (int16)(a2.odd, a3.odd);
-                        sum = (int16)(sum.even, later.even) + (int16)(sum.odd, later.odd);  // pairs of pairs
-                    }
-                    v = convert_short16(MEAN_EVEN16(sum, thick));       // sixteen at a time
-                }
+            int ib = 0;
+            for (; ib + SLAB_TILE <= nb; ib += SLAB_TILE) {
+                // A tile of sixteen input rows by sixteen slabs, written out as sixteen output rows.
+                short16 t[SLAB_TILE];
+                for (int m = 0; m < SLAB_TILE; ++m)
+                    t[m] = slab_tile_row(s0 + (ib + m) * sb, thick);
+                for (int l = 0; l < SLAB_TILE; ++l)
+                    vstore16((short16)(t[0][l], t[1][l], t[2][l], t[3][l], t[4][l], t[5][l], t[6][l], t[7][l],
+                                       t[8][l], t[9][l], t[10][l], t[11][l], t[12][l], t[13][l], t[14][l], t[15][l]),
+                             0, row + (size_t)l * nb + ib);
+            }
+            for (; ib < nb; ++ib) {
+                const short16 v = slab_tile_row(s0 + ib * sb, thick);
                 for (int l = 0; l < SLAB_TILE; ++l) row[(size_t)l * nb + ib] = v[l];
             }
             k += SLAB_TILE - 1;
@@ -947,7 +960,17 @@ kernel void slab_rows(global const short *vol, const int nx, const int ny, const
             for (int ib = 0; ib < nb; ++ib) row[ib] = s0[ib * sb];
             continue;
         }
-        for (int ib = 0; ib < nb; ++ib) {
+        int ib = 0;
+        if (sb == 1 && first + thick <= n_in) {
+            // Across x (rays along y or z) the output's rows are the input's: sixteen at a time.
+            for (; ib + 16 <= nb; ib += 16) {
+                int16 sum = convert_int16(vload16(0, s0 + ib));
+                for (int j = 1; j < thick; ++j)
+                    sum += convert_int16(vload16(0, s0 + j * sa + ib));
+                vstore16(convert_short16(MEAN_EVEN16(sum, thick)), 0, row + ib);
+            }
+        }
+        for (; ib < nb; ++ib) {
             int sum = 0;
             for (int j = 0; j < thick; ++j)
                 sum += first + j < n_in ? s0[j * sa + ib * sb] : -1000;

@@ -161,8 +161,10 @@ class SlabCache:
         nbytes = 2 * shape[0] * shape[1] * shape[2]
         out = self.dev.scratch(nbytes)
         nx, ny, _ = volume.shape_xyz
-        slowest = shape[2] if axis != 2 else shape[1]              # the layout's slowest axis c: one work-item each
-        self._kernel(self.dev.queue, (slowest,), None, volume.buffer, np.int32(nx), np.int32(ny), np.int32(axis),
+        # One work-item per slice c of the layout (its slowest axis), each its own work-group:
+        # left to itself, PoCL put them all in one, on one core.
+        slowest = shape[2] if axis != 2 else shape[1]
+        self._kernel(self.dev.queue, (slowest,), (1,), volume.buffer, np.int32(nx), np.int32(ny), np.int32(axis),
                      np.int32(self.thickness), np.int32(volume.shape_xyz[axis]), np.int32(shape[0]), np.int32(shape[1]),
                      np.int32(shape[2]), out)
         what = "slabs" if self.thickness > 1 else "rows along the rays"
