@@ -366,6 +366,38 @@ def test_a_phase_let_go_takes_its_slabs_with_it(renderer):
     assert cache.made == 2 and cache.nbytes == one
 
 
+def test_a_copy_evicted_lends_its_buffer_to_the_next_only_once_nothing_holds_it(renderer):
+    """A breathing patient brings a new phase into the copies' cache every few tenths of a second:
+    the copy it evicts gives its device buffer to the new one (no fresh pages to fault in), but
+    not while a cast may still read it (a copy held elsewhere keeps its slabs)."""
+    import gc
+
+    rng = np.random.default_rng(7)
+    phases = [renderer.prepare(Volume(hu=rng.integers(-1000, 3000, size=(12, 20, 24)).astype(np.int16),
+                                      T_ct_from_voxel=np.diag([1.0, 1.0, 2.0, 1.0]), source=f"phase {i}"))
+              for i in range(4)]
+
+    def expected(phase):
+        src = padded_hu(renderer, phase).astype(np.float64)[:, PAD:-PAD]     # y first of z, y, x
+        return np.round((src[:, 0::2] + src[:, 1::2]) / 2.0)
+
+    cache = SlabCache(renderer.dev, 2)
+    held = cache.get(phases[0], 1)
+    pointer = held.buffer.int_ptr
+    second = cache.get(phases[1], 1).buffer.int_ptr
+    third = cache.get(phases[2], 1)            # evicts phase 0's copy, still held here: a buffer of its own
+    assert third.buffer.int_ptr != pointer
+    np.testing.assert_array_equal(padded_hu(renderer, held)[:, PAD:-PAD], expected(phases[0]))
+    del held, third
+    gc.collect()
+    fourth = cache.get(phases[3], 1)           # evicts phase 1's copy, held nowhere: its buffer reused
+    assert cache.made == 4 and cache.nbytes == 2 * fourth.nbytes
+    np.testing.assert_array_equal(padded_hu(renderer, fourth)[:, PAD:-PAD], expected(phases[3]))
+    assert fourth.buffer.int_ptr == second
+    cache.clear()
+    assert cache.nbytes == 0
+
+
 @pytest.mark.parametrize("pose, axis", [(AXIAL, 2), (ALONG_X, 0), (ALONG_Y, 1)])
 def test_slab_samples_interpolate_a_linear_density_exactly_across_the_slice(renderer, pose, axis):
     """A box whose HU rises linearly along all three axes: a bilinear sample of a linear

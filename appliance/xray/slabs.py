@@ -46,6 +46,9 @@ THICK_PHASES = 2
 #: large as the phase (39 MB for the adult chest's content box): the two a frame blends (count).
 #: Breathing changes the pair every few tenths of a second, one copy pass each (see README).
 LAYOUT_PHASES = 2
+#: Buffers a copies' cache keeps of copies gone, to write the next one of that size into (count,
+#: SlabCache._spare): one, since a breathing patient's next copy replaces the one evicted for it.
+SPARE_BUFFERS = 1
 
 
 def slab_index_from_index(shape_xyz: tuple[int, int, int], axis: int,
@@ -131,6 +134,12 @@ class SlabCache:
         self._kernel = dev.kernel("slab_rows")
         self._slabs: OrderedDict[tuple[int, int], tuple[weakref.ref[PreparedVolume], PreparedVolume]] = OrderedDict()
         self._lock = threading.Lock()
+        #: Device buffers of copies evicted and no longer held anywhere, by size (bytes): the next
+        #: copy of that size is written into one. A fresh buffer's pages fault in on the copy's
+        #: first write, which doubled a lateral layout copy's time (a new breathing phase every
+        #: few tenths of a second makes one); at most SPARE_BUFFERS are kept.
+        self._spare: OrderedDict[int, list] = OrderedDict()
+        self._spare_lock = threading.RLock()      # a copy may die, and retire, inside _get
         #: Copies made (count): one per phase and axis while they stay in the cache.
         self.made = 0
         #: With `thicker`, the slabs twice as thick (THICK), for the middle of a field whose every
@@ -141,8 +150,12 @@ class SlabCache:
     def drop_dead(self) -> None:
         """Let go of the copies of phases no longer held elsewhere (a case switched, a timeline
         replaced); their ids may then be new phases', which the weak references tell apart."""
-        for dead in [k for k, (ref, _) in self._slabs.items() if ref() is None]:
-            del self._slabs[dead]
+        dead = [k for k, (ref, _) in self._slabs.items() if ref() is None]
+        for key in dead:
+            del self._slabs[key]
+        if dead:                            # the case moved on: its spares go with its copies
+            with self._spare_lock:
+                self._spare.clear()
 
     def get(self, volume: PreparedVolume, axis: int) -> PreparedVolume:
         # A held view's cast beside the live frames (ProjectionCache's `through`) asks on its own
@@ -159,7 +172,9 @@ class SlabCache:
             return hit[1]
         S, shape = slab_index_from_index(volume.shape_xyz, axis, self.thickness)
         nbytes = 2 * shape[0] * shape[1] * shape[2]
-        out = self.dev.scratch(nbytes)
+        while len(self._slabs) >= self.keep:
+            self._slabs.popitem(last=False)         # its buffer a spare once nothing holds the copy
+        out = self._buffer(nbytes)
         nx, ny, _ = volume.shape_xyz
         # One work-item per slice c of the layout (its slowest axis), each its own work-group:
         # left to itself, PoCL put them all in one, on one core.
@@ -174,21 +189,46 @@ class SlabCache:
                               _renderer_id=volume._renderer_id, slab_axis=axis,
                               outline=slab_outline(volume.outline, S, axis, self.thickness))
         self._slabs[key] = (weakref.ref(volume), slab)
+        weakref.finalize(slab, self._retire, out, nbytes).atexit = False
         self.made += 1
-        while len(self._slabs) > self.keep:
-            self._slabs.popitem(last=False)
         return slab
+
+    def _buffer(self, nbytes: int):
+        with self._spare_lock:
+            spare = self._spare.get(nbytes)
+            if spare:
+                buffer = spare.pop()
+                if not spare:
+                    del self._spare[nbytes]
+                return buffer
+        return self.dev.scratch(nbytes)
+
+    def _retire(self, buffer, nbytes: int) -> None:
+        # Called when a copy is gone (any thread, at garbage collection). The device's one
+        # in-order queue runs a later copy into the buffer after every cast that read it.
+        with self._spare_lock:
+            self._spare.setdefault(nbytes, []).append(buffer)
+            self._spare.move_to_end(nbytes)
+            while sum(len(b) for b in self._spare.values()) > SPARE_BUFFERS:
+                oldest = next(iter(self._spare))
+                self._spare[oldest].pop(0)
+                if not self._spare[oldest]:
+                    del self._spare[oldest]
 
     def clear(self) -> None:
         with self._lock:
             self._slabs.clear()
+        with self._spare_lock:
+            self._spare.clear()
         if self.thicker is not None:
             self.thicker.clear()
 
     @property
     def nbytes(self) -> int:
-        """Device memory the copies hold (bytes), the thicker slabs' included."""
-        return (sum(slab.nbytes for _, slab in self._slabs.values())
+        """Device memory the copies and their spare buffers hold (bytes), the thicker slabs' included."""
+        with self._spare_lock:
+            spare = sum(n * len(b) for n, b in self._spare.items())
+        return (spare + sum(slab.nbytes for _, slab in self._slabs.values())
                 + (0 if self.thicker is None else self.thicker.nbytes))
 
 
