@@ -22,6 +22,7 @@ import numpy as np
 from ..config.case import Materials, Respiration
 from ..errors import FluorosimError
 from .breathing_motion import BreathingAnatomy
+from .heap import release_freed
 from .respiration import BreathingControl, BreathState, muscle_amplitudes
 from .timeline import Timeline
 from .volume import Volume
@@ -61,7 +62,7 @@ class BreathingTimeline:
         self._cond = threading.Condition()
         self._stop = False
         self.period_s = 60.0 / params.rate_per_min if params.rate_per_min > 0 else math.inf
-        self._thread = threading.Thread(target=self._build, name="breathing-states", daemon=True)
+        self._thread = threading.Thread(target=self._run, name="breathing-states", daemon=True)
         self._thread.start()
 
     def state_of(self, excursion: float) -> BreathState:
@@ -81,6 +82,10 @@ class BreathingTimeline:
                     return j
         return None
 
+    def _run(self) -> None:
+        self._build()
+        release_freed()     # the end-expiration CT and the breathing model built from it are gone too
+
     def _build(self) -> None:
         try:
             ct = self._loaders[0]()
@@ -96,6 +101,7 @@ class BreathingTimeline:
                         return
                     prepared = self.renderer.prepare(anatomy.volume_at(self.state_of(e), soft))
                     prepared.time_s = self.stage_times[j]
+                    release_freed()     # the deformed CT and its temporaries are gone; their pages too
                     with self._cond:
                         self._states[j][k] = prepared
                         self._cond.notify_all()

@@ -16,6 +16,7 @@ from typing import Any, Protocol
 
 from ..errors import FluorosimError
 from ..patient.volume import Volume
+from .heap import release_freed
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +97,7 @@ class PhaseTimeline:
             except Exception as e:  # a loader bug must not kill the thread silently
                 prepared, error = None, f"{type(e).__name__}: {e}"
                 log.exception("phase %d (t=%.2f s) failed to load", i, self.times[i])
+            release_freed()         # the loaded CT and its temporaries are gone; their pages too
             with self._cond:
                 self._prepared[i] = prepared
                 self._errors[i] = error
