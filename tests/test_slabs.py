@@ -278,6 +278,10 @@ def test_a_held_view_goes_through_the_slabs_packet_by_packet_too(renderer, chest
     pair = cache.cast_two(through(a, pose, 1), through(b, pose, 1), pose, 1, None, True, circle)
     for got, p in zip(pair, (a, b)):
         assert_packet_by_packet(download(got), *whole(p), *plan)
+    cache.clear()                       # the pair at rest, in bands beside the live frames: one pass
+    assert cache.fill([a, b], pose, 1, None, True, circle, 3, lambda: False) and cache.counts.paired == 1
+    for p in (a, b):
+        assert_packet_by_packet(cache.material_integrals(p, pose, View()), *whole(p), *plan)
 
 
 def test_the_warm_up_builds_the_packet_by_packet_kernels(renderer, chest_phases):
@@ -339,6 +343,11 @@ def test_a_held_view_goes_through_the_slabs_only_where_the_rest_rule_allows(rend
     cache.clear()                                         # and cast in bands beside the live frames
     assert cache.fill([a], pose, 1, None, True, renderer._circle(None), 3, lambda: False)
     np.testing.assert_array_equal(cache.material_integrals(a, pose, view), expected)
+    cache.clear()                                         # the pair so, in one pass
+    assert cache.fill([a, b], pose, 1, None, True, renderer._circle(None), 3, lambda: False)
+    assert cache.counts.paired == 2
+    for p in (a, b):
+        np.testing.assert_array_equal(cache.material_integrals(p, pose, view), expected)
 
 
 def test_without_the_rest_rule_a_held_view_is_cast_through_the_full_volume(renderer):

@@ -485,9 +485,16 @@ class Caster:
                                            None if blend is None else "BLEND", T_xray_from_ct, zoom, distorted)
             tail = (*tail, *extra)
         width = -(-cols // PACKET) if self.packet else cols
+        self.run_rows(kernel, width, (*args, *tail), bands)
+        return lines, mask
+
+    def run_rows(self, kernel, width: int, args: tuple, bands=None) -> None:
+        """Run a cast kernel over the detector's rows (global size (width, rows)): at once, or in
+        `bands` as `cast` says, holding the lock one band at a time and finishing each."""
+        queue, rows = self.dev.queue, self.shape[0]
         if bands is None:
-            kernel(dev.queue, (width, rows), None, *args, *tail)
-            return lines, mask
+            kernel(queue, (width, rows), None, *args)
+            return
         lock, n, *rest = bands
         cancelled = rest[0] if rest else None
         step = -(-rows // max(1, n))
@@ -495,10 +502,9 @@ class Caster:
             if cancelled is not None and cancelled():
                 raise CastCancelled(f"cast cancelled after {r0} of {rows} rows")
             with lock:
-                kernel(dev.queue, (width, min(step, rows - r0)), None, *args, *tail, global_offset=(0, r0))
-                dev.queue.finish()
+                kernel(queue, (width, min(step, rows - r0)), None, *args, global_offset=(0, r0))
+                queue.finish()
             time.sleep(BAND_YIELD_S)    # a frame waiting for the lock gets it (Python's lock is not fair)
-        return lines, mask
 
     def slabbed_kernel(self, second: str | None = None):
         """The packet kernel's SLABBED build (with `second`'s, BLEND or SPLIT, for two phases),

@@ -221,6 +221,11 @@ class ProgressiveRenderer:
             cache = self.cache(target)
             cache.fill([volume], T_xray_from_ct, 1, None, True, circle, bands, lambda: False)
             cache.clear()
+            if target.caster.packet:
+                # A breathing patient's rest casts its two phases in one pass (ProjectionCache.fill).
+                ways = [Through(volume)] + ([] if thin is None else [Through(volume, thin)])
+                for way in ways:
+                    cache.cast_two(way, way, T_xray_from_ct, 1, None, True, circle, bands=(target._lock, bands))
             if thin is not None and target.caster.packet:
                 target.caster.cast(volume, T_xray_from_ct, 1, None, None, True, circle, bands=(target._lock, bands),
                                    thin=(thin[0], None, thin[1]))
