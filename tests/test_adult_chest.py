@@ -122,7 +122,12 @@ def test_round_trip_through_a_file_keeps_hu_and_frame(chest, tmp_path, capsys):
     assert np.array_equal(volume.hu, hu)
     assert np.allclose(volume.T_ct_from_voxel[:3, 3], origin)
     assert np.allclose(volume.spacing_mm, spacing[::-1])
-    assert case.patient.age_years >= 18
+    assert case.patient.age_years >= 18 and case.respiration is None
+    # Beside it the same CT breathing as an adult at rest does: 12-20 breaths a minute, the
+    # diaphragm 1-2 cm in quiet breathing.
+    breathing = load_profile(tmp_path / "adult-chest-breathing.yaml", CaseProfile)
+    assert breathing.phases == case.phases and breathing.respiration is not None
+    assert 12 <= breathing.respiration.rate_per_min <= 20 and 10 <= breathing.respiration.diaphragm_mm <= 20
 
 
 def test_unwritable_folder_is_one_line(tmp_path, capsys):

@@ -84,8 +84,9 @@ def register(commands, benches) -> None:
     b.add_argument("--minutes", type=float, default=0.5, help="how long to run (min; default 0.5; 10 for the memory figure)")
     b.add_argument("--out", metavar="DIR", help="data_dir for the run (default: the profile's, var/bench)")
     b.add_argument("--case", metavar="CASE.yaml", help="run this case instead of the profile's")
-    b.add_argument("--ct", choices=("chest",), help="run the real-size adult chest CT (512x512x136, drawn once into "
-                                                   "the data folder's cache)")
+    b.add_argument("--ct", choices=("chest", "chest-breathing"),
+                   help="run the real-size adult chest CT (512x512x136, drawn once into the data folder's cache), "
+                        "held or breathing (15 breaths a minute, 15 mm of diaphragm)")
     b.add_argument("--still", type=float, metavar="SECONDS",
                    help="a cheap camera: the synthetic webcam's frame at this trajectory time, looped from a file")
 

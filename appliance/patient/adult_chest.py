@@ -228,13 +228,13 @@ def build_adult_chest(shape_zyx=(136, 512, 512), spacing_mm=(2.5, 0.8, 0.8), see
 CASE_YAML = """\
 # A synthetic adult chest and upper abdomen CT ({shape} voxels of {spacing} mm, z y x),
 # drawn by appliance/patient/adult_chest.py with seed {seed}.
-title: Adult chest - synthetic CT
+title: Adult chest - synthetic CT{breathing}
 description: Adult chest and upper abdomen; ribs, spine, lung vessels, heart, diaphragm.
 phases:
   - volume: {volume}
     time_s: 0
 at_end: hold
-# The patient lies supine along the box: superior toward phantom +x, posterior toward the
+{respiration}# The patient lies supine along the box: superior toward phantom +x, posterior toward the
 # box floor (phantom -z), the patient's left toward phantom -y.
 T_phantom_from_ct:
   - [0, 0, 1, 0]
@@ -250,6 +250,14 @@ patient:
   age_years: 45
   weight_kg: 80
   height_m: 1.78
+"""
+
+#: The breathing the second profile, adult-chest-breathing.yaml, gives the same CT: an adult's
+#: quiet breathing, the diaphragm's 1.5 cm at 15 breaths a minute, with the schema's rib angles.
+RESPIRATION_YAML = """\
+respiration:
+  diaphragm_mm: 15              # quiet breathing of an adult: 1-2 cm
+  rate_per_min: 15              # an adult at rest breathes 12-20 times a minute
 """
 
 #: Grids the command writes: the clinical one, and a quick one for tests and benches.
@@ -272,13 +280,26 @@ def write_adult_chest(out_dir: str | Path, size: str = "full", seed: int = 0, su
     image.SetSpacing((spacing[2], spacing[1], spacing[0]))
     image.SetOrigin(origin)
     volume = out / f"adult-chest{suffix}"
-    profile = out / "adult-chest.yaml"
     try:
         sitk.WriteImage(image, str(volume), True)
-        profile.write_text(CASE_YAML.format(shape="x".join(map(str, shape)), spacing="/".join(map(str, spacing)),
-                                            seed=seed, volume=volume.name))
     except (OSError, RuntimeError) as e:
         raise FluorosimError(f"{volume}: cannot write the CT ({str(e).strip().splitlines()[-1][:120]}); "
+                             "check the folder and free space") from None
+    return write_profiles(volume, shape, spacing, seed)
+
+
+def write_profiles(volume: Path, shape=SIZES["full"][0], spacing=SIZES["full"][1], seed: int = 0) -> Path:
+    """Write the case profiles of the CT `volume` beside it: adult-chest.yaml (one phase, held)
+    and adult-chest-breathing.yaml (the same CT, breathing as RESPIRATION_YAML says). Returns
+    the first's path."""
+    profile = volume.parent / "adult-chest.yaml"
+    text = dict(shape="x".join(map(str, shape)), spacing="/".join(map(str, spacing)), seed=seed, volume=volume.name)
+    try:
+        profile.write_text(CASE_YAML.format(**text, breathing="", respiration=""))
+        profile.with_name("adult-chest-breathing.yaml").write_text(
+            CASE_YAML.format(**text, breathing=", breathing", respiration=RESPIRATION_YAML))
+    except OSError as e:
+        raise FluorosimError(f"{profile}: cannot write the case profile ({e.strerror or e}); "
                              "check the folder and free space") from None
     return profile
 
