@@ -148,7 +148,8 @@ class ProjectionCache:
             # A breathing patient's two phases in one pass, as a frame casts them: at the adult
             # chest's 512 matrix a quarter less device time than one after the other, in half the
             # bands (each waits for the live frames between them).
-            lines = dict(zip(cast_as, self.cast_two(*cast_as.values(), T_xray_from_ct, zoom, collimation_mm,
+            first, second = cast_as.values()
+            lines = dict(zip(cast_as, self.cast_two(first, second, T_xray_from_ct, zoom, collimation_mm,
                                                     distorted, circle, bands=banded)))
             self.counts.paired += 1
         else:
