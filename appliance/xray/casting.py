@@ -551,9 +551,10 @@ class Caster:
         return a + np.float32(lines.w) * (b - a)
 
     def intensity(self, lines: cl.Buffer | BlendedLines, tables: DetectorTables, zoom, collimation_mm,
-                  circle) -> np.ndarray:
+                  circle, on_device: bool = False):
         """(rows, cols) float32 detector signal relative to the open beam, before any blur, of the
-        cast `lines` through the detector `tables`; 0 outside the beam."""
+        cast `lines` through the detector `tables`; 0 outside the beam. `on_device`: the device
+        buffer that holds it instead (device_chain.py goes on from there)."""
         dev = self.dev
         rows, cols = self.shape
         weights, mu_rho, n_e = tables.weights_buf, tables.mu_buf, tables.device_bins
@@ -569,6 +570,8 @@ class Caster:
         else:
             self._poly_kernel(dev.queue, (rows * cols,), None, first, second, w, mask_buf, weights, mu_rho,
                               np.int32(n_e), out_buf)
+        if on_device:
+            return out_buf
         return dev.download(out_buf, np.empty((rows, cols), dtype=np.float32))
 
     def line_integral(self, volume: PreparedVolume, T_xray_from_ct, zoom: int = 1, collimation_mm=None) -> np.ndarray:

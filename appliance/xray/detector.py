@@ -24,6 +24,10 @@ from ..patient.spekpy_beam import beam
 from .casting import DetectorTables
 from .pixel_geometry import field_edge, field_radius_px, penumbra_px, pixel_pitch_at_zoom_mm
 
+#: A Gaussian blur narrower than this (sigma, pixels) changes a pixel by under a per cent of
+#: its neighbours' difference and is left out.
+BLUR_MIN_SIGMA_PX = 0.3
+
 #: MTF of the detector at its stated limiting resolution: the contrast at which the bars of
 #: a resolution pattern can no longer be told apart.
 MTF_AT_LIMIT = 0.04
@@ -247,23 +251,37 @@ class Detector:
         """
         import cv2
 
-        sigma = self.psf_sigma_px(zoom)
-        field, inv_weight, gain = self._field_weights(mask, sigma, zoom)
+        sigma, field, inv_weight, gain = self.field_weights(mask, zoom)
         out = cv2.multiply(np.asarray(image, dtype=np.float32), field)
-        if sigma > 0.3:
+        if sigma > BLUR_MIN_SIGMA_PX:
             # Normalised by the blurred field, so the blur mixes no darkness into the field's
             # edge: the edge's fall-off is the aperture's own (see `edge`).
             out = cv2.multiply(cv2.GaussianBlur(out, (0, 0), sigma), inv_weight)
-        g = self.chain.veiling_glare
-        if g > 0:
-            halo_px = self.chain.glare_sigma_mm / pixel_pitch_at_zoom_mm(self.fl, zoom)
-            step = max(1, int(halo_px // 4))
+        glare = self.glare(zoom, out.shape)
+        if glare is not None:
+            g, (small_rows, small_cols), small_sigma = glare
             rows, cols = out.shape
-            small = cv2.resize(out, (max(1, cols // step), max(1, rows // step)), interpolation=cv2.INTER_AREA)
-            small = cv2.GaussianBlur(small, (0, 0), max(halo_px / step, 0.5))
+            small = cv2.resize(out, (small_cols, small_rows), interpolation=cv2.INTER_AREA)
+            small = cv2.GaussianBlur(small, (0, 0), small_sigma)
             halo = cv2.resize(small, (cols, rows), interpolation=cv2.INTER_LINEAR)
             out = cv2.addWeighted(out, 1.0 - g, halo, g, 0.0)
         return cv2.multiply(out, gain)
+
+    def glare(self, zoom: int, shape: tuple[int, int]) -> tuple[float, tuple[int, int], float] | None:
+        """The veiling glare of `spread` on a (rows, cols) image: its fraction, the coarse grid
+        (rows, cols) the halo is blurred on and the blur's sigma there; None for no glare."""
+        g = self.chain.veiling_glare
+        if g <= 0:
+            return None
+        halo_px = self.chain.glare_sigma_mm / pixel_pitch_at_zoom_mm(self.fl, zoom)
+        step = max(1, int(halo_px // 4))
+        rows, cols = shape
+        return g, (max(1, rows // step), max(1, cols // step)), max(halo_px / step, 0.5)
+
+    def field_weights(self, mask: np.ndarray, zoom: int) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        """`spread`'s point-spread sigma (pixels) and its field weights for `mask` (see `_field_weights`)."""
+        sigma = self.psf_sigma_px(zoom)
+        return (sigma, *self._field_weights(mask, sigma, zoom))
 
     def _field_weights(self, mask: np.ndarray, sigma: float, zoom: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The field as float32 1/0, the reciprocal of its blur at `sigma` (floored at 1e-3) and
@@ -278,7 +296,7 @@ class Detector:
                 self._fields.clear()
             field = mask.astype(np.float32)
             inv = field
-            if sigma > 0.3:
+            if sigma > BLUR_MIN_SIGMA_PX:
                 inv = (1.0 / np.maximum(cv2.GaussianBlur(field, (0, 0), sigma), np.float32(1e-3))).astype(np.float32)
             gain = self.gain(zoom)
             held = self._fields[key] = (mask, field, inv, field if gain is None else (field * gain).astype(np.float32))
@@ -305,10 +323,20 @@ class RecursiveFilter:
     def __init__(self, weight: float):
         self.weight = float(weight)
         self._state: np.ndarray | None = None
+        # Where a GPU's frames run through it (device_chain.py): (chain, buffer, shape) of the
+        # state on the device instead of _state; one of the two holds it.
+        self._on_device: tuple | None = None
         self._key = None
 
     def reset(self) -> None:
         self._state = None
+        self._on_device = None
+
+    def _host_state(self) -> np.ndarray | None:
+        if self._on_device is not None:
+            chain, buf, shape = self._on_device
+            self._state, self._on_device = chain.download(buf, shape), None
+        return self._state
 
     def carry_over(self, other: RecursiveFilter, shape: tuple[int, int]) -> None:
         """Go on from `other`'s state resampled to `shape` (rows, cols): the same field read out
@@ -316,17 +344,33 @@ class RecursiveFilter:
         like any other new frame instead of restarting it."""
         import cv2
 
-        if other._state is None or other._key is None:
+        state = other._host_state()
+        if state is None or other._key is None:
             self.reset()
             return
         rows, cols = shape
-        self._state = cv2.resize(other._state, (cols, rows), interpolation=cv2.INTER_LINEAR).astype(np.float32)
+        self._state = cv2.resize(state, (cols, rows), interpolation=cv2.INTER_LINEAR).astype(np.float32)
+        self._on_device = None
         self._key = (*other._key[:-1], (rows, cols))
 
     def step(self, frame: np.ndarray, key) -> np.ndarray:
-        if self.weight == 0 or self._state is None or key != self._key or self._state.shape != frame.shape:
+        state = self._host_state()
+        if self.weight == 0 or state is None or key != self._key or state.shape != frame.shape:
             self._state, self._key = frame.astype(np.float32, copy=True), key
             return self._state.copy()
-        self._state *= np.float32(self.weight)
-        self._state += np.float32(1.0 - self.weight) * frame
-        return self._state.copy()
+        state *= np.float32(self.weight)
+        state += np.float32(1.0 - self.weight) * frame
+        return state.copy()
+
+    def step_on_device(self, chain, frame, shape: tuple[int, int], key):
+        """`step` on a device buffer of `shape` (device_chain.DeviceChain `chain`): the state
+        stays on the device; returns the buffer of the filtered frame, valid until the next step."""
+        n = shape[0] * shape[1]
+        if self._on_device is None and self._state is not None and self._state.shape == shape and key == self._key:
+            self._on_device, self._state = (chain, chain.upload(self._state), shape), None     # carried over
+        held = self._on_device
+        if self.weight == 0 or held is None or key != self._key or held[2] != shape or held[0] is not chain:
+            self._on_device, self._state, self._key = (chain, chain.copy(frame, n), shape), None, key
+            return frame
+        chain.recursive(held[1], frame, n, self.weight)
+        return held[1]

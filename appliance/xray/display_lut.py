@@ -41,6 +41,10 @@ def unsharp(p: np.ndarray, amount: float, sigma_px: float) -> np.ndarray:
     return (p + np.float32(amount) * (p - cv2.GaussianBlur(p, (0, 0), sigma_px))).astype(np.float32)
 
 
+#: The window reads every WINDOW_STEP-th pixel of the field and of the measuring field.
+WINDOW_STEP = 3
+
+
 def auto_window(p: np.ndarray, field: np.ndarray, measuring: np.ndarray, latitude: float,
                 min_width: float, indices: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[float, float]:
     """(centre, width) of the window over the in-field log signal `p`.
@@ -53,9 +57,15 @@ def auto_window(p: np.ndarray, field: np.ndarray, measuring: np.ndarray, latitud
     """
     if indices is not None:
         flat = p.ravel()
-        values, middle = flat[indices[0][::3]], flat[indices[1][::3]]
+        values, middle = flat[indices[0][::WINDOW_STEP]], flat[indices[1][::WINDOW_STEP]]
     else:
-        values, middle = p[field][::3], p[measuring][::3]
+        values, middle = p[field][::WINDOW_STEP], p[measuring][::WINDOW_STEP]
+    return window_of(values, middle, latitude, min_width)
+
+
+def window_of(values: np.ndarray, middle: np.ndarray, latitude: float, min_width: float) -> tuple[float, float]:
+    """`auto_window`'s (centre, width) from its samples: `values` of the field, `middle` of
+    the measuring field."""
     if values.size < 16:
         return 0.0, 1.0
     lo, hi = (float(v) for v in np.percentile(values, (1.0, 99.0)))

@@ -83,8 +83,17 @@ def cached_frames(renderer, volume: Volume, frames: int, pose) -> list[str]:
     T = pose(3.0)
     cache.render(a, T, view, blend=(b, 0.5))
     casts = cache.counts.casts
+    on_host: list[float] = []
+    chain = renderer.chain
     for f in range(3 * frames):
-        timed(hit, cache.render, a, T, view, blend=(b, (f % 10) / 10.0), concentration_factor=0.2 + 0.8 * (f % 7) / 6)
+        changing = dict(blend=(b, (f % 10) / 10.0), concentration_factor=0.2 + 0.8 * (f % 7) / 6)
+        timed(hit, cache.render, a, T, view, **changing)
+        if chain is not None:       # a GPU's: the same frame with the detector on the host, alternating
+            renderer.chain = None
+            try:
+                timed(on_host, cache.render, a, T, view, **changing)
+            finally:
+                renderer.chain = chain
     rows, cols = renderer.shape
     last = cache.render(a, T, view, blend=(b, 0.5))
     tables = renderer.caster.tables(last.kvp, 1.0, True)
@@ -98,7 +107,8 @@ def cached_frames(renderer, volume: Volume, frames: int, pose) -> list[str]:
         return f"{wall:.1f} ms ({cpu:.1f} cpu ms)"
     return [f"{cols}x{rows}: blended cast (HU blend, one pass) {med(direct)}; first frame at a new pose (both "
             f"phases' integrals, one pass) {med(miss)}; frame at an unchanged pose with breathing and contrast "
-            f"changing {med(hit)}, {cache.counts.casts - casts} casts in {len(hit)} frames; {nodes}"]
+            f"changing {med(hit)}, {cache.counts.casts - casts} casts in {len(hit) + len(on_host)} frames"
+            f"{f' (with the detector on the host, alternating: {med(on_host)})' if on_host else ''}; {nodes}"]
 
 
 def slab_frames(renderer, volume: Volume, frames: int, pose, label: str) -> str:

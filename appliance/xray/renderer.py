@@ -13,6 +13,7 @@ It strings together the three jobs, each in its own module:
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -24,14 +25,17 @@ from ..config.fluoroscope import FluoroscopeProfile
 from ..errors import FluorosimError
 from ..patient.volume import Volume, padding_as_air
 from .casting import EMPTY_MAX_HU, ENERGY_BINS, PACKET, PAD, Caster, PreparedVolume
-from .detector import Detector, Exposure, RecursiveFilter, settled_noise_gain
+from .detector import BLUR_MIN_SIGMA_PX, Detector, Exposure, RecursiveFilter, settled_noise_gain
 from .device import ClDevice, pick_device
-from .display_lut import auto_window, to_display, unsharp
+from .device_chain import SOURCE, DeviceChain
+from .display_lut import WINDOW_STEP, auto_window, to_display, unsharp, window_of
 from .pixel_geometry import at_resolution, field_mask, measuring_field, pixel_pitch_at_zoom_mm, ray_directions, zoomed_K
 from .slabs import LAYOUT_PHASES, SlabCache
 
 __all__ = ["EMPTY_MAX_HU", "ENERGY_BINS", "PACKET", "PAD", "QUANTITIES", "Frame", "PreparedVolume", "Renderer", "View",
            "at_resolution", "field_mask", "measuring_field", "pick_device", "ray_directions", "zoomed_K"]
+
+log = logging.getLogger(__name__)
 
 QUANTITIES = ("display", "intensity", "line-integral")
 #: How a display frame meets the recursive filter: "live" runs it over successive frames
@@ -72,13 +76,25 @@ class Frame:
     ma: float | None = None             # the tube current it set (mA); None: tube.ma x exposure_factor
 
 
+def _device_chain(dev) -> DeviceChain | None:
+    """The detector's kernels on `dev`, or None (the host's chain) where its compiler refuses
+    them: a display frame then costs what it did before, and the technician reads why."""
+    try:
+        return DeviceChain(dev)
+    except dev.cl.Error as e:
+        log.warning("the detector stays on the host: %s cannot build %s (%s)", dev.device.name.strip(),
+                    SOURCE.name, str(e).strip().splitlines()[0][:200])
+        return None
+
+
 class Renderer:
     """Renders X-ray images of prepared CT phases for one fluoroscope and one case's materials."""
 
     def __init__(self, fluoroscope: FluoroscopeProfile, materials: Materials, contrast: Contrast | None = None,
-                 device: str = "auto", packet: bool | None = None):
+                 device: str = "auto", packet: bool | None = None, device_chain: bool | None = None):
         """`device`: "auto" (a GPU if present, else PoCL's CPU device), "cpu" or "gpu".
-        `packet`: use the 16-pixel vector kernel (default: on CPU devices)."""
+        `packet`: use the 16-pixel vector kernel (default: on CPU devices). `device_chain`: run
+        a display frame's detector on the device (device_chain.py; default: on GPUs)."""
         self.dev = ClDevice(device)
         self.device = self.dev.device
         self._lock: threading.Lock = self.dev.lock
@@ -87,6 +103,7 @@ class Renderer:
         self.caster = Caster(self.dev, fluoroscope, materials, contrast, packet,
                              layouts=SlabCache(self.dev, LAYOUT_PHASES, thickness=1))
         self.packet = self.caster.packet
+        self.chain = _device_chain(self.dev) if (not self.dev.is_cpu if device_chain is None else device_chain) else None
         self.materials, self.contrast = materials, contrast
         self._owner_id = id(self)                # prepared volumes serve this renderer and its other matrices
         self._matrices: dict[tuple[int, int], Renderer] = {}
@@ -173,16 +190,20 @@ class Renderer:
         field again (float32). The same `seed` gives the same noise; None a new one."""
         image = np.ascontiguousarray(image, dtype=np.float32)
         out = np.empty_like(image)
-        seed = int(self._seeds.integers(2 ** 32)) if seed is None else int(seed) & 0xFFFFFFFF
         with self._lock:
             buf = self.dev.upload(image, writable=True)     # the upload is the copy the kernel draws into
-            args = (buf, np.float32(photons_open_field), np.uint32(seed))
-            if self.dev.is_cpu:
-                self._noise(self.dev.queue, (-(-out.size // PACKET),), None, *args, np.int32(out.size))
-            else:
-                self._noise(self.dev.queue, (out.size,), None, *args)
+            self._noise_in(buf, out.size, photons_open_field, seed)
             self.dev.download(buf, out)
         return out
+
+    def _noise_in(self, buf, n: int, photons_open_field: float, seed: int | None) -> None:
+        """quantum_noise on the device buffer `buf` of n pixels, in place (under the lock)."""
+        seed = int(self._seeds.integers(2 ** 32)) if seed is None else int(seed) & 0xFFFFFFFF
+        args = (buf, np.float32(photons_open_field), np.uint32(seed))
+        if self.dev.is_cpu:
+            self._noise(self.dev.queue, (-(-n // PACKET),), None, *args, np.int32(n))
+        else:
+            self._noise(self.dev.queue, (n,), None, *args)
 
     def display_edge(self, view: View) -> np.ndarray:
         """(rows, cols) float32: the fade of a display frame at the field's edge (1 inside, 0
@@ -266,9 +287,11 @@ class Renderer:
                     self.caster.sample_lines(lines, beam), None if gain is None else gain.ravel()[beam.sample],
                     view.zoom, view.mode, lambda kv: self.caster.tables(kv, None, True, nodes=False))
             tables = self.caster.tables(None if exposure is None else exposure.kvp, concentration_factor, view.polychromatic)
+            if display and self.chain is not None:
+                return self._display_on_device(volume, T_xray_from_ct, view, lines, tables, beam, exposure, circle)
             image = self.caster.intensity(lines, tables, view.zoom, view.collimation_mm, circle)
         sigma = detector.focal_blur_px(view.zoom, self.depth_mm(volume, T_xray_from_ct))
-        if sigma > 0.3:
+        if sigma > BLUR_MIN_SIGMA_PX:
             image = cv2.GaussianBlur(image, (0, 0), sigma)
         if exposure is None:
             exposure = Exposure(1.0, float("nan"), False)
@@ -305,9 +328,62 @@ class Renderer:
                                         (beam.mask_index, beam.central_index))
         else:
             centre, width = self.fluoroscope.display.level, self.fluoroscope.display.window
-        width *= view.window_scale
-        centre += view.level_shift * width
+        centre, width = self._radiographers_window(view, centre, width)
         edge = self._edge(view.zoom, view.collimation_mm, circle, mask)
         out = to_display(p, edge, chain, view.invert, centre, width)
         return Frame(out, exposure.factor, exposure.attenuation, exposure.limited, photons * measured, (centre, width), image,
                      exposure.kvp, exposure.ma)
+
+    @staticmethod
+    def _radiographers_window(view: View, centre: float, width: float) -> tuple[float, float]:
+        """The automatic (or the profile's) window moved by the radiographer's window and level."""
+        width *= view.window_scale
+        return centre + view.level_shift * width, width
+
+    def _display_on_device(self, volume: PreparedVolume, T_xray_from_ct, view: View, lines, tables, beam,
+                           exposure: Exposure | None, circle: bool) -> Frame:
+        """`render`'s display frame with its detector on the device (device_chain.py), under
+        the lock: the same steps in the same order, the image in device memory from the cast
+        to the grey scale; the frame, its signal and the samples the exposure control and the
+        window read come back to the host."""
+        chain, detector, fl = self.chain, self.detector, self.fluoroscope
+        assert chain is not None
+        image_chain, abc = fl.image, fl.abc
+        shape = self.shape
+        n = shape[0] * shape[1]
+        buf = self.caster.intensity(lines, tables, view.zoom, view.collimation_mm, circle, on_device=True)
+        sigma = detector.focal_blur_px(view.zoom, self.depth_mm(volume, T_xray_from_ct))
+        if sigma > BLUR_MIN_SIGMA_PX:
+            buf = chain.blur(buf, shape, sigma)
+        if exposure is None:
+            exposure = Exposure(1.0, float("nan"), False)
+            if abc.enabled and len(beam.central_index):
+                gain = detector.gain(view.zoom)
+                seen = chain.gather(buf, beam.central_index)
+                if gain is not None:
+                    seen = seen * gain.ravel()[beam.central_index]
+                exposure = detector.exposure(float(np.median(seen)), view.zoom, view.mode)
+        photons = detector.open_photons_per_pixel(view.zoom, view.mode, tables.spectrum) * exposure.factor
+        if view.temporal == "settled":
+            photons *= settled_noise_gain(image_chain.recursive_weight)
+        if view.noise:
+            self._noise_in(buf, n, photons, view.seed)
+        buf = chain.spread(buf, shape, detector, beam.exposed, view.zoom)
+        measured = float(np.median(chain.gather(buf, beam.sample))) if len(beam.central_index) else 0.0
+        if view.temporal == "live":
+            buf = self.lag.step_on_device(chain, buf, shape, (view.zoom, view.collimation_mm, shape))
+        signal = chain.download(buf, shape)
+        p = chain.neg_log(buf, n, 0.5 / photons if view.noise else 1e-12)
+        chain.unsharp(p, shape, image_chain.unsharp_amount,
+                      image_chain.unsharp_sigma_mm / pixel_pitch_at_zoom_mm(fl, view.zoom))
+        if abc.enabled:
+            centre, width = window_of(chain.gather(p, chain.every(beam.mask_index, WINDOW_STEP)),
+                                      chain.gather(p, chain.every(beam.central_index, WINDOW_STEP)),
+                                      image_chain.display_latitude, image_chain.display_min_window)
+        else:
+            centre, width = fl.display.level, fl.display.window
+        centre, width = self._radiographers_window(view, centre, width)
+        edge = self._edge(view.zoom, view.collimation_mm, circle, beam.mask)
+        out = chain.display(p, shape, edge, image_chain.display_knee, view.invert, centre, width)
+        return Frame(out, exposure.factor, exposure.attenuation, exposure.limited, photons * measured, (centre, width),
+                     signal, exposure.kvp, exposure.ma)
