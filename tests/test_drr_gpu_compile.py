@@ -32,18 +32,35 @@ TARGETS = {
 }
 
 
+def _compiled(tmp_path, source: Path, target: str, options: list[str]) -> tuple[set[str], set[str]]:
+    """(kernels `source` declares, entry points of what Clang emits for `target`), asserting it compiled cleanly."""
+    triple, extra, entry = TARGETS[target]
+    out = tmp_path / f"{source.stem}.s"
+    done = subprocess.run([CLANG, "-x", "cl", "-cl-std=CL1.2", "-target", triple, *extra,
+                           "-Xclang", "-finclude-default-header", "-O2", "-S", *options, "-o", str(out), str(source)],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "error:" not in done.stderr
+    declared = set(re.findall(r"^kernel void (\w+)\(", source.read_text(), re.MULTILINE))
+    return declared, set(re.findall(entry, out.read_text()))
+
+
 @needs_clang
 @pytest.mark.parametrize("target", sorted(TARGETS))
 @pytest.mark.parametrize("blend", [False, True])
 def test_drr_cl_compiles_for_a_gpu_with_every_kernel(tmp_path, target, blend):
-    triple, extra, entry = TARGETS[target]
-    out = tmp_path / "drr.s"
     options = build_options(is_cpu=False) + (["-DBLEND"] if blend else [])
-    done = subprocess.run([CLANG, "-x", "cl", "-cl-std=CL1.2", "-target", triple, *extra,
-                           "-Xclang", "-finclude-default-header", "-O2", "-S", *options, "-o", str(out), str(DRR_CL)],
-                          capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0, done.stderr[-2000:]
-    assert "error:" not in done.stderr
-    declared = set(re.findall(r"^kernel void (\w+)\(", DRR_CL.read_text(), re.MULTILINE))
+    declared, emitted = _compiled(tmp_path, DRR_CL, target, options)
     assert len(declared) >= 6
-    assert set(re.findall(entry, out.read_text())) == declared
+    assert emitted == declared
+
+
+@needs_clang
+@pytest.mark.parametrize("target", sorted(TARGETS))
+def test_the_detector_chain_compiles_for_a_gpu_with_every_kernel(tmp_path, target):
+    """detector_chain.cl runs only on GPUs (device_chain.py), so only its PoCL build is run here."""
+    from appliance.xray.device_chain import KERNELS, SOURCE
+
+    declared, emitted = _compiled(tmp_path, SOURCE, target, [])
+    assert declared == set(KERNELS)
+    assert emitted == declared
