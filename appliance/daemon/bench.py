@@ -248,7 +248,11 @@ def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None,
         if refined:
             print(f"full matrix after rest:  median {np.median(refined) * 1000:.0f} ms, max {max(refined) * 1000:.0f} ms "
                   f"after the pose came to rest ({len(refined)} times after the warm-up)")
-        if cfg.appliance.daemon.clock_rate == 1:
+        per_matrix = getattr(renderer, "moving_frames", None)
+        if per_matrix is not None and not per_matrix:
+            # The moving matrix is the native one (a GPU's profile, say): no frame waits for a refinement.
+            print("native matrix after stop: every frame at the native matrix (none cast smaller while moving)")
+        elif cfg.appliance.daemon.clock_rate == 1:
             end = time.monotonic()
             stops = native_after_stops(app.parts.camera, getattr(renderer, "refined_at", []), t0 + warmup, end)
             if stops:
@@ -259,7 +263,6 @@ def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None,
                 if stops:
                     print(f"rest matrix after stop:   {stops} ({interim.shape[1]} px, shown until the full matrix's "
                           f"cast is done)")
-        per_matrix = getattr(renderer, "moving_frames", None)
         if per_matrix:
             steps = renderer.control.steps
             print("moving frames:          " + ", ".join(f"{per_matrix[n]} at {n} px" for n in sorted(per_matrix, reverse=True))

@@ -43,6 +43,7 @@ from ..config import ApplianceConfig
 from ..config.fluoroscope import FluoroscopeProfile
 from ..console.state import ConsoleState
 from ..errors import FluorosimError
+from ..patient.heap import keep_large_blocks_apart
 from ..records.deferred_ledger import open_ledger
 from ..teaching.live import TeachingStatus, live_teaching_for
 from .capture_worker import CaptureWorker
@@ -97,6 +98,8 @@ class Appliance:
         self.keeper = keeper
         cfg = keeper.current
         daemon = cfg.appliance.daemon
+        # Before the renderer's first buffers: its per-frame blocks then never fragment the heap.
+        keep_large_blocks_apart()
         self.clock = SimClock(daemon.clock_rate, pace_s=daemon.clock_pace_s)
         try:
             cfg.data_dir.mkdir(parents=True, exist_ok=True)
