@@ -188,9 +188,11 @@ def run(args) -> int:
     from ..config.case import Contrast, Materials
     from ..config.fluoroscope import FluoroscopeProfile
     from ..config.loading import load_profile
+    from ..patient.heap import keep_large_blocks_apart
     from ..patient.timeline import PhaseTimeline
     from .renderer import Renderer, View, at_resolution
 
+    keep_large_blocks_apart()           # the allocator as the appliance sets it, for the resident figures
     skip = {s.strip() for s in args.skip.split(",") if s.strip()}
     materials = Materials(contrast_min_hu=2500)
     contrast = Contrast(concentration_mg_per_ml=150)
