@@ -106,6 +106,17 @@ def resample_host(x: np.ndarray, rows: tuple[np.ndarray, np.ndarray], cols: tupl
     return (y[ri, :] * rw[:, :, None]).sum(axis=1)               # down the columns
 
 
+def _kept(cache: dict, key, owner, make, limit: int):
+    """cache[key]'s value, made by `make()` where missing or made for another `owner` (an array
+    freed and its id taken by a new one); the cache emptied once it holds `limit` entries."""
+    got = cache.get(key)
+    if got is None or got[0] is not owner:
+        if len(cache) >= limit:
+            cache.clear()
+        got = cache[key] = (owner, make())
+    return got[1]
+
+
 class DeviceChain:
     """The kernels of detector_chain.cl on one ClDevice, with the tap tables and the device
     copies of the per-field arrays (field, normalisation, gain, edge, sample indices) they
@@ -116,29 +127,19 @@ class DeviceChain:
         cl = dev.cl
         self.program = cl.Program(dev.ctx, SOURCE.read_text()).build()
         self._k = {name: cl.Kernel(self.program, name) for name in KERNELS}
-        self._tables: dict[tuple, tuple] = {}
-        self._held: dict[int, tuple[np.ndarray, object]] = {}
-        self._strided: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        self._tables: dict = {}
+        self._held: dict = {}
+        self._strided: dict = {}
 
     # -- device copies -------------------------------------------------------------------
     def held(self, host: np.ndarray, dtype=np.float32):
         """A read-only device copy of `host` as `dtype` (an array kept for a field: the same
         object, the same copy)."""
-        got = self._held.get(id(host))
-        if got is None or got[0] is not host:
-            if len(self._held) > 64:
-                self._held.clear()
-            got = self._held[id(host)] = (host, self.dev.upload(np.ascontiguousarray(host, dtype=dtype)))
-        return got[1]
+        return _kept(self._held, id(host), host, lambda: self.dev.upload(np.ascontiguousarray(host, dtype=dtype)), 64)
 
     def every(self, index: np.ndarray, step: int) -> np.ndarray:
         """index[::step], the same array for the same `index` (so its device copy is made once)."""
-        got = self._strided.get((id(index), step))
-        if got is None or got[0] is not index:
-            if len(self._strided) > 16:
-                self._strided.clear()
-            got = self._strided[(id(index), step)] = (index, np.ascontiguousarray(index[::step]))
-        return got[1]
+        return _kept(self._strided, (id(index), step), index, lambda: np.ascontiguousarray(index[::step]), 16)
 
     def new(self, n: int):
         return self.dev.scratch(4 * n)
@@ -151,11 +152,13 @@ class DeviceChain:
 
     # -- resampling ------------------------------------------------------------------------
     def _table(self, key: tuple, make):
-        if key not in self._tables:
+        """(idx, w, taps, outputs) of a tap table on the device. The focal blur's sigma follows
+        the patient's depth, a new one at nearly every pose: the cache is bounded."""
+        def upload():
             idx, w = make()
-            self._tables[key] = (self.dev.upload(np.ascontiguousarray(idx, np.int32)),
-                                 self.dev.upload(np.ascontiguousarray(w, np.float32)), idx.shape[1], idx.shape[0])
-        return self._tables[key]
+            return (self.dev.upload(np.ascontiguousarray(idx, np.int32)),
+                    self.dev.upload(np.ascontiguousarray(w, np.float32)), idx.shape[1], idx.shape[0])
+        return _kept(self._tables, key, None, upload, 32)
 
     def resample(self, buf, shape: tuple[int, int], rows_key: tuple, rows_make, cols_key: tuple, cols_make):
         """`buf` (rows, cols) resampled by a table along each row, then one down the columns:
