@@ -293,15 +293,7 @@ class Renderer:
         sigma = detector.focal_blur_px(view.zoom, self.depth_mm(volume, T_xray_from_ct))
         if sigma > BLUR_MIN_SIGMA_PX:
             image = cv2.GaussianBlur(image, (0, 0), sigma)
-        if exposure is None:
-            exposure = Exposure(1.0, float("nan"), False)
-            if display and abc.enabled and central.any():
-                gain = detector.gain(view.zoom)
-                seen = image[central] if gain is None else image[central] * gain[central]
-                exposure = detector.exposure(float(np.median(seen)), view.zoom, view.mode)
-        photons = detector.open_photons_per_pixel(view.zoom, view.mode, tables.spectrum) * exposure.factor
-        if display and view.temporal == "settled":
-            photons *= settled_noise_gain(chain.recursive_weight)
+        exposure, photons = self._technique(view, display, exposure, tables, beam, lambda: image[central])
         if view.noise:
             image = self.quantum_noise(image, photons, view.seed)
         # The detector sees the exposed field: the geometric field and the edge's penumbra.
@@ -334,6 +326,23 @@ class Renderer:
         return Frame(out, exposure.factor, exposure.attenuation, exposure.limited, photons * measured, (centre, width), image,
                      exposure.kvp, exposure.ma)
 
+    def _technique(self, view: View, display: bool, exposure: Exposure | None, tables, beam,
+                   measuring: Callable[[], np.ndarray]) -> tuple[Exposure, float]:
+        """The frame's exposure and photons per open-field pixel: the control's exposure from
+        its curve, else (a display frame) from the median of the measuring field's signal,
+        `measuring()` (its pixels in beam.central_index order) times the vignetting."""
+        detector = self.detector
+        if exposure is None:
+            exposure = Exposure(1.0, float("nan"), False)
+            if display and self.fluoroscope.abc.enabled and len(beam.central_index):
+                gain = detector.gain(view.zoom)
+                seen = measuring() if gain is None else measuring() * gain.ravel()[beam.central_index]
+                exposure = detector.exposure(float(np.median(seen)), view.zoom, view.mode)
+        photons = detector.open_photons_per_pixel(view.zoom, view.mode, tables.spectrum) * exposure.factor
+        if display and view.temporal == "settled":
+            photons *= settled_noise_gain(self.fluoroscope.image.recursive_weight)
+        return exposure, photons
+
     @staticmethod
     def _radiographers_window(view: View, centre: float, width: float) -> tuple[float, float]:
         """The automatic (or the profile's) window moved by the radiographer's window and level."""
@@ -355,17 +364,8 @@ class Renderer:
         sigma = detector.focal_blur_px(view.zoom, self.depth_mm(volume, T_xray_from_ct))
         if sigma > BLUR_MIN_SIGMA_PX:
             buf = chain.blur(buf, shape, sigma)
-        if exposure is None:
-            exposure = Exposure(1.0, float("nan"), False)
-            if abc.enabled and len(beam.central_index):
-                gain = detector.gain(view.zoom)
-                seen = chain.gather(buf, beam.central_index)
-                if gain is not None:
-                    seen = seen * gain.ravel()[beam.central_index]
-                exposure = detector.exposure(float(np.median(seen)), view.zoom, view.mode)
-        photons = detector.open_photons_per_pixel(view.zoom, view.mode, tables.spectrum) * exposure.factor
-        if view.temporal == "settled":
-            photons *= settled_noise_gain(image_chain.recursive_weight)
+        exposure, photons = self._technique(view, True, exposure, tables, beam,
+                                            lambda: chain.gather(buf, beam.central_index))
         if view.noise:
             self._noise_in(buf, n, photons, view.seed)
         buf = chain.spread(buf, shape, detector, beam.exposed, view.zoom)
