@@ -8,6 +8,7 @@ subcommand with its help and the function it runs, and the options several comma
 from __future__ import annotations
 
 import argparse
+import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -31,6 +32,26 @@ def add_command(group: argparse._SubParsersAction, name: str, run: Callable[[arg
         options(p)
     p.set_defaults(run=run)
     return p
+
+
+def positive_number(text: str) -> float:
+    """An argparse type: a finite number above 0 (a duration, say)."""
+    return _number(text, above_zero=True)
+
+
+def non_negative_number(text: str) -> float:
+    """An argparse type: a finite number of 0 or more (a time along a trajectory, say)."""
+    return _number(text, above_zero=False)
+
+
+def _number(text: str, above_zero: bool) -> float:
+    try:
+        x = float(text)
+    except ValueError:
+        x = math.nan
+    if not math.isfinite(x) or x < 0 or (above_zero and x == 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: give a finite number {'above 0' if above_zero else 'of 0 or more'}")
+    return x
 
 
 def config_option(what: str, default: str = DEFAULT_CONFIG) -> Options:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from ..command_options import add_command
+from ..command_options import add_command, non_negative_number, positive_number
 from ..config.commands import default_config_dir
 
 
@@ -81,13 +81,13 @@ def register(commands, benches) -> None:
                     "latency (median, p99) and resident memory growth.")
     b.add_argument("--config", default=_default("appliance-bench.yaml"), metavar="PATH",
                    help="appliance profile to run (default: configs/appliance-bench.yaml)")
-    b.add_argument("--minutes", type=float, default=0.5, help="how long to run (min; default 0.5; 10 for the memory figure)")
+    b.add_argument("--minutes", type=positive_number, default=0.5, help="how long to run (min; default 0.5; 10 for the memory figure)")
     b.add_argument("--out", metavar="DIR", help="data_dir for the run (default: the profile's, var/bench)")
     b.add_argument("--case", metavar="CASE.yaml", help="run this case instead of the profile's")
     b.add_argument("--ct", choices=("chest", "chest-breathing"),
                    help="run the real-size adult chest CT (512x512x136, drawn once into the data folder's cache), "
                         "held or breathing (15 breaths a minute, 15 mm of diaphragm)")
-    b.add_argument("--still", type=float, metavar="SECONDS",
+    b.add_argument("--still", type=non_negative_number, metavar="SECONDS",
                    help="a cheap camera: the synthetic webcam's frame at this trajectory time, looped from a file")
 
     s = add_command(benches, "save", run_bench_save, "the live frame rate while a saved image is re-rendered",
