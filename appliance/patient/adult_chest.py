@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic_file import write_atomic
 from ..errors import FluorosimError
 from .adult_body import (
     HU_AIR,
@@ -294,13 +295,10 @@ def write_profiles(volume: Path, shape=SIZES["full"][0], spacing=SIZES["full"][1
     the first's path."""
     profile = volume.parent / "adult-chest.yaml"
     text = dict(shape="x".join(map(str, shape)), spacing="/".join(map(str, spacing)), seed=seed, volume=volume.name)
-    try:
-        profile.write_text(CASE_YAML.format(**text, breathing="", respiration=""))
-        profile.with_name("adult-chest-breathing.yaml").write_text(
-            CASE_YAML.format(**text, breathing=", breathing", respiration=RESPIRATION_YAML))
-    except OSError as e:
-        raise FluorosimError(f"{profile}: cannot write the case profile ({e.strerror or e}); "
-                             "check the folder and free space") from None
+    # Whole or not at all: a profile cut short by a full disk would stand in the cache for the next run.
+    write_atomic(profile, CASE_YAML.format(**text, breathing="", respiration="").encode())
+    write_atomic(profile.with_name("adult-chest-breathing.yaml"),
+                 CASE_YAML.format(**text, breathing=", breathing", respiration=RESPIRATION_YAML).encode())
     return profile
 
 
