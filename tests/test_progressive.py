@@ -53,8 +53,9 @@ def test_moving_frames_use_the_moving_matrix_and_rest_refines_to_the_full_one(re
         image = pr.render(prepared, shifted(2.0 * i), view).image
         assert image.shape == (128, 128)
         assert pr.matrix == 64 or i == 0       # the very first frame has no motion before it
-    # Every moving frame is cast (at a new pose, the phases blended in the cast, past the cache).
-    assert pr.moving_casts >= 5 and pr.cache(pr.moving).counts.casts <= 1
+    # Every moving frame is cast at its new pose, once, into the moving matrix's cache.
+    assert pr.moving_casts >= 5 and pr.cache(pr.moving).counts.casts == pr.moving_casts
+    assert pr.cache(pr.moving).counts.hits == 0
     matrices = []
     for _ in range(10):                        # at rest for 0.4 s
         clock.t += 0.04
@@ -271,6 +272,7 @@ def test_at_rest_the_full_matrix_is_cast_beside_the_live_frames_and_then_shown(r
         clock.t += 0.04
         pr.render(prepared, shifted(2.0 * i), view)
     assert pr.refine is None
+    cast_moving = pr.cache(pr.moving).counts.casts
     for _ in range(3):                          # at rest past settle_s: the cast begins, the moving matrix stays
         clock.t += 0.04
         pr.render(prepared, shifted(4.0), view)
@@ -287,8 +289,8 @@ def test_at_rest_the_full_matrix_is_cast_beside_the_live_frames_and_then_shown(r
     assert inner.sum() > 200
     mu = xraylib.CS_Total_CP("Tissue, Soft (ICRP)", renderer.spectrum.effective_kev)
     assert _implied_chord_error(full, L_cm, inner, mu) < 0.01
-    # The moving matrix at rest was cast once at that pose and then served from its cache.
-    assert pr.cache(pr.moving).counts.casts <= 1
+    # The moving matrix at rest was served from what the last moving frame, at this pose, cast.
+    assert pr.cache(pr.moving).counts.casts == cast_moving
 
 
 def test_a_pose_that_moves_on_cancels_the_cast_and_never_shows_the_old_pose(renderer, box):
@@ -409,6 +411,42 @@ def test_a_blended_rest_has_both_phases_cast_beside_the_live_frames(renderer, bo
     mu = xraylib.CS_Total_CP("Tissue, Soft (ICRP)", renderer.spectrum.effective_kev)
     assert _implied_chord_error(full, 0.5 * (L_a + L_b), inner, mu) < 0.01
     assert np.median(L_b[inner] - L_a[inner]) > 0.5          # the blend differs from either phase
+
+
+def test_a_breathing_patient_at_rest_shows_the_moving_matrix_without_casting_it_again(renderer):
+    """Moving between two phases (a box and a longer one on the same grid, breathing: the weight
+    changes every frame), each moving frame keeps both phases' integrals in the moving matrix's
+    cache, so the frames at rest that show the moving matrix while the full one is cast beside
+    them cast nothing within themselves. Moving and resting frames are the projection-space
+    blend of the boxes' closed-form chords, (1 - w) L_a + w L_b, at their weight. The boxes end
+    within one crop block, so the two phases share a grid as a 4D CT's do."""
+    shorter, lo, hi = box_volume((40, 48, 48), (1.5, 1.25, 2.0), (8, 10, 6), (36, 38, 33))
+    longer, lo_b, hi_b = box_volume((40, 48, 48), (1.5, 1.25, 2.0), (8, 10, 6), (36, 38, 38))
+    prepared, other = renderer.prepare(shorter), renderer.prepare(longer)
+    assert prepared.same_grid(other)
+    clock = Clock()
+    pr = ProgressiveRenderer(renderer, Rendering(moving_matrix_px=64, settle_s=0.1, refine_bands=64), clock=clock)
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    mu = xraylib.CS_Total_CP("Tissue, Soft (ICRP)", renderer.spectrum.effective_kev)
+    L_b, _ = _chords(renderer, lo_b, hi_b, 1, shifted(6.0))
+    L_a, inner = _chords(renderer, lo, hi, 1, shifted(6.0))
+    for i in range(4):                          # moving, breathing
+        clock.t += 0.04
+        w = 0.2 + 0.1 * i
+        image = pr.render(prepared, shifted(2.0 * i), view, blend=(other, w)).image
+    assert pr.matrix == 64 and pr.moving_casts == 4
+    assert _implied_chord_error(image, (1 - w) * L_a + w * L_b, inner, mu) < 0.01
+    casts = pr.cache(pr.moving).counts.casts
+    assert casts == 8                           # both phases at each of the four poses
+    for k in range(3):                          # at rest, still breathing: the full matrix is cast beside
+        clock.t += 0.04
+        w = 0.6 + 0.1 * k
+        image = pr.render(prepared, shifted(6.0), view, blend=(other, w)).image
+        if pr.matrix == 64:
+            assert _implied_chord_error(image, (1 - w) * L_a + w * L_b, inner, mu) < 0.01
+    assert pr.refine is not None
+    assert pr.cache(pr.moving).counts.casts == casts        # nothing cast again at the moving matrix
+    assert pr.wait_refined(30.0) and pr.refine_fault is None
 
 
 def test_after_a_fault_of_the_cast_beside_the_live_frames_rest_casts_the_full_matrix_within_the_frame(renderer, box):
