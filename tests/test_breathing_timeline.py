@@ -138,3 +138,44 @@ def test_phase_worker_runs_the_case_on_the_console_clock_and_holds_only_the_brea
         assert phases.get()[0].inspired == pytest.approx(state_at(p, 11.5).inspired)
     finally:
         timeline.control = type(timeline.control)(p)        # leave the shared timeline as the other tests found it
+
+
+def test_phase_worker_hands_on_the_states_the_breath_reaches_next(timeline):
+    """During inspiration (case time 0.2 s at 15/min, the breath rising) the phase worker hands on,
+    beside the frame's two states, the states the closed-form breath reaches within its look ahead
+    and no others; in a breath hold, none (the breath stands still)."""
+    from types import SimpleNamespace
+
+    from appliance.daemon.handoff import LatestValue
+    from appliance.daemon.phase_worker import LOOKAHEAD_S, PhaseWorker
+    from appliance.patient.respiration import state_at
+
+    fl = load_profile(ROOT / "configs" / "fluoroscopes" / "generic-ii-carm.yaml", FluoroscopeProfile)
+    keymap = load_profile(ROOT / "configs" / "keymaps" / "usb-numeric-keypad.yaml", KeymapProfile)
+    now = [100.2]
+    console = Console(fl, keymap, 100.0)
+    states, phases = LatestValue("console"), LatestValue("phases")
+    states.put(console.snapshot())
+    worker = PhaseWorker(SimpleNamespace(timeline=timeline, generation=0, t0=100.0), states, phases,
+                         clock=lambda: now[0])
+    p, step = timeline.params, timeline.excursions[1]
+
+    def indices(t):
+        e = state_at(p, t).excursion / step
+        return {int(e), int(e) + 1} if e > int(e) else {int(e)}
+    try:
+        assert worker.step()
+        value = phases.get()[0]
+        here = indices(0.2)
+        expected = set().union(*(indices(0.2 + dt) for dt in LOOKAHEAD_S)) - here
+        assert expected                                  # the breath moves on within the look ahead
+        assert {timeline._prepared.index(v) for v in value.upcoming} == expected
+        assert {timeline._prepared.index(v) for v in (value.prepared_a, value.prepared_b)} == here
+        console.handle(InputEvent(100.25, "scripted", "KEY_KPSLASH", True))
+        console.tick(100.25)
+        states.put(console.snapshot())
+        now[0] = 100.3
+        assert worker.step()
+        assert phases.get()[0].upcoming == ()
+    finally:
+        timeline.control = type(timeline.control)(p)        # leave the shared timeline as the other tests found it

@@ -449,6 +449,46 @@ def test_a_breathing_patient_at_rest_shows_the_moving_matrix_without_casting_it_
     assert pr.wait_refined(30.0) and pr.refine_fault is None
 
 
+def test_a_held_view_casts_the_upcoming_phase_beside_the_live_frames_before_breathing_brings_it(renderer):
+    """At rest at the full matrix between two phases, the phase the timeline says comes next is
+    cast beside the live frames; the frame that then blends it casts nothing within itself and is
+    the projection-space blend of the closed-form chords. While the C-arm moves nothing is
+    fetched ahead. The three boxes end within one crop block: one grid, as a 4D CT's phases."""
+    phases, chords = [], []
+    for top in (33, 35, 38):
+        vol, lo, hi = box_volume((40, 48, 48), (1.5, 1.25, 2.0), (8, 10, 6), (36, 38, top))
+        phases.append(renderer.prepare(vol))
+        chords.append(_chords(renderer, lo, hi, 1, shifted(6.0)))
+    a, b, c = phases
+    assert a.same_grid(b) and b.same_grid(c)
+    clock = Clock()
+    pr = ProgressiveRenderer(renderer, Rendering(moving_matrix_px=64, settle_s=0.1, refine_bands=4), clock=clock)
+    view = View(quantity="intensity", noise=False, polychromatic=False)
+    for i in range(4):                          # moving: the look ahead is not acted on
+        clock.t += 0.04
+        pr.render(a, shifted(2.0 * i), view, blend=(b, 0.3), upcoming=(c,))
+    assert pr.prefetches == 0
+    while pr.matrix != 128:                     # the rest's cast beside the live frames, then the full matrix
+        clock.t += 0.04
+        pr.wait_refined(30.0)
+        pr.render(a, shifted(6.0), view, blend=(b, 0.5), upcoming=(c,))
+        assert clock.t < 103.0
+    assert pr.prefetches == 1 and pr.wait_refined(30.0) and pr.refine_fault is None
+    cache = pr.cache()
+    assert cache.holds([a, b, c])
+    casts = cache.counts.casts
+    clock.t += 0.04
+    image = pr.render(b, shifted(6.0), view, blend=(c, 0.5)).image
+    assert pr.matrix == 128 and cache.counts.casts == casts        # nothing cast within the frame
+    (L_b, inner), (L_c, _) = chords[1], chords[2]
+    mu = xraylib.CS_Total_CP("Tissue, Soft (ICRP)", renderer.spectrum.effective_kev)
+    assert _implied_chord_error(image, 0.5 * (L_b + L_c), inner, mu) < 0.01
+    assert np.median(L_c[inner] - L_b[inner]) > 0.4
+    clock.t += 0.04
+    pr.render(b, shifted(6.0), view, blend=(c, 0.6), upcoming=(c,))
+    assert pr.prefetches == 1                   # held already: nothing more to cast
+
+
 def test_after_a_fault_of_the_cast_beside_the_live_frames_rest_casts_the_full_matrix_within_the_frame(renderer, box):
     """The thread's cast fails (an OpenCL error, raised where the cast would run): the fault is
     kept, and the next frames at rest cast the full matrix themselves rather than start another

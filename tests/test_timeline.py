@@ -42,6 +42,23 @@ def test_interpolation_weights_and_loop(renderer):
         tl.close()
 
 
+def test_a_look_ahead_gives_the_later_phases_and_leaves_the_loaders_order(renderer):
+    """`at(t, steer=False)` (the phase worker's look ahead) gives the phases of that time as `at`
+    does, and leaves the phase the loader prepares first as the frame's `at` set it."""
+    tl = PhaseTimeline([(0.0, phase(0)), (1.0, phase(100)), (2.0, phase(200)), (3.0, phase(300))], renderer, "loop")
+    try:
+        assert tl.wait_ready(10, all_phases=True)
+        tl.at(1.6)                       # the frame's: nearer phase 2
+        assert tl._wanted == 2
+        a, b, w = tl.at(3.25, steer=False)
+        assert (a.time_s, b.time_s, w) == (3.0, 0.0, pytest.approx(0.25))
+        assert tl._wanted == 2
+        tl.at(3.25)
+        assert tl._wanted == 3
+    finally:
+        tl.close()
+
+
 def test_hold_stays_on_the_last_phase(renderer):
     tl = PhaseTimeline([(0.0, phase(0)), (1.0, phase(100))], renderer, "hold")
     try:

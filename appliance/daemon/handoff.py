@@ -101,6 +101,9 @@ class PhaseValue:
     t_case_s: float | None = None  # the case time it stands for (s), for the teaching records' phase windows
     breathing: str = ""       # the breathing model's line for the monitor (rate, depth, held); "" without one
     inspired: float | None = None  # the breath: 0 end-expiration .. 1 end-inspiration (None: no breathing model)
+    #: Phases the patient will need within PhaseWorker's look ahead that this value does not
+    #: hold: a view held at rest casts them beside the live frames before they are drawn.
+    upcoming: tuple[PreparedVolume, ...] = ()
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,12 @@ from .worker import Worker
 PHASE_PERIOD_S = 0.02
 #: How long it waits before looking again while no phase is prepared yet (s).
 NOT_READY_RETRY_S = 0.1
+#: The case times ahead of now (s) whose phases are handed on as `upcoming`: a view held at rest
+#: casts them beside the live frames (ProgressiveRenderer.render) before breathing brings them.
+#: One phase's cast at the adult chest's 512 matrix takes about 0.1 s so on two cores; a breath
+#: of the shipped cases moves to its next state every 0.3-0.7 s, and in steps of 0.1 s even a
+#: breath twice as fast skips none.
+LOOKAHEAD_S = (0.1, 0.2, 0.3, 0.4)
 
 
 class PhaseWorker(Worker):
@@ -88,9 +94,24 @@ class PhaseWorker(Worker):
             return False
         text = control.overlay_text(t) if control is not None else ""
         inspired = control.at(t).inspired if control is not None else None
-        self.phases.put(PhaseValue(a, b, float(weight), generation, t_case_s=t, breathing=text, inspired=inspired))
+        # A 4D CT held by the console stands still at its hold's time: nothing is coming.
+        upcoming = () if hold and control is None else self._upcoming(t, (a, b))
+        self.phases.put(PhaseValue(a, b, float(weight), generation, t_case_s=t, breathing=text, inspired=inspired,
+                                   upcoming=upcoming))
         self.sleep(PHASE_PERIOD_S)
         return True
+
+    def _upcoming(self, t: float, now: tuple) -> tuple:
+        """The phases the timeline gives within LOOKAHEAD_S of case time `t` that are not in
+        `now`, nearest first; looking ahead does not steer the timeline's loader."""
+        ahead: list = []
+        for dt in LOOKAHEAD_S:
+            try:
+                phases = self.parts.timeline.at(t + dt, steer=False)[:2]
+            except FluorosimError:
+                break
+            ahead += [p for p in phases if p is not None and p not in now and p not in ahead]
+        return tuple(ahead)
 
     def _apply_breath_keys(self, control, state: ConsoleState, t: float) -> None:
         """Each faster/slower/deeper/shallower press since the last look, applied at case time t."""

@@ -216,7 +216,7 @@ class RenderWorker(Worker):
         try:
             with self.grace(grace):
                 return self.parts.renderer.render(phase.prepared_a, T_xray_from_ct, view, blend=blend,
-                                                  measured=measured)
+                                                  measured=measured, upcoming=phase.upcoming)
         except FluorosimError:
             raise
         except Exception as e:  # noqa: BLE001 - an OpenCL fault must not end the appliance

@@ -28,12 +28,12 @@ class FourDBreathing:
         s = self.control.at(t_s)
         return self.end_expiration_s + self.period_s * ((s.cycles - 0.75) % 1.0), s.depth
 
-    def at(self, t_s: float):
+    def at(self, t_s: float, steer: bool = True):
         t_ct, depth = self.ct_time(t_s)
-        a, b, w = self.timeline.at(t_ct)
+        a, b, w = self.timeline.at(t_ct, steer)
         if depth >= 1.0:
             return a, b, w
-        rest, _, _ = self.timeline.at(self.end_expiration_s)
+        rest, _, _ = self.timeline.at(self.end_expiration_s, steer)
         # Two volumes per frame: the phase nearest the breath, blended with end-expiration.
         nearest = b if b is not None and w >= 0.5 else a
         if depth <= 0.0 or nearest is rest:

@@ -143,15 +143,16 @@ class BreathingTimeline:
         t = t_s % self.cycle_s if math.isfinite(self.cycle_s) else t_s
         return max(bisect.bisect_right(self.stage_times, t) - 1, 0)
 
-    def at(self, t_s: float):
-        """(state, next state or None, weight of the next) for the breath at case time `t_s` (s)."""
+    def at(self, t_s: float, steer: bool = True):
+        """(state, next state or None, weight of the next) for the breath at case time `t_s` (s);
+        `steer` False (a look ahead) leaves the stage the loader prepares first as it was."""
         e = self.control.at(t_s).excursion
         step = self.excursions[1]
         i = min(int(e / step), len(self.excursions) - 1)
         w = e / step - i
         j = self.stage_at(t_s)
         with self._cond:
-            if self._wanted != j:
+            if steer and self._wanted != j:
                 self._wanted = j
             # A stage still being prepared: the latest earlier one that is ready stands in.
             for jj in [j, *range(j - 1, -1, -1), *range(len(self._states) - 1, j, -1)]:

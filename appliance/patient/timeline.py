@@ -25,8 +25,9 @@ class Timeline(Protocol):
     """What the daemon asks of a case's timeline: a 4D CT's phases (PhaseTimeline), or a
     breathing model over one CT or over a 4D CT (patient/breathing_timeline.py, breathing_4d.py)."""
 
-    def at(self, t_s: float) -> Any:
-        """(phase, next phase or None, weight of the next in [0, 1)) to render at `t_s` (s)."""
+    def at(self, t_s: float, steer: bool = True) -> Any:
+        """(phase, next phase or None, weight of the next in [0, 1)) to render at `t_s` (s).
+        `steer` False: a look ahead, which leaves the loader's order as the last frame's wanted it."""
 
     def wait_ready(self, timeout_s: float | None = None, all_phases: bool = False) -> bool:
         """Whether the first phase (or every phase) is ready, waiting up to `timeout_s`."""
@@ -146,8 +147,9 @@ class PhaseTimeline:
         w = (t - times[i]) / (t_next - times[i])
         return i, j, w
 
-    def at(self, t_s: float):
-        """(phase, next phase or None, weight of the next in [0, 1)) for time `t_s` (s).
+    def at(self, t_s: float, steer: bool = True):
+        """(phase, next phase or None, weight of the next in [0, 1)) for time `t_s` (s); with
+        `steer` the loader prepares the nearer of the two next (the frame's), not with a look ahead.
 
         Never waits for loading once any phase is ready: a phase still loading is replaced by
         the nearest earlier ready one and no blend is offered. Raises FluorosimError only when
@@ -156,7 +158,7 @@ class PhaseTimeline:
         i, j, w = self._bracket(t_s)
         with self._cond:
             wanted = i if j is None or w < 0.5 else j
-            if self._wanted != wanted:
+            if steer and self._wanted != wanted:
                 self._wanted = wanted
                 self._cond.notify_all()
             a = self._prepared[i]

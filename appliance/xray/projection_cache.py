@@ -124,7 +124,8 @@ class ProjectionCache:
     def adopted(self, T_xray_from_ct, zoom: int, collimation_mm, distorted: bool, circle) -> bool:
         """Whether the cache holds projections of this field at this pose (within the tolerance):
         a frame here casts at most the phases it has not cast yet."""
-        volume = next(iter(self._lines), None)
+        # A copy of the keys: a cast beside the live frames may keep phases meanwhile.
+        volume = next(iter(list(self._lines)), None)
         return (volume is not None and self._geometry_key(zoom, collimation_mm, distorted, circle) == self._key
                 and self.unchanged(volume, T_xray_from_ct, zoom))
 
@@ -136,9 +137,11 @@ class ProjectionCache:
              bands: int, cancelled: Callable[[], bool]) -> bool:
         """Cast `phases` at this pose in `bands` bands of rows each (Caster.cast: the device's lock
         is held one band at a time, so live frames of other matrices go on in between) and keep
-        them as `render` would have. Meant for a thread of its own while nobody else renders
-        through this cache; `cancelled()` true between bands ends it (CastCancelled). False when
-        the fluoroscope profile was replaced meanwhile (nothing kept)."""
+        them as `render` would have. Meant for a thread of its own; live frames may render
+        through this cache meanwhile (what is kept is kept under the device's lock), and one that
+        needs a phase still being cast here casts it itself. `cancelled()` true between bands
+        ends it (CastCancelled). False when the fluoroscope profile was replaced meanwhile
+        (nothing kept)."""
         r = self.renderer
         key = self._geometry_key(zoom, collimation_mm, distorted, circle)
         with r._lock:
@@ -155,10 +158,11 @@ class ProjectionCache:
         else:
             lines = {p: r.caster.cast(t.volume, T_xray_from_ct, zoom, collimation_mm, None, distorted, circle,
                                       bands=banded, thin=t.cast_thin)[0] for p, t in cast_as.items()}
-        if self._geometry_key(zoom, collimation_mm, distorted, circle) != key:
-            return False
-        self.keep(lines, T_xray_from_ct, zoom, collimation_mm, distorted, circle)
-        self.counts.casts += len(lines)
+        with r._lock:           # live frames may draw from this cache meanwhile (a held view's)
+            if self._geometry_key(zoom, collimation_mm, distorted, circle) != key:
+                return False
+            self.keep(lines, T_xray_from_ct, zoom, collimation_mm, distorted, circle)
+            self.counts.casts += len(lines)
         return True
 
     def keep(self, lines: dict[PreparedVolume, cl.Buffer], T_xray_from_ct, zoom: int, collimation_mm,
