@@ -99,24 +99,32 @@ def test_phase_worker_hands_the_presses_to_the_breathing_model(timeline):
     timeline.control = type(timeline.control)(p)        # leave the shared timeline as the other tests found it
 
 
-def test_phase_worker_runs_the_case_on_the_console_clock_and_holds_only_the_breath(timeline):
-    """One clock: the case time is the appliance clock since the session's start (parts.t0). A
-    breath hold on the breathing model freezes the breath at the press's console time while the
-    case time (the contrast's timeline) runs on; resume carries the breath on from there."""
+def _worker_at(timeline, now: list[float]):
+    """(console, its state's hand-off, the phases' hand-off, a PhaseWorker) on `timeline`, the
+    session begun at appliance time 100 s and the clock reading `now[0]`."""
     from types import SimpleNamespace
 
     from appliance.daemon.handoff import LatestValue
     from appliance.daemon.phase_worker import PhaseWorker
-    from appliance.patient.respiration import state_at
 
     fl = load_profile(ROOT / "configs" / "fluoroscopes" / "generic-ii-carm.yaml", FluoroscopeProfile)
     keymap = load_profile(ROOT / "configs" / "keymaps" / "usb-numeric-keypad.yaml", KeymapProfile)
-    now = [110.0]
     console = Console(fl, keymap, 100.0)
     states, phases = LatestValue("console"), LatestValue("phases")
     states.put(console.snapshot())
     worker = PhaseWorker(SimpleNamespace(timeline=timeline, generation=0, t0=100.0), states, phases,
                          clock=lambda: now[0])
+    return console, states, phases, worker
+
+
+def test_phase_worker_runs_the_case_on_the_console_clock_and_holds_only_the_breath(timeline):
+    """One clock: the case time is the appliance clock since the session's start (parts.t0). A
+    breath hold on the breathing model freezes the breath at the press's console time while the
+    case time (the contrast's timeline) runs on; resume carries the breath on from there."""
+    from appliance.patient.respiration import state_at
+
+    now = [110.0]
+    console, states, phases, worker = _worker_at(timeline, now)
     p = timeline.params
     try:
         assert worker.step()
@@ -144,20 +152,11 @@ def test_phase_worker_hands_on_the_states_the_breath_reaches_next(timeline):
     """During inspiration (case time 0.2 s at 15/min, the breath rising) the phase worker hands on,
     beside the frame's two states, the states the closed-form breath reaches within its look ahead
     and no others; in a breath hold, none (the breath stands still)."""
-    from types import SimpleNamespace
-
-    from appliance.daemon.handoff import LatestValue
-    from appliance.daemon.phase_worker import LOOKAHEAD_S, PhaseWorker
+    from appliance.daemon.phase_worker import LOOKAHEAD_S
     from appliance.patient.respiration import state_at
 
-    fl = load_profile(ROOT / "configs" / "fluoroscopes" / "generic-ii-carm.yaml", FluoroscopeProfile)
-    keymap = load_profile(ROOT / "configs" / "keymaps" / "usb-numeric-keypad.yaml", KeymapProfile)
     now = [100.2]
-    console = Console(fl, keymap, 100.0)
-    states, phases = LatestValue("console"), LatestValue("phases")
-    states.put(console.snapshot())
-    worker = PhaseWorker(SimpleNamespace(timeline=timeline, generation=0, t0=100.0), states, phases,
-                         clock=lambda: now[0])
+    console, states, phases, worker = _worker_at(timeline, now)
     p, step = timeline.params, timeline.excursions[1]
 
     def indices(t):
