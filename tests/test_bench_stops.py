@@ -4,7 +4,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from appliance.daemon.bench import native_after_stops, rests_after
+from appliance.daemon.bench import held_casts_text, native_after_stops, rests_after
 from appliance.geometry import make_transform
 from appliance.tracking.trajectory import Trajectory
 
@@ -37,3 +37,15 @@ def test_the_rest_figure_leaves_out_the_rests_before_the_measured_span():
     assert rests_after(renderer, 12.0) == [0.3, 0.5]
     assert rests_after(renderer, 0.0) == [1.4, 0.3, 0.5]
     assert rests_after(SimpleNamespace(), 12.0) == []
+
+
+def test_the_held_view_figure_counts_the_measured_span_only():
+    # Frames at a held view that cast a phase themselves at 5 s (warm-up), 20 s and 30 s, taking
+    # 0.9, 0.04 and 0.06 s; casts ahead begun at 4, 21 and 25 s. The span begins at 12 s.
+    renderer = SimpleNamespace(held_casts=[(5.0, 0.9), (20.0, 0.04), (30.0, 0.06)], prefetched_at=[4.0, 21.0, 25.0])
+    assert held_casts_text(renderer, 12.0) == (
+        "2 frames cast a phase within themselves (median 50 ms, max 60 ms to render); "
+        "2 casts of coming phases begun beside the live frames")
+    assert held_casts_text(renderer, 40.0) == (
+        "no frame cast a phase within itself; 0 casts of coming phases begun beside the live frames")
+    assert held_casts_text(SimpleNamespace(), 0.0) is None

@@ -467,13 +467,13 @@ def test_a_held_view_casts_the_upcoming_phase_beside_the_live_frames_before_brea
     for i in range(4):                          # moving: the look ahead is not acted on
         clock.t += 0.04
         pr.render(a, shifted(2.0 * i), view, blend=(b, 0.3), upcoming=(c,))
-    assert pr.prefetches == 0
+    assert pr.prefetched_at == []
     while pr.matrix != 128:                     # the rest's cast beside the live frames, then the full matrix
         clock.t += 0.04
         pr.wait_refined(30.0)
         pr.render(a, shifted(6.0), view, blend=(b, 0.5), upcoming=(c,))
         assert clock.t < 103.0
-    assert pr.prefetches == 1 and pr.wait_refined(30.0) and pr.refine_fault is None
+    assert len(pr.prefetched_at) == 1 and pr.wait_refined(30.0) and pr.refine_fault is None
     cache = pr.cache()
     assert cache.holds([a, b, c])
     casts = cache.counts.casts
@@ -486,7 +486,12 @@ def test_a_held_view_casts_the_upcoming_phase_beside_the_live_frames_before_brea
     assert np.median(L_c[inner] - L_b[inner]) > 0.4
     clock.t += 0.04
     pr.render(b, shifted(6.0), view, blend=(c, 0.6), upcoming=(c,))
-    assert pr.prefetches == 1                   # held already: nothing more to cast
+    assert len(pr.prefetched_at) == 1           # held already: nothing more to cast
+    assert pr.held_casts == []                  # no held frame cast a phase itself
+    unannounced = renderer.prepare(box_volume((40, 48, 48), (1.5, 1.25, 2.0), (8, 10, 6), (36, 38, 36))[0])
+    clock.t += 0.04
+    pr.render(c, shifted(6.0), view, blend=(unannounced, 0.5))
+    assert [t for t, _ in pr.held_casts] == [clock.t]   # a phase nobody announced is cast within its frame
 
 
 def test_after_a_fault_of_the_cast_beside_the_live_frames_rest_casts_the_full_matrix_within_the_frame(renderer, box):

@@ -169,6 +169,20 @@ def native_after_stops(camera, refined_at: list[float], since: float, until: flo
             f"{f', {missed} not refined before it moved on' if missed else ''})")
 
 
+def held_casts_text(renderer, since: float) -> str | None:
+    """What a held view cast within its frames after `since` (s, the renderer's clock): how many
+    frames, their time to render, and the casts of upcoming phases begun beside the live frames
+    (ProgressiveRenderer.held_casts, prefetched_at). None for a renderer without them."""
+    held = getattr(renderer, "held_casts", None)
+    if held is None:
+        return None
+    took = [s for t, s in held if t >= since]
+    within = (f"{len(took)} frames cast a phase within themselves (median {np.median(took) * 1000:.0f} ms, "
+              f"max {max(took) * 1000:.0f} ms to render)" if took else "no frame cast a phase within itself")
+    ahead = sum(t >= since for t in renderer.prefetched_at)
+    return f"{within}; {ahead} casts of coming phases begun beside the live frames"
+
+
 def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None, case: Path | None = None,
             ct: str | None = None, still_s: float | None = None) -> int:
     from .pipeline import Appliance
@@ -276,6 +290,9 @@ def run_e2e(config_path: Path, *, minutes: float = 0.5, out: Path | None = None,
         if counts is not None:
             print(f"projection cache:       {counts.frames} full-matrix frames, {counts.casts} phase casts, "
                   f"{counts.hits} phases reused")
+        held = held_casts_text(renderer, t0 + warmup)
+        if held:
+            print(f"held view:              {held}")
         if camera_cost:
             print(f"camera cost:            {camera_cost}")
         if "camera_end" in cpu_at:

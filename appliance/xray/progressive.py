@@ -162,8 +162,12 @@ class ProgressiveRenderer:
         self.moving_frames: Counter[int] = Counter()
         #: The full matrix's cast beside the live frames, the last one begun (None before any).
         self.refine: Refine | None = None
-        #: Casts of upcoming phases begun beside the live frames for a held view (count, `_prefetch`).
-        self.prefetches = 0
+        #: When (s, `clock`) each cast of upcoming phases beside the live frames for a held view began (`_prefetch`).
+        self.prefetched_at: list[float] = []
+        #: (when, how long) (s, `clock`) of the frames at a held view's matrix (the full one or the
+        #: rest matrix, the pose unchanged) that cast a phase within themselves: the frames a
+        #: breathing patient at rest holds longer than the detector alone would.
+        self.held_casts: list[tuple[float, float]] = []
         #: Why a cast beside the live frames failed (None while none has): the full matrix is then
         #: cast within the frame again, where the fault reaches the caller.
         self.refine_fault: str | None = None
@@ -359,7 +363,11 @@ class ProgressiveRenderer:
             frame = use.render(volume, T, view, blend, cast=cast, concentration_factor=concentration_factor)
             self.moving_casts += 1
         else:
-            frame = self.cache(use).render(volume, T, view, blend, concentration_factor)
+            cache = self.cache(use)
+            casts = cache.counts.casts
+            frame = cache.render(volume, T, view, blend, concentration_factor)
+            if cache.counts.casts > casts and not moved and (use is self.full or use is self.interim):
+                self.held_casts.append((now, self.clock() - now))
         image = frame.image
         rows, cols = self.full.shape
         if image.shape != (rows, cols):
@@ -518,7 +526,7 @@ class ProgressiveRenderer:
         missing = [p for p in upcoming if not cache.holds([p])]
         if not missing or not cache.adopted(T, view.zoom, view.collimation_mm, True, circle):
             return
-        self.prefetches += 1
+        self.prefetched_at.append(self.clock())
         refine = self.refine = Refine(T, _geometry(view), self.full)
         threading.Thread(target=self._cast_full, args=(refine, missing, view, circle, self.settings.refine_bands),
                          name="fluorosim-prefetch", daemon=True).start()
