@@ -43,7 +43,7 @@ def adult_chest_case(data_dir: Path, breathing: bool = False) -> Path:
     folder = data_dir / "cache" / "adult-chest"
     profile = folder / ("adult-chest-breathing.yaml" if breathing else "adult-chest.yaml")
     if not (folder / "adult-chest.mha").exists():
-        print(f"bench e2e: drawing the adult chest CT into {shown(folder)} (once)", flush=True)
+        print(f"drawing the adult chest CT into {shown(folder)} (once)", flush=True)
         write_adult_chest(folder)
     elif not profile.exists():                 # a cache drawn before the breathing profile was
         write_profiles(folder / "adult-chest.mha")
