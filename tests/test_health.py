@@ -11,6 +11,8 @@ from appliance.daemon.health import (
     DiskSpace,
     InputDeviceState,
     Level,
+    TrackingState,
+    banners_for_frame,
     profile_reload_check,
     records_check,
     renderer_fault_check,
@@ -54,3 +56,14 @@ def test_device_states_map_to_banners():
     assert profile_reload_check(lambda: "x.yaml:3: a: bad").check().banner.endswith("x.yaml:3: a: bad")
     records = records_check(lambda: "ledger.sqlite: disk full").check()
     assert records.level == Level.ERROR and records.banner.endswith("ledger.sqlite: disk full")
+
+
+def test_a_live_frame_does_not_show_the_markers_lost_banner_the_supervisor_has_not_cleared_yet():
+    """The supervisor's tracking banner is a second old at most; a live frame, drawn from a pose
+    the tracker just gave, leaves it out and keeps every other banner. A held frame shows it."""
+    lost = TrackingState(lambda: False).check().banner
+    others = ["pedal unplugged - plug it back in", "tracking lost: camera lost - check the webcam cable"]
+    banners = [lost, *others]
+    assert banners_for_frame(banners, live=True) == others
+    assert banners_for_frame(banners, live=False) == banners
+    assert TrackingState(lambda: True).check().ok

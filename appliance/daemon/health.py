@@ -84,6 +84,18 @@ class CameraState:
         return Health(Level.WARNING, "tracking lost: camera lost - check the webcam cable", {"state": state})
 
 
+#: TrackingState's banner while the markers are out of the camera's view.
+MARKERS_LOST = "tracking lost: bring the box markers into the camera's view"
+
+
+def banners_for_frame(banners: list[str], live: bool) -> list[str]:
+    """The supervisor's banners as a frame shows them. The supervisor checks the tracking once a
+    health period (a second); a live frame is drawn from a pose the tracker has just given, so
+    on it the markers-lost banner is stale: without this, the first live frames after the
+    markers come back showed it over the live image for up to a second."""
+    return [b for b in banners if b != MARKERS_LOST] if live else banners
+
+
 class TrackingState:
     """Whether the last camera frame gave a pose of the box."""
 
@@ -96,7 +108,7 @@ class TrackingState:
         ok = self._pose_ok()
         if ok is None or ok:
             return OK
-        return Health(Level.WARNING, "tracking lost: bring the box markers into the camera's view", {})
+        return Health(Level.WARNING, MARKERS_LOST, {})
 
 
 class InputDeviceState:

@@ -27,6 +27,7 @@ from ..teaching.views import view_detail
 from ..xray.renderer import Frame, View
 from .frame_stats import FrameStats
 from .handoff import LatestValue, PhaseValue, SavedImage, ShownFrame, ShownImage, Technique, TrackedPose
+from .health import banners_for_frame
 from .native_save import LIVE_GAP_S, native_frame
 from .parts import Parts, is_cpu
 from .pose_demand import PoseDemand
@@ -164,7 +165,7 @@ class RenderWorker(Worker):
             # Nothing new to draw: wait for the next pose rather than spin.
             self.poses.wait_newer(self._last_pose_seq, min(hold_period, POSE_WAIT_S))
             return False
-        banners = self.banners()
+        banners = banners_for_frame(self.banners(), live)
         saved, _ = self.saves.get()
         saved_flash = saved is not None and now < saved.t_saved + SAVED_FLASH_S
         teaching = self.teaching.get()[0] if self.teaching is not None else None
