@@ -273,7 +273,7 @@ def test_a_held_view_goes_through_the_slabs_packet_by_packet_too(renderer, chest
     cache.clear()
     assert cache.fill([a], pose, 1, None, True, circle, 3, lambda: False)
     assert_packet_by_packet(cache.material_integrals(a, pose, View()), *whole(a), *plan)
-    through = pr._held_through(renderer)
+    through = pr._through(renderer, pr.settings.rest_slab_max_shift_px)
     assert through is not None
     pair = cache.cast_two(through(a, pose, 1), through(b, pose, 1), pose, 1, None, True, circle)
     for got, p in zip(pair, (a, b)):

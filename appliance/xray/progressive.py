@@ -115,19 +115,22 @@ class ProgressiveRenderer:
         self.slabs = (SlabCache(renderer.dev, settings.slab_phases, thicker=True)
                       if settings.slab_max_shift_px is not None or settings.rest_slab_max_shift_px is not None else None)
         self._caches = {id(renderer): ProjectionCache(renderer, settings.cache_pose_tolerance_px,
-                                                      settings.cache_max_phases, self._held_through(renderer))}
+                                                      settings.cache_max_phases,
+                                                      self._through(renderer, settings.rest_slab_max_shift_px))}
         #: Picks the moving matrix from the frame times `frame_shown` is given (matrix_control.py).
         self.control = MatrixController(settings, max(renderer.shape))
         self._movers = {n: renderer.at_matrix(n, n) for n in self.control.ladder}
         for mover in self._movers.values():
             self._caches[id(mover)] = ProjectionCache(mover, settings.cache_pose_tolerance_px,
-                                                      settings.cache_max_phases, self._moving_through(mover))
+                                                      settings.cache_max_phases,
+                                                      self._through(mover, settings.slab_max_shift_px, noted=True))
         n = settings.rest_matrix_px
         #: The matrix a resting view is shown at before the full one (`rendering.rest_matrix_px`); None without.
         self.interim = renderer.at_matrix(n, n) if n is not None and n < max(renderer.shape) else None
         if self.interim is not None:
             self._caches[id(self.interim)] = ProjectionCache(self.interim, settings.cache_pose_tolerance_px,
-                                                             settings.cache_max_phases, self._held_through(self.interim))
+                                                             settings.cache_max_phases,
+                                                             self._through(self.interim, settings.rest_slab_max_shift_px))
         self._timed: int | None = None       # the matrix of the last frame if it was a moving cast
         self._slabbed = False                # whether the moving cache's last cast went through slabs
         self._edge_fixes: dict[tuple, np.ndarray] = {}
@@ -260,32 +263,23 @@ class ProgressiveRenderer:
             return bands
         return max(1, round(bands * (target.shape[0] / self.full.shape[0]) ** 2))
 
-    def _held_through(self, renderer: Renderer):
-        """The projection cache's `through` for a held view's matrix: its slab copies where the
-        field's steepest ray shifts within a slab by less than `rendering.rest_slab_max_shift_px`
-        of that matrix's pixels (half the samples, the shift inside the detector's point-spread;
-        the profile's comment gives the figures), else the phase itself; None without the setting
-        (every held view through the full volume)."""
-        limit, slabs = self.settings.rest_slab_max_shift_px, self.slabs
-        if limit is None or slabs is None:
-            return None
-
-        def through(phase: PreparedVolume, T: np.ndarray, zoom: int) -> Through:
-            return slab_through(renderer.caster, slabs, phase, T, zoom, limit)
-        return through
-
-    def _moving_through(self, renderer: Renderer):
-        """The projection cache's `through` for a moving matrix: the moving frames' rule
-        (`rendering.slab_max_shift_px`, slab_cast's), so a phase the cache casts at rest is cast
-        as the moving frames before it were; None without the setting. Notes whether the cast
-        went through slabs (`slab_casts`)."""
-        limit, slabs = self.settings.slab_max_shift_px, self.slabs
+    def _through(self, renderer: Renderer, limit: float | None, noted: bool = False):
+        """A projection cache's `through` for `renderer`'s matrix: its slab copies where the
+        field's steepest ray shifts within a slab by less than `limit` of that matrix's pixels,
+        else the phase itself (slabs.slab_through); None without the setting or the slab cache.
+        A held view's matrices take `rendering.rest_slab_max_shift_px` (half the samples, the
+        shift inside the detector's point-spread; the profile's comment gives the figures), the
+        moving ones the moving frames' `rendering.slab_max_shift_px`, so what they cast at rest
+        is cast as the moving frames were; with `noted` (the moving ones, on the render thread
+        alone) whether the cast went through slabs is kept for `slab_casts`."""
+        slabs = self.slabs
         if limit is None or slabs is None:
             return None
 
         def through(phase: PreparedVolume, T: np.ndarray, zoom: int) -> Through:
             way = slab_through(renderer.caster, slabs, phase, T, zoom, limit)
-            self._slabbed = way.volume is not phase or way.thin is not None
+            if noted:
+                self._slabbed = way.volume is not phase or way.thin is not None
             return way
         return through
 
